@@ -250,7 +250,7 @@ def box3d(points_cam: np.ndarray) -> Box3D:
 
     Its footprint is the minimum-area rectangle of the points' (x, z) (convex hull + rotating calipers);
     l >= w. A box is unchanged by a half turn, so rotation_y is returned in [-pi/2, pi/2).
-    Collinear or coincident footprints give w = 0 (and l = 0); nothing is NaN.
+    A collinear footprint gives w = 0 up to rounding, coincident ones l = w = 0 at rotation_y = 0; never NaN.
     """
     points = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0 or not np.isfinite(points).all():
