@@ -1,0 +1,14 @@
+"""Seeds: every random draw of frame i comes from one generator derived from (dataset seed, i)."""
+
+import numpy as np
+
+# Distinct streams derived from one frame's entropy; appended to the SeedSequence key so they never collide.
+STREAM_SCENE = 0
+STREAM_NOISE = 1
+
+
+def frame_rng(dataset_seed: int, frame_index: int, stream: int = STREAM_SCENE) -> np.random.Generator:
+    """The generator of one frame: a pure function of (dataset_seed, frame_index, stream)."""
+    if dataset_seed < 0 or frame_index < 0:
+        raise ValueError(f"seed and frame index must be >= 0, got {dataset_seed}, {frame_index}")
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([dataset_seed, frame_index, stream])))

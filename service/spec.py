@@ -1,0 +1,413 @@
+"""The dataset spec: what a dataset is, validated at every edge (files, HTTP bodies, task payloads)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from service.errors import SpecError
+from service.water import JERLOV_TYPES
+
+# Documented limits. They keep one frame inside memory and one shard inside the task time limit.
+MAX_FRAMES = 10_000_000
+MAX_SIDE = 4096
+MIN_SIDE = 8
+MAX_SHARD_SIZE = 10_000
+MAX_SHARD_MEGAPIXELS = 600.0  # shard_size * width * height / 1e6
+MAX_OBJECTS = 64  # per role and frame
+MAX_TERRAIN_CELLS = 1024
+MAX_VARIANTS = 1024
+
+Quality = Literal["draft", "default", "high"]
+ProceduralTarget = Literal["urchin", "rock", "coral", "seaweed", "clam"]
+TerrainStyle = Literal["sand", "pebbles", "rock"]
+
+
+def _ordered(v: tuple[float, float]) -> tuple[float, float]:
+    if not (math.isfinite(v[0]) and math.isfinite(v[1])):
+        raise ValueError("bounds must be finite")
+    if v[0] > v[1]:
+        raise ValueError(f"min {v[0]} > max {v[1]}")
+    return v
+
+
+def _nonneg(v: tuple[float, float]) -> tuple[float, float]:
+    if v[0] < 0:
+        raise ValueError(f"must be >= 0, got min {v[0]}")
+    return v
+
+
+def _positive(v: tuple[float, float]) -> tuple[float, float]:
+    if v[0] <= 0:
+        raise ValueError(f"must be > 0, got min {v[0]}")
+    return v
+
+
+def _count_range(v: tuple[int, int]) -> tuple[int, int]:
+    if v[0] < 0:
+        raise ValueError(f"counts must be >= 0, got min {v[0]}")
+    if v[0] > v[1]:
+        raise ValueError(f"min {v[0]} > max {v[1]}")
+    if v[1] > MAX_OBJECTS:
+        raise ValueError(f"max {v[1]} is over the limit of {MAX_OBJECTS} objects")
+    return v
+
+
+# A closed interval [min, max] written as a two-element list in spec files.
+Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
+NonNegInterval = Annotated[tuple[float, float], AfterValidator(_ordered), AfterValidator(_nonneg)]
+PositiveInterval = Annotated[tuple[float, float], AfterValidator(_ordered), AfterValidator(_positive)]
+CountInterval = Annotated[tuple[int, int], AfterValidator(_count_range)]
+Vec3 = tuple[float, float, float]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Box(_Model):
+    """An axis-aligned box in world coordinates (metres, z up)."""
+
+    min: Vec3
+    max: Vec3
+
+    @model_validator(mode="after")
+    def _check(self) -> Box:
+        for axis, lo, hi in zip("xyz", self.min, self.max):
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError(f"{axis} bounds must be finite")
+            if lo > hi:
+                raise ValueError(f"min {axis} {lo} > max {axis} {hi}")
+        return self
+
+
+class Intrinsics(_Model):
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+
+
+class Camera(_Model):
+    width: int = Field(640, ge=MIN_SIDE, le=MAX_SIDE)
+    height: int = Field(480, ge=MIN_SIDE, le=MAX_SIDE)
+    # Horizontal field of view; the vertical one follows from the aspect ratio (square pixels).
+    hfov_deg: float | None = Field(None, gt=1.0, lt=170.0)
+    intrinsics: Intrinsics | None = None
+    clip: PositiveInterval = (0.02, 300.0)
+    look_at_jitter_m: float = Field(0.05, ge=0)
+
+    @model_validator(mode="after")
+    def _one_projection(self) -> Camera:
+        if self.hfov_deg is not None and self.intrinsics is not None:
+            raise ValueError("give either hfov_deg or intrinsics, not both")
+        if self.clip[0] >= self.clip[1]:
+            raise ValueError("clip: near must be < far")
+        return self
+
+    def K(self) -> list[list[float]]:
+        """The 3x3 intrinsic matrix (pixels; pixel centres at integer coordinates)."""
+        if self.intrinsics is not None:
+            i = self.intrinsics
+            return [[i.fx, 0.0, i.cx], [0.0, i.fy, i.cy], [0.0, 0.0, 1.0]]
+        hfov = math.radians(70.0 if self.hfov_deg is None else self.hfov_deg)
+        f = (self.width / 2.0) / math.tan(hfov / 2.0)
+        return [[f, 0.0, (self.width - 1) / 2.0], [0.0, f, (self.height - 1) / 2.0], [0.0, 0.0, 1.0]]
+
+
+class FileRef(_Model):
+    """A user file: a local path (spec files, CLI) or the sha256 id of an asset uploaded to the service."""
+
+    path: str | None = None
+    asset_id: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
+
+    def _sources(self) -> list[str]:
+        return [n for n in ("path", "asset_id") if getattr(self, n) is not None]
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> FileRef:
+        if len(self._sources()) != 1:
+            raise ValueError(f"give exactly one of path, asset_id (got {self._sources() or 'none'})")
+        return self
+
+
+class AssetRef(FileRef):
+    """One object asset: exactly one of a procedural kind, a local file, or an uploaded asset id."""
+
+    procedural: ProceduralTarget | None = None
+    # Procedural kinds are built in this many deterministic variants, cached per process.
+    variants: int = Field(8, ge=1, le=MAX_VARIANTS)
+
+    def _sources(self) -> list[str]:
+        return [n for n in ("procedural", "path", "asset_id") if getattr(self, n) is not None]
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> AssetRef:
+        if len(self._sources()) != 1:
+            raise ValueError(f"give exactly one of procedural, path, asset_id (got {self._sources() or 'none'})")
+        return self
+
+
+class Targets(_Model):
+    class_name: str = Field("Urchin", pattern=r"^\S+$", max_length=64)
+    assets: list[AssetRef] = Field(default_factory=lambda: [AssetRef(procedural="urchin")], min_length=1)
+    count: CountInterval = (3, 8)
+    scale: PositiveInterval = (0.8, 1.25)
+
+
+class Distractors(_Model):
+    assets: list[AssetRef] = Field(
+        default_factory=lambda: [AssetRef(procedural=k) for k in ("rock", "coral", "seaweed", "clam")],
+        min_length=1,
+    )
+    count: CountInterval = (4, 12)
+    scale: PositiveInterval = (0.7, 1.4)
+
+
+class Terrain(_Model):
+    styles: list[TerrainStyle] = Field(default_factory=lambda: ["sand", "pebbles", "rock"], min_length=1)
+    variants: int = Field(8, ge=1, le=MAX_VARIANTS)
+    size_m: float = Field(12.0, gt=0, le=1000)
+    cells: int = Field(192, ge=2, le=MAX_TERRAIN_CELLS)
+    relief_m: float = Field(0.25, ge=0, le=100)
+    # User terrain: a mesh file (replaces the procedural heightfield) and/or a colour texture.
+    mesh: FileRef | None = None
+    texture: FileRef | None = None
+    texture_tile_m: float = Field(1.0, gt=0)
+
+
+class Workspaces(_Model):
+    """The paper's four workspaces (world metres, z up)."""
+
+    targets: Box = Box(min=(-2.0, -2.0, -5.0), max=(2.0, 2.0, 5.0))
+    distractors: Box = Box(min=(-3.0, -3.0, -5.0), max=(3.0, 3.0, 5.0))
+    camera: Box = Box(min=(-1.5, -3.0, 0.8), max=(1.5, -1.0, 2.0))
+    look_at: Box = Box(min=(-2.0, -2.0, -5.0), max=(2.0, 2.0, 5.0))
+
+
+class Lighting(_Model):
+    sun_elevation_deg: Annotated[Interval, AfterValidator(lambda v: _in(v, 0, 90))] = (45.0, 85.0)
+    sun_azimuth_deg: Annotated[Interval, AfterValidator(lambda v: _in(v, -360, 360))] = (0.0, 360.0)
+    sun_intensity: NonNegInterval = (2.0, 3.5)
+    ambient: NonNegInterval = (0.25, 0.45)
+
+
+def _in(v: tuple[float, float], lo: float, hi: float) -> tuple[float, float]:
+    if v[0] < lo or v[1] > hi:
+        raise ValueError(f"must lie within [{lo}, {hi}]")
+    return v
+
+
+class RGBInterval(_Model):
+    """Per-channel intervals: each of R, G, B drawn independently in [min_c, max_c]."""
+
+    min: Vec3
+    max: Vec3
+
+    @model_validator(mode="after")
+    def _check(self) -> RGBInterval:
+        for c, lo, hi in zip("RGB", self.min, self.max):
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError(f"channel {c} bounds must be finite")
+            if lo < 0:
+                raise ValueError(f"channel {c}: must be >= 0, got {lo}")
+            if lo > hi:
+                raise ValueError(f"channel {c}: min {lo} > max {hi}")
+        return self
+
+
+class Water(_Model):
+    """Water: Jerlov types (beta from the table, jittered) and/or explicit per-channel ranges."""
+
+    enabled: bool = True
+    jerlov: list[str] = Field(default_factory=lambda: ["II", "III", "3C", "5C"])
+    beta_jitter: PositiveInterval = (0.85, 1.15)
+    # beta_B = ratio * beta_D per channel when beta_B is not given explicitly.
+    backscatter_ratio: PositiveInterval = (0.8, 1.0)
+    beta_D: RGBInterval | None = None
+    beta_B: RGBInterval | None = None
+    B_inf: RGBInterval | None = None
+    # Multiplies each type's default veiling light per frame (when B_inf is not given).
+    B_inf_jitter: PositiveInterval = (0.8, 1.2)
+
+    @field_validator("jerlov")
+    @classmethod
+    def _known_types(cls, v: list[str]) -> list[str]:
+        for name in v:
+            if name not in JERLOV_TYPES:
+                raise ValueError(f"unknown Jerlov type {name!r}; known: {', '.join(JERLOV_TYPES)}")
+        return v
+
+    @model_validator(mode="after")
+    def _described(self) -> Water:
+        if self.enabled and not self.jerlov and (self.beta_D is None or self.B_inf is None):
+            raise ValueError("with no jerlov types, give beta_D and B_inf explicitly")
+        return self
+
+
+class TextureRandomisation(_Model):
+    """Per-channel albedo scale and bias, drawn per object (colour changes, pattern stays)."""
+
+    scale: NonNegInterval = (0.75, 1.25)
+    bias: Interval = (-0.04, 0.04)
+
+
+class Noise(_Model):
+    """Camera noise: off by default; recorded in meta when on."""
+
+    gaussian_sigma: float = Field(0.0, ge=0, le=0.5)
+
+
+class Outputs(_Model):
+    labels: bool = True
+    meta: bool = True
+    depth: bool = False
+    instance: bool = False
+    clean: bool = False
+    range: bool = False
+
+
+class DatasetSpec(_Model):
+    """A whole dataset. Every field has a default; unknown fields are refused."""
+
+    seed: int = Field(0, ge=0, lt=2**63)
+    frames: int = Field(100, ge=1, le=MAX_FRAMES)
+    shard_size: int = Field(50, ge=1, le=MAX_SHARD_SIZE)
+    quality: Quality = "default"
+    camera: Camera = Camera()
+    workspaces: Workspaces = Workspaces()
+    targets: Targets = Targets()
+    distractors: Distractors = Distractors()
+    terrain: Terrain = Terrain()
+    lighting: Lighting = Lighting()
+    water: Water = Water()
+    texture: TextureRandomisation = TextureRandomisation()
+    noise: Noise = Noise()
+    outputs: Outputs = Outputs()
+
+    @model_validator(mode="after")
+    def _shard_work(self) -> DatasetSpec:
+        mp = self.shard_size * self.camera.width * self.camera.height / 1e6
+        if mp > MAX_SHARD_MEGAPIXELS:
+            raise ValueError(
+                f"shard_size: {self.shard_size} frames of {self.camera.width}x{self.camera.height} is "
+                f"{mp:.0f} megapixels per shard, over the limit of {MAX_SHARD_MEGAPIXELS:.0f}; lower shard_size"
+            )
+        return self
+
+    def asset_refs(self) -> list[AssetRef]:
+        return [*self.targets.assets, *self.distractors.assets]
+
+    def file_refs(self) -> list[tuple[str, FileRef]]:
+        """Every user file the spec names, with the dotted field that names it."""
+        out: list[tuple[str, FileRef]] = []
+        for role in ("targets", "distractors"):
+            for i, a in enumerate(getattr(self, role).assets):
+                if a.procedural is None:
+                    out.append((f"{role}.assets.{i}", a))
+        for key in ("mesh", "texture"):
+            ref = getattr(self.terrain, key)
+            if ref is not None:
+                out.append((f"terrain.{key}", ref))
+        return out
+
+
+def format_validation_error(err: ValidationError) -> str:
+    """One line per problem, each naming the field by its dotted path."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(spec)"
+        msg = e["msg"].removeprefix("Value error, ")
+        lines.append(f"{loc}: {msg}")
+    return "\n".join(lines)
+
+
+def parse_spec(data: Any, *, source: str = "spec") -> DatasetSpec:
+    """Validate a mapping into a spec; raise SpecError naming each bad field."""
+    if not isinstance(data, dict):
+        raise SpecError(f"{source}: the spec must be a mapping, got {type(data).__name__}")
+    try:
+        return DatasetSpec.model_validate(data)
+    except ValidationError as err:
+        raise SpecError(f"{source}: invalid spec\n{format_validation_error(err)}") from None
+
+
+def read_spec_file(path: str | Path) -> dict[str, Any]:
+    """Read a YAML (.yaml/.yml) or JSON (.json) spec file into a mapping."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".yaml", ".yml", ".json"):
+        raise SpecError(f"{path}: spec files must end in .yaml, .yml or .json")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise SpecError(f"{path}: cannot read spec file ({err.strerror or err})") from None
+    try:
+        if suffix == ".json":
+            data = json.loads(text)
+        else:
+            import yaml
+
+            data = yaml.safe_load(text)
+    except Exception as err:  # the parsers' own error types differ; all mean a malformed file
+        raise SpecError(f"{path}: not valid {suffix[1:].upper()}: {err}") from None
+    return {} if data is None else data
+
+
+def resolve_paths(data: dict[str, Any], base: Path) -> dict[str, Any]:
+    """Make relative asset/terrain paths in a spec mapping absolute against the spec file's folder."""
+
+    def fix(p: Any) -> Any:
+        return str((base / p).resolve()) if isinstance(p, str) and not Path(p).is_absolute() else p
+
+    out = json.loads(json.dumps(data))
+    for role in ("targets", "distractors"):
+        for a in (out.get(role) or {}).get("assets") or []:
+            if isinstance(a, dict) and "path" in a:
+                a["path"] = fix(a["path"])
+    terrain = out.get("terrain") or {}
+    for key in ("mesh", "texture"):
+        if isinstance(terrain.get(key), dict) and "path" in terrain[key]:
+            terrain[key]["path"] = fix(terrain[key]["path"])
+    return out
+
+
+def load_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> DatasetSpec:
+    """Load a spec file, apply dotted-key overrides (e.g. {"camera.width": 64}), validate."""
+    path = Path(path)
+    data = resolve_paths(read_spec_file(path), path.parent)
+    return parse_spec(apply_overrides(data, overrides or {}), source=str(path))
+
+
+def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """Return a copy of `data` with dotted keys set (None values are skipped)."""
+    out = json.loads(json.dumps(data))
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        node = out
+        *parents, leaf = dotted.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    return out
+
+
+def spec_digest(spec: DatasetSpec) -> str:
+    """sha256 of the spec's canonical JSON: two equal specs have the same digest."""
+    import hashlib
+
+    canon = json.dumps(spec.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canon.encode()).hexdigest()

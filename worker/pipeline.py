@@ -1,0 +1,377 @@
+"""One frame as a pure function of (spec, dataset seed, frame index, renderer): files keyed by relative path."""
+
+from __future__ import annotations
+
+import io
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import numpy as np
+
+import service
+from service.seeds import STREAM_NOISE, frame_rng
+from service.spec import AssetRef, DatasetSpec, FileRef, spec_digest
+from worker import kitti, labels
+from worker.assets import Asset
+from worker.assets.procedural import procedural_asset
+from worker.assets.terrain import Terrain, apply_texture, procedural_terrain
+from worker.formation import decode_srgb8, encode_srgb8
+from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
+from worker.scene import Placed, Scene, sample_scene
+
+# Quality presets: how many samples make a pixel. The water is always applied per sample, in float32, before
+# samples are averaged in linear light; bench/ measures what each costs and how far it is from 16 samples.
+PRESETS: dict[str, Sampling] = {
+    "draft": Sampling(msaa=1, supersample=1),
+    "default": Sampling(msaa=4, supersample=1),
+    "high": Sampling(msaa=4, supersample=2),
+}
+
+PNG_COMPRESS_LEVEL = 1  # zlib level: larger files, much faster encoding; any level decodes to the same pixels
+DEPTH_SCALE = 256.0  # KITTI depth PNG: metres * 256 in uint16, 0 = no measurement
+VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow")
+
+
+def frame_name(index: int) -> str:
+    return f"{index:06d}"
+
+
+def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
+    """Relative paths of every file frame `index` produces under `spec.outputs`."""
+    n, o = frame_name(index), spec.outputs
+    paths = [f"image_2/{n}.png", f"calib/{n}.txt"]
+    optional = (
+        (o.labels, f"label_2/{n}.txt"),
+        (o.meta, f"meta/{n}.json"),
+        (o.depth, f"depth/{n}.png"),
+        (o.instance, f"instance/{n}.png"),
+        (o.clean, f"clean/{n}.png"),
+        (o.range, f"range/{n}.npy"),
+    )
+    return paths + [p for want, p in optional if want]
+
+
+def to_render_mesh(key: str, mesh) -> Mesh:
+    """GPU-ready arrays of a trimesh mesh whose vertex colours are sRGB-encoded uint8."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre = (lo + hi) / 2
+    return Mesh(
+        key=key,
+        vertices=v.astype(np.float32),
+        normals=np.nan_to_num(np.asarray(mesh.vertex_normals, dtype=np.float32)),
+        albedo=decode_srgb8(colours, np.float32),
+        faces=np.asarray(mesh.faces, dtype=np.uint32),
+        radius=float(np.linalg.norm(v - centre, axis=1).max()),
+        centre=centre,
+    )
+
+
+def png_bytes(array: np.ndarray) -> bytes:
+    """PNG of an (h, w, 3) uint8 RGB or (h, w) uint16 image."""
+    from PIL import Image
+
+    if not ((array.dtype == np.uint8 and array.ndim == 3 and array.shape[2] == 3) or
+            (array.dtype == np.uint16 and array.ndim == 2)):
+        raise ValueError(f"png_bytes takes (h, w, 3) uint8 or (h, w) uint16, got {array.shape} {array.dtype}")
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(array)).save(buf, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
+    return buf.getvalue()
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def ray_norms(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(h, w) float32: |K^-1 [u, v, 1]| per pixel centre, so range = z_depth * ray_norm."""
+    u = np.arange(width, dtype=np.float64)
+    v = np.arange(height, dtype=np.float64)
+    x = (u - K[0, 2]) / K[0, 0]
+    y = (v - K[1, 2]) / K[1, 1]
+    return np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2).astype(np.float32)
+
+
+def depth_png16(range_m: np.ndarray, norms: np.ndarray) -> np.ndarray:
+    """(h, w) uint16 KITTI depth: z-depth metres * 256, rounded; 0 where no surface or >= 256 m."""
+    z = range_m.astype(np.float64) / norms
+    ok = np.isfinite(z) & (z * DEPTH_SCALE < 65535.5) & (z > 0)
+    out = np.zeros(z.shape, dtype=np.uint16)
+    out[ok] = np.rint(z[ok] * DEPTH_SCALE).astype(np.uint16)
+    return out
+
+
+@dataclass(frozen=True)
+class FrameLabels:
+    objects: list[labels.KittiObject]
+    line_of: dict[int, int]  # instance id -> 0-based label line
+    visible: dict[int, int]  # instance id -> visible pixels
+    alone: dict[int, int]  # instance id -> pixels when rendered alone
+
+
+class RenderSession:
+    """Per-process resources: the GL renderer and caches of assets and uploaded meshes.
+
+    fetch_asset maps an uploaded asset id (sha256) to a local file; only the service needs it.
+    """
+
+    def __init__(self, fetch_asset: Callable[[str], Path] | None = None, platform: str = "egl") -> None:
+        self._fetch_asset = fetch_asset
+        self._platform = platform
+        self._renderer = None
+        self._meshes: dict[str, Mesh] = {}
+        self._norms: dict[tuple, np.ndarray] = {}
+        self.renderer_name = ""
+        self.versions: dict[str, str] = {}
+
+    def __enter__(self) -> RenderSession:
+        from worker.render.gl import GLRenderer
+
+        self._renderer = GLRenderer(self._platform)
+        self.renderer_name = self._renderer.name
+        self.versions = {p: _version(p) for p in VERSIONED_PACKAGES}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            raise RuntimeError("RenderSession used outside its `with` block")
+        return self._renderer
+
+    # ---- assets --------------------------------------------------------------------------------------------
+    def _file(self, ref: FileRef) -> Path:
+        if ref.path is not None:
+            return Path(ref.path)
+        if self._fetch_asset is None:
+            raise FileNotFoundError(f"asset {ref.asset_id} is an uploaded asset; this session cannot fetch it")
+        return self._fetch_asset(ref.asset_id)
+
+    def asset_for(self, ref: AssetRef, variant: int | None) -> Asset:
+        if ref.procedural is not None:
+            return procedural_asset(ref.procedural, variant)
+        from worker.assets.user import load_user_asset
+
+        return load_user_asset(self._file(ref))
+
+    def terrain_for(self, spec: DatasetSpec, rng: np.random.Generator) -> Terrain:
+        t = spec.terrain
+        if t.mesh is not None:
+            from worker.assets.user import load_user_terrain
+
+            terrain = load_user_terrain(self._file(t.mesh))
+        else:
+            style = t.styles[rng.integers(len(t.styles))]
+            variant = int(rng.integers(t.variants))
+            terrain = procedural_terrain(style, variant, t.size_m, t.cells, t.relief_m)
+        if t.texture is not None:
+            terrain = apply_texture(terrain, self._file(t.texture), t.texture_tile_m)
+        return terrain
+
+    def _render_mesh(self, key: str, mesh) -> Mesh:
+        got = self._meshes.get(key)
+        if got is None:
+            got = self._meshes[key] = to_render_mesh(key, mesh)
+        return got
+
+    def _ray_norms(self, view: View) -> np.ndarray:
+        key = (view.width, view.height, view.K.tobytes())
+        if key not in self._norms:
+            self._norms[key] = ray_norms(view.K, view.width, view.height)
+        return self._norms[key]
+
+    # ---- frames --------------------------------------------------------------------------------------------
+    def scene(self, spec: DatasetSpec, index: int) -> Scene:
+        return sample_scene(spec, frame_rng(spec.seed, index), self.asset_for, self.terrain_for)
+
+    def view(self, spec: DatasetSpec, scene: Scene) -> View:
+        return View(
+            K=np.asarray(spec.camera.K(), dtype=np.float64),
+            width=spec.camera.width,
+            height=spec.camera.height,
+            cam_from_world=scene.cam_from_world,
+            near=spec.camera.clip[0],
+            far=spec.camera.clip[1],
+        )
+
+    def draw_items(self, scene: Scene) -> list[DrawItem]:
+        t = scene.terrain
+        items = [
+            DrawItem(
+                mesh=self._render_mesh(t.key, t.mesh),
+                world_from_obj=np.eye(4),
+                albedo_scale=scene.terrain_albedo_scale,
+                albedo_bias=scene.terrain_albedo_bias,
+                instance_id=0,
+            )
+        ]
+        for p in scene.objects:
+            items.append(
+                DrawItem(
+                    mesh=self._render_mesh(p.asset.key, p.asset.mesh),
+                    world_from_obj=p.world_from_obj,
+                    albedo_scale=p.albedo_scale,
+                    albedo_bias=p.albedo_bias,
+                    instance_id=p.instance_id,
+                )
+            )
+        return items
+
+    def frame_files(self, spec: DatasetSpec, index: int) -> dict[str, bytes]:
+        """Every file of frame `index`, keyed by its relative path (`image_2/000123.png`, ...)."""
+        scene = self.scene(spec, index)
+        view = self.view(spec, scene)
+        items = self.draw_items(scene)
+        o = spec.outputs
+        passes = Passes(clean=o.clean, ids=o.labels or o.instance, range=o.range or o.depth)
+        result = self.renderer.render(view, items, scene.lighting, scene.water, PRESETS[spec.quality], passes)
+        image = result.image
+        noise = None
+        if spec.noise.gaussian_sigma > 0:
+            noise_rng = frame_rng(spec.seed, index, STREAM_NOISE)
+            image = image + noise_rng.normal(0.0, spec.noise.gaussian_sigma, image.shape).astype(np.float32)
+            noise = {"gaussian_sigma_linear": spec.noise.gaussian_sigma}
+
+        n = frame_name(index)
+        files: dict[str, bytes] = {f"image_2/{n}.png": png_bytes(encode_srgb8(image))}
+        frame_labels = self.labels(view, scene, items, result) if o.labels else None
+        if o.labels:
+            files[f"label_2/{n}.txt"] = kitti.format_label_file(frame_labels.objects).encode()
+        files[f"calib/{n}.txt"] = kitti.format_calib(view.K).encode()
+        if o.meta:
+            files[f"meta/{n}.json"] = self.meta(spec, index, scene, view, frame_labels, noise).encode()
+        if o.depth:
+            files[f"depth/{n}.png"] = png_bytes(depth_png16(result.range_m, self._ray_norms(view)))
+        if o.instance:
+            files[f"instance/{n}.png"] = png_bytes(result.instance.astype(np.uint16))
+        if o.clean:
+            files[f"clean/{n}.png"] = png_bytes(encode_srgb8(result.clean))
+        if o.range:
+            files[f"range/{n}.npy"] = npy_bytes(result.range_m)
+        return files
+
+    def labels(self, view: View, scene: Scene, items: list[DrawItem], result: RenderResult) -> FrameLabels:
+        """KITTI objects of the targets with at least one visible pixel, in instance-id order."""
+        boxes = labels.tight_boxes(result.instance)
+        objects, line_of, visible, alone = [], {}, {}, {}
+        by_id = {it.instance_id: it for it in items}
+        for p in scene.objects:
+            box = boxes.get(p.instance_id)
+            if p.role != "target" or box is None:
+                continue
+            pts = _points_cam(view, p)
+            item = by_id[p.instance_id]
+            region = _pixel_region(pts, view)
+            alone_px = self.renderer.pixels_alone(view, item, region)
+            # Rendered alone an object covers at least what it covers among others (same rasterisation).
+            alone_px = max(alone_px, box.pixels)
+            truncated = labels.truncation(pts, view.K, view.width, view.height, view.near)
+            occluded = labels.occlusion_level(box.pixels, alone_px)
+            line_of[p.instance_id] = len(objects)
+            visible[p.instance_id] = box.pixels
+            alone[p.instance_id] = alone_px
+            objects.append(labels.kitti_object(p.class_name, box, labels.box3d(pts), truncated, occluded))
+        return FrameLabels(objects=objects, line_of=line_of, visible=visible, alone=alone)
+
+    def meta(self, spec, index, scene: Scene, view: View, fl: FrameLabels | None, noise) -> str:
+        """The frame's audit record: nothing in it depends on time, host, duration or worker count."""
+        w = scene.water
+        record = {
+            "dataset_seed": spec.seed,
+            "frame_index": index,
+            "code_version": service.__version__,
+            "spec_sha256": spec_digest(spec),
+            "versions": self.versions,
+            "gl_renderer": self.renderer_name,
+            "preset": spec.quality,
+            "sampling": {"msaa": PRESETS[spec.quality].msaa, "supersample": PRESETS[spec.quality].supersample},
+            "camera": {
+                "K": view.K.tolist(),
+                "width": view.width,
+                "height": view.height,
+                "pose_world_from_camera": scene.world_from_cam.tolist(),
+                "clip": [view.near, view.far],
+                "look_at": scene.look_at.tolist(),
+                "look_at_instance": scene.look_at_instance,
+                "position_draws": scene.camera_tries,
+            },
+            "water": None
+            if w is None
+            else {
+                "jerlov_type": scene.water_type,
+                "beta_D": w.beta_D.tolist(),
+                "beta_B": w.beta_B.tolist(),
+                "B_inf": w.B_inf.tolist(),
+            },
+            "lights": {
+                "sun_direction_world": scene.lighting.sun_dir_world.tolist(),
+                "sun_intensity": scene.lighting.sun_intensity,
+                "ambient": scene.lighting.ambient,
+            },
+            "terrain": {
+                "key": scene.terrain.key,
+                "albedo_scale": scene.terrain_albedo_scale.tolist(),
+                "albedo_bias": scene.terrain_albedo_bias.tolist(),
+            },
+            "objects": [_object_record(p, fl) for p in scene.objects],
+            "objects_left_out": scene.dropped,
+            "noise": noise,
+        }
+        return json.dumps(record, indent=1, sort_keys=True) + "\n"
+
+
+def _asset_record(key: str, source: str, sha256: str | None) -> dict:
+    return {"key": key, "source": source, "sha256": sha256}
+
+
+def _object_record(p: Placed, fl: FrameLabels | None) -> dict:
+    return {
+        "instance_id": p.instance_id,
+        "class": p.class_name,
+        "role": p.role,
+        "label_line": None if fl is None else fl.line_of.get(p.instance_id),
+        "visible_pixels": None if fl is None else fl.visible.get(p.instance_id, 0),
+        "pixels_alone": None if fl is None else fl.alone.get(p.instance_id),
+        "asset": {**_asset_record(p.asset.key, p.asset.source, p.asset.sha256), "variant": p.variant},
+        "scale": p.scale,
+        "pose_world_from_object": p.world_from_obj.tolist(),
+        "albedo_scale": p.albedo_scale.tolist(),
+        "albedo_bias": p.albedo_bias.tolist(),
+    }
+
+
+def _points_cam(view: View, p: Placed) -> np.ndarray:
+    """(n, 3) float64: the object's vertices in the camera frame, metres."""
+    T = view.cam_from_world @ p.world_from_obj
+    v = np.asarray(p.asset.mesh.vertices, dtype=np.float64)
+    return v @ T[:3, :3].T + T[:3, 3]
+
+
+def _pixel_region(points_cam: np.ndarray, view: View) -> tuple[int, int, int, int] | None:
+    """Inclusive pixel bounds containing the projection of points all in front of the near plane, else None."""
+    if np.any(points_cam[:, 2] <= view.near):
+        return None
+    uv = labels.project(points_cam, view.K)
+    lo = np.floor(uv.min(axis=0)).astype(int) - 1
+    hi = np.ceil(uv.max(axis=0)).astype(int) + 1
+    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+
+
+def _version(package: str) -> str:
+    try:
+        return version(package)
+    except PackageNotFoundError:
+        return "unknown"

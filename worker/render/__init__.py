@@ -1,0 +1,109 @@
+"""Rendering: the Renderer protocol, what a frame asks of it, and what it returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class View:
+    """A pinhole camera. Camera frame is KITTI's: x right, y down, z forward (metres)."""
+
+    K: np.ndarray  # (3, 3) float64, pixels; pixel centres at integer coordinates
+    width: int
+    height: int
+    cam_from_world: np.ndarray  # (4, 4) float64
+    near: float  # metres
+    far: float  # metres
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """Geometry uploaded once per process under `key`."""
+
+    key: str
+    vertices: np.ndarray  # (n, 3) float32, metres, object frame
+    normals: np.ndarray  # (n, 3) float32, unit (or zero for degenerate vertices)
+    albedo: np.ndarray  # (n, 3) float32, linear RGB in [0, 1]
+    faces: np.ndarray  # (m, 3) uint32
+    radius: float  # metres: every vertex lies within this distance of `centre`
+    centre: np.ndarray  # (3,) float64, object frame
+
+
+@dataclass(frozen=True)
+class DrawItem:
+    """One placed instance of an uploaded mesh."""
+
+    mesh: Mesh
+    world_from_obj: np.ndarray  # (4, 4) float64
+    albedo_scale: np.ndarray  # (3,) float32
+    albedo_bias: np.ndarray  # (3,) float32
+    instance_id: int  # 0 = terrain (unlabelled), else 1..65535
+
+
+@dataclass(frozen=True)
+class Lighting:
+    sun_dir_world: np.ndarray  # (3,) float64, unit vector towards the sun
+    sun_intensity: float
+    ambient: float
+
+
+@dataclass(frozen=True)
+class WaterParams:
+    """Per-channel coefficients of the image formation model (linear RGB)."""
+
+    beta_D: np.ndarray  # (3,) float64, 1/m
+    beta_B: np.ndarray  # (3,) float64, 1/m
+    B_inf: np.ndarray  # (3,) float64, linear RGB
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """How many samples make one output pixel: supersample^2 pixels, each with `msaa` coverage samples."""
+
+    msaa: int = 4
+    supersample: int = 1
+
+    @property
+    def per_pixel(self) -> int:
+        return self.msaa * self.supersample**2
+
+
+@dataclass(frozen=True)
+class Passes:
+    """What to render. A pass nobody asked for is never drawn or read back."""
+
+    clean: bool = False  # the in-air image J, resolved like the hazed one
+    ids: bool = False  # per-pixel instance ids at pixel centres
+    range: bool = False  # per-pixel range at pixel centres
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    image: np.ndarray  # (h, w, 3) float32 linear RGB, hazed when water was given
+    clean: np.ndarray | None  # (h, w, 3) float32 linear RGB in air
+    instance: np.ndarray | None  # (h, w) uint32, 0 = terrain or open water
+    range_m: np.ndarray | None  # (h, w) float32 metres, +inf where no surface
+
+
+class Renderer(Protocol):
+    """A renderer backend. One per process, reused across frames; close() releases its resources."""
+
+    name: str  # the GL renderer string, recorded with every frame
+
+    def render(
+        self,
+        view: View,
+        items: list[DrawItem],
+        lighting: Lighting,
+        water: WaterParams | None,
+        sampling: Sampling,
+        passes: Passes,
+    ) -> RenderResult: ...
+
+    def pixels_alone(self, view: View, item: DrawItem) -> int: ...
+
+    def close(self) -> None: ...

@@ -1,0 +1,442 @@
+"""Headless OpenGL renderer on pyrender's EGL/OSMesa platforms, with float framebuffers and our own shaders.
+
+Why not pyrender's stock renderer: it writes gamma-encoded colour into an 8-bit 4x MSAA buffer (resolved in that
+space), returns z-depth from one sample with 0 for no hit, and renders passes we may not need. Here colour stays
+linear and float, range is computed per fragment (no depth-buffer precision loss), open water is +inf, the water
+is applied per sample before averaging, and only the passes a frame's outputs need are drawn and read back.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.errors import RenderError
+from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
+from worker.render import shaders
+
+
+def projection(K: np.ndarray, width: int, height: int, near: float, far: float) -> np.ndarray:
+    """(4, 4) float64 clip-from-camera for KITTI camera coordinates.
+
+    Row v of the image lands on framebuffer row v (GL's bottom row first), so read-back arrays are already in
+    image order; pixel (u, v) centres sit at integer coordinates, matching K.
+    """
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    return np.array(
+        [
+            [2 * fx / width, K[0, 1] * 2 / width, 2 * (cx + 0.5) / width - 1, 0],
+            [0, 2 * fy / height, 2 * (cy + 0.5) / height - 1, 0],
+            [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)],
+            [0, 0, 1, 0],
+        ],
+        dtype=np.float64,
+    )
+
+
+def sphere_in_view(view: View, centre_cam: np.ndarray, radius: float) -> bool:
+    """Conservative frustum test of a bounding sphere (camera frame); False only if surely invisible."""
+    x, y, z = centre_cam
+    if z + radius < view.near or z - radius > view.far:
+        return False
+    fx, fy, cx, cy = view.K[0, 0], view.K[1, 1], view.K[0, 2], view.K[1, 2]
+    planes = (
+        (fx, 0.0, cx + 0.5),  # u >= -0.5
+        (-fx, 0.0, view.width - 0.5 - cx),  # u <= w - 0.5
+        (0.0, fy, cy + 0.5),
+        (0.0, -fy, view.height - 0.5 - cy),
+    )
+    for a, b, c in planes:
+        if (a * x + b * y + c * z) / math.sqrt(a * a + b * b + c * c) < -radius:
+            return False
+    return True
+
+
+@dataclass
+class _GpuMesh:
+    vao: int
+    buffers: tuple[int, int]
+    count: int
+
+
+@dataclass
+class _Target:
+    """A framebuffer and its attachments, keyed by what it holds."""
+
+    fbo: int
+    textures: list[int] = field(default_factory=list)
+    renderbuffers: list[int] = field(default_factory=list)
+
+
+class GLRenderer:
+    """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size."""
+
+    def __init__(self, platform: str = "egl") -> None:
+        if platform not in ("egl", "osmesa"):
+            raise RenderError(f"unsupported GL platform {platform!r}; use 'egl' or 'osmesa'")
+        # PyOpenGL picks its platform once, at first import.
+        os.environ.setdefault("PYOPENGL_PLATFORM", platform)
+        os.environ.setdefault("PYGLET_HEADLESS", "1")
+        if os.environ["PYOPENGL_PLATFORM"] != platform:
+            raise RenderError(
+                f"PYOPENGL_PLATFORM is {os.environ['PYOPENGL_PLATFORM']!r} but platform {platform!r} was asked for"
+            )
+        try:
+            if platform == "egl":
+                from pyrender.platforms.egl import EGLPlatform as _Platform
+            else:
+                from pyrender.platforms.osmesa import OSMesaPlatform as _Platform
+            self._platform = _Platform(8, 8)
+            self._platform.init_context()
+            self._platform.make_current()
+        except Exception as err:  # EGL/OSMesa report failures in many shapes; all mean "no context"
+            raise RenderError(f"cannot create a headless {platform} OpenGL context: {err!r}") from err
+        from OpenGL import GL
+
+        self._gl = GL
+        self.name = GL.glGetString(GL.GL_RENDERER).decode()
+        self.version = GL.glGetString(GL.GL_VERSION).decode()
+        self.max_samples = int(GL.glGetIntegerv(GL.GL_MAX_SAMPLES))
+        self._meshes: dict[str, _GpuMesh] = {}
+        self._programs: dict[tuple, tuple[int, dict[str, int]]] = {}
+        self._targets: dict[tuple, _Target] = {}
+        self._empty_vao = GL.glGenVertexArrays(1)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDisable(GL.GL_CULL_FACE)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+
+    # ---- lifecycle -------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Release every GL object and the context. Safe to call twice."""
+        if self._platform is None:
+            return
+        GL = self._gl
+        self._platform.make_current()
+        for m in self._meshes.values():
+            GL.glDeleteVertexArrays(1, [m.vao])
+            GL.glDeleteBuffers(2, list(m.buffers))
+        for prog, _ in self._programs.values():
+            GL.glDeleteProgram(prog)
+        for key in list(self._targets):
+            self._drop_target(key)
+        GL.glDeleteVertexArrays(1, [self._empty_vao])
+        self._meshes.clear()
+        self._programs.clear()
+        self._platform.delete_context()
+        self._platform = None
+
+    def __enter__(self) -> GLRenderer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- resources -------------------------------------------------------------------------------------------
+    def _mesh(self, mesh: Mesh) -> _GpuMesh:
+        got = self._meshes.get(mesh.key)
+        if got is not None:
+            return got
+        GL = self._gl
+        interleaved = np.ascontiguousarray(np.hstack([mesh.vertices, mesh.normals, mesh.albedo]), dtype=np.float32)
+        faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
+        vao = GL.glGenVertexArrays(1)
+        vbo, ebo = GL.glGenBuffers(2)
+        GL.glBindVertexArray(vao)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, interleaved.nbytes, interleaved, GL.GL_STATIC_DRAW)
+        for loc in range(3):
+            GL.glEnableVertexAttribArray(loc)
+            GL.glVertexAttribPointer(loc, 3, GL.GL_FLOAT, GL.GL_FALSE, 36, ctypes.c_void_p(12 * loc))
+        GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
+        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, faces.nbytes, faces, GL.GL_STATIC_DRAW)
+        GL.glBindVertexArray(0)
+        got = _GpuMesh(vao=vao, buffers=(vbo, ebo), count=int(faces.size))
+        self._meshes[mesh.key] = got
+        return got
+
+    def _program(self, vertex: str, fragment: str, **defines: object) -> tuple[int, dict[str, int]]:
+        key = (vertex, fragment, tuple(sorted(defines.items())))
+        got = self._programs.get(key)
+        if got is not None:
+            return got
+        GL = self._gl
+        from OpenGL.GL import shaders as gls
+
+        try:
+            prog = gls.compileProgram(
+                gls.compileShader(shaders.variant(vertex, **defines), GL.GL_VERTEX_SHADER),
+                gls.compileShader(shaders.variant(fragment, **defines), GL.GL_FRAGMENT_SHADER),
+                validate=False,
+            )
+        except RuntimeError as err:
+            raise RenderError(f"shader compilation failed on {self.name}: {err}") from err
+        n = GL.glGetProgramiv(prog, GL.GL_ACTIVE_UNIFORMS)
+        locs = {}
+        for i in range(n):
+            name = GL.glGetActiveUniform(prog, i)[0].decode()
+            locs[name] = GL.glGetUniformLocation(prog, name)
+        got = (prog, locs)
+        self._programs[key] = got
+        return got
+
+    def _target(self, key: tuple, build) -> _Target:
+        got = self._targets.get(key)
+        if got is None:
+            got = build()
+            GL = self._gl
+            status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+            if status != GL.GL_FRAMEBUFFER_COMPLETE:
+                raise RenderError(f"framebuffer {key} incomplete on {self.name} (status {status:#x})")
+            self._targets[key] = got
+        return got
+
+    def _drop_target(self, key: tuple) -> None:
+        GL = self._gl
+        t = self._targets.pop(key)
+        GL.glDeleteFramebuffers(1, [t.fbo])
+        if t.textures:
+            GL.glDeleteTextures(t.textures)
+        if t.renderbuffers:
+            GL.glDeleteRenderbuffers(len(t.renderbuffers), t.renderbuffers)
+
+    def _new_fbo(self) -> _Target:
+        GL = self._gl
+        t = _Target(fbo=GL.glGenFramebuffers(1))
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
+        return t
+
+    def _attach_texture(self, t: _Target, slot: int, fmt: int, w: int, h: int, samples: int) -> None:
+        GL = self._gl
+        tex = GL.glGenTextures(1)
+        if samples > 1:
+            GL.glBindTexture(GL.GL_TEXTURE_2D_MULTISAMPLE, tex)
+            GL.glTexImage2DMultisample(GL.GL_TEXTURE_2D_MULTISAMPLE, samples, fmt, w, h, GL.GL_TRUE)
+            target = GL.GL_TEXTURE_2D_MULTISAMPLE
+        else:
+            GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+            GL.glTexStorage2D(GL.GL_TEXTURE_2D, 1, fmt, w, h)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+            target = GL.GL_TEXTURE_2D
+        GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + slot, target, tex, 0)
+        t.textures.append(tex)
+
+    def _attach_renderbuffer(self, t: _Target, attachment: int, fmt: int, w: int, h: int, samples: int) -> None:
+        GL = self._gl
+        rb = GL.glGenRenderbuffers(1)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
+        if samples > 1:
+            GL.glRenderbufferStorageMultisample(GL.GL_RENDERBUFFER, samples, fmt, w, h)
+        else:
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
+        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attachment, GL.GL_RENDERBUFFER, rb)
+        t.renderbuffers.append(rb)
+
+    def _surface_target(self, w: int, h: int, msaa: int, with_range: bool) -> _Target:
+        def build() -> _Target:
+            GL = self._gl
+            t = self._new_fbo()
+            self._attach_texture(t, 0, GL.GL_RGBA16F, w, h, msaa)
+            if with_range:
+                self._attach_texture(t, 1, GL.GL_R32F, w, h, msaa)
+            self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, msaa)
+            return t
+
+        return self._target(("surface", w, h, msaa, with_range), build)
+
+    def _resolve_target(self, w: int, h: int, outputs: int) -> _Target:
+        def build() -> _Target:
+            GL = self._gl
+            t = self._new_fbo()
+            for slot in range(outputs):
+                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0 + slot, GL.GL_RGBA32F, w, h, 1)
+            return t
+
+        return self._target(("resolve", w, h, outputs), build)
+
+    def _ids_target(self, w: int, h: int, with_range: bool) -> _Target:
+        def build() -> _Target:
+            GL = self._gl
+            t = self._new_fbo()
+            self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0, GL.GL_R32UI, w, h, 1)
+            if with_range:
+                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT1, GL.GL_R32F, w, h, 1)
+            self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, 1)
+            return t
+
+        return self._target(("ids", w, h, with_range), build)
+
+    # ---- drawing ---------------------------------------------------------------------------------------------
+    def _draw(self, view: View, items: list[DrawItem], locs: dict[str, int], *, lit: bool, ids: bool) -> None:
+        GL = self._gl
+        cam_from_world = view.cam_from_world
+        for item in items:
+            cam_from_obj = cam_from_world @ item.world_from_obj
+            centre = cam_from_obj[:3, :3] @ item.mesh.centre + cam_from_obj[:3, 3]
+            scale = float(np.abs(np.linalg.svd(item.world_from_obj[:3, :3], compute_uv=False)).max())
+            if not sphere_in_view(view, centre, item.mesh.radius * scale):
+                continue
+            gpu = self._mesh(item.mesh)
+            GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, cam_from_obj.astype(np.float32))
+            if lit:
+                nrm = np.linalg.inv(cam_from_obj[:3, :3]).T
+                GL.glUniformMatrix3fv(locs["u_nrm_cam"], 1, GL.GL_TRUE, nrm.astype(np.float32))
+                GL.glUniform3fv(locs["u_scale"], 1, item.albedo_scale.astype(np.float32))
+                GL.glUniform3fv(locs["u_bias"], 1, item.albedo_bias.astype(np.float32))
+            if ids:
+                GL.glUniform1ui(locs["u_id"], item.instance_id)
+            GL.glBindVertexArray(gpu.vao)
+            GL.glDrawElements(GL.GL_TRIANGLES, gpu.count, GL.GL_UNSIGNED_INT, None)
+        GL.glBindVertexArray(0)
+
+    def _set_view(self, locs: dict[str, int], view: View, w: int, h: int) -> None:
+        GL = self._gl
+        GL.glViewport(0, 0, w, h)
+        proj = projection(view.K, view.width, view.height, view.near, view.far)
+        GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, proj.astype(np.float32))
+
+    def _read(self, slot: int, w: int, h: int, fmt: int, typ: int, dtype, channels: int, x: int = 0, y: int = 0):
+        GL = self._gl
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + slot)
+        data = GL.glReadPixels(x, y, w, h, fmt, typ)
+        arr = np.frombuffer(data, dtype=dtype)
+        return arr.reshape(h, w, channels) if channels > 1 else arr.reshape(h, w)
+
+    def render(
+        self,
+        view: View,
+        items: list[DrawItem],
+        lighting: Lighting,
+        water: WaterParams | None,
+        sampling: Sampling,
+        passes: Passes,
+    ) -> RenderResult:
+        """Render one frame: linear hazed image, and the optional clean image, ids and range."""
+        image, clean = self._surface(view, items, lighting, water, sampling, passes.clean, only_sample=-1)
+        instance = range_m = None
+        if passes.ids or passes.range:
+            instance, range_m = self._ids(view, items, passes.ids, passes.range)
+        return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m)
+
+    def samples(
+        self, view: View, items: list[DrawItem], lighting: Lighting, sampling: Sampling
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Every sample of a frame, for audits: J (k, h, w, 3) float32 linear and range (k, h, w) float32."""
+        Js, Rs = [], []
+        for k in range(sampling.per_pixel):
+            J, R = self._surface(view, items, lighting, None, sampling, False, only_sample=k, sample_range=True)
+            Js.append(J)
+            Rs.append(R[..., 0])
+        return np.stack(Js), np.stack(Rs)
+
+    def _surface(self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False):
+        GL = self._gl
+        if sampling.msaa > self.max_samples:
+            raise RenderError(f"{sampling.msaa}x MSAA asked for, {self.name} supports at most {self.max_samples}")
+        ss, msaa = sampling.supersample, sampling.msaa
+        W, H = view.width * ss, view.height * ss
+        with_range = water is not None or sample_range
+        surf = self._surface_target(W, H, msaa, with_range)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, surf.fbo)
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][: 2 if with_range else 1])
+        GL.glClearBufferfv(GL.GL_COLOR, 0, np.zeros(4, np.float32))
+        if with_range:
+            GL.glClearBufferfv(GL.GL_COLOR, 1, np.array([np.inf, 0, 0, 0], np.float32))
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        prog, locs = self._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
+        GL.glUseProgram(prog)
+        self._set_view(locs, view, W, H)
+        sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
+        GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
+        GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
+        GL.glUniform1f(locs["u_ambient"], lighting.ambient)
+        self._draw(view, items, locs, lit=True, ids=False)
+
+        from worker.formation import GLSL_HAZE
+
+        n_out = 2 if (want_clean or sample_range) else 1
+        res = self._resolve_target(view.width, view.height, n_out)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][:n_out])
+        GL.glDisable(GL.GL_DEPTH_TEST)
+        src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
+        prog, locs = self._program(
+            shaders.FULLSCREEN,
+            src,
+            SAMPLES=msaa,
+            SUPERSAMPLE=ss,
+            WITH_HAZE=water is not None,
+            WITH_CLEAN=want_clean and not sample_range,
+            WITH_SAMPLE_RANGE=sample_range,
+        )
+        GL.glUseProgram(prog)
+        GL.glViewport(0, 0, view.width, view.height)
+        tex_target = GL.GL_TEXTURE_2D_MULTISAMPLE if msaa > 1 else GL.GL_TEXTURE_2D
+        for unit, (name, tex) in enumerate(zip(("u_J", "u_R"), surf.textures)):
+            GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
+            GL.glBindTexture(tex_target, tex)
+            if name in locs:
+                GL.glUniform1i(locs[name], unit)
+        if water is not None:
+            GL.glUniform3fv(locs["u_betaD"], 1, np.asarray(water.beta_D, np.float32))
+            GL.glUniform3fv(locs["u_betaB"], 1, np.asarray(water.beta_B, np.float32))
+            GL.glUniform3fv(locs["u_Binf"], 1, np.asarray(water.B_inf, np.float32))
+        GL.glUniform1i(locs["u_only_sample"], only_sample)
+        GL.glBindVertexArray(self._empty_vao)
+        GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
+        GL.glBindVertexArray(0)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        w, h = view.width, view.height
+        image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+        second = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3) if n_out == 2 else None
+        return image, second
+
+    def _ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool):
+        GL = self._gl
+        w, h = view.width, view.height
+        t = self._ids_target(w, h, want_range)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][: 2 if want_range else 1])
+        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
+        if want_range:
+            GL.glClearBufferfv(GL.GL_COLOR, 1, np.array([np.inf, 0, 0, 0], np.float32))
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        prog, locs = self._program(shaders.VERTEX, shaders.IDS, WITH_RANGE=want_range)
+        GL.glUseProgram(prog)
+        self._set_view(locs, view, w, h)
+        self._draw(view, items, locs, lit=False, ids=True)
+        ids = self._read(0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1) if want_ids else None
+        rng = self._read(1, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1) if want_range else None
+        return ids, rng
+
+    def pixels_alone(self, view: View, item: DrawItem, region: tuple[int, int, int, int] | None = None) -> int:
+        """Pixels (at pixel centres) the item covers when rendered with nothing else in the scene.
+
+        region: (left, top, right, bottom) inclusive pixel bounds known to contain the item's projection;
+        only that part of the framebuffer is cleared and read.
+        """
+        GL = self._gl
+        w, h = view.width, view.height
+        x0, y0, x1, y1 = (0, 0, w - 1, h - 1) if region is None else region
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
+        if x1 < x0 or y1 < y0:
+            return 0
+        t = self._ids_target(w, h, False)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0])
+        GL.glEnable(GL.GL_SCISSOR_TEST)
+        GL.glScissor(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        prog, locs = self._program(shaders.VERTEX, shaders.IDS, WITH_RANGE=False)
+        GL.glUseProgram(prog)
+        self._set_view(locs, view, w, h)
+        self._draw(view, [item], locs, lit=False, ids=True)
+        GL.glDisable(GL.GL_SCISSOR_TEST)
+        ids = self._read(0, x1 - x0 + 1, y1 - y0 + 1, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1, x0, y0)
+        return int(np.count_nonzero(ids))
