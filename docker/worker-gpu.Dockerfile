@@ -1,0 +1,47 @@
+# syntax=docker/dockerfile:1
+# seasynth render worker, NVIDIA GPU: headless OpenGL through the NVIDIA driver's EGL.
+# The driver itself (libEGL_nvidia.so.0 and friends) is mounted at run time by the NVIDIA
+# container toolkit when the container asks for the `graphics` driver capability; the
+# image carries only libglvnd, the vendor-neutral dispatch layer.
+#   docker build -f docker/worker-gpu.Dockerfile -t seasynth-worker-gpu .
+#   docker run --gpus 'all,"capabilities=compute,utility,graphics"' seasynth-worker-gpu
+
+FROM python:3.11-slim AS build
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PYTHONDONTWRITEBYTECODE=1
+RUN python -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+WORKDIR /src
+COPY pyproject.toml constraints.txt README.md ./
+COPY service ./service
+COPY worker ./worker
+RUN pip install -c constraints.txt ".[worker]"
+
+FROM python:3.11-slim
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends \
+      libglvnd0 libegl1 libgl1 libglx0 libopengl0 libgles2 \
+ && rm -rf /var/lib/apt/lists/*
+# glvnd's EGL vendor file for the NVIDIA driver (the toolkit may mount the same file).
+RUN mkdir -p /usr/share/glvnd/egl_vendor.d \
+ && printf '{"file_format_version": "1.0.0", "ICD": {"library_path": "libEGL_nvidia.so.0"}}\n' \
+      > /usr/share/glvnd/egl_vendor.d/10_nvidia.json
+ENV PATH=/opt/venv/bin:$PATH \
+    PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    PYOPENGL_PLATFORM=egl \
+    PYGLET_HEADLESS=1 \
+    __EGL_VENDOR_LIBRARY_FILENAMES=/usr/share/glvnd/egl_vendor.d/10_nvidia.json \
+    NVIDIA_VISIBLE_DEVICES=all \
+    NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics
+RUN groupadd --system --gid 10001 seasynth \
+ && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
+COPY --from=build /opt/venv /opt/venv
+COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
+WORKDIR /home/seasynth
+USER 10001:10001
+HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
+    CMD ["python", "/usr/local/lib/seasynth/healthcheck.py", "worker"]
+STOPSIGNAL SIGTERM
+CMD ["seasynth", "worker"]

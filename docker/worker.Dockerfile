@@ -1,0 +1,41 @@
+# syntax=docker/dockerfile:1
+# seasynth render worker, CPU: headless OpenGL through EGL on Mesa's llvmpipe.
+#   docker build -f docker/worker.Dockerfile -t seasynth-worker .
+
+FROM python:3.11-slim AS build
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PYTHONDONTWRITEBYTECODE=1
+RUN python -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+WORKDIR /src
+COPY pyproject.toml constraints.txt README.md ./
+COPY service ./service
+COPY worker ./worker
+RUN pip install -c constraints.txt ".[worker]"
+
+FROM python:3.11-slim
+# Mesa EGL (surfaceless llvmpipe) and the GL dispatch libraries PyOpenGL loads.
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends \
+      libegl1 libgl1 libegl-mesa0 libgles2 libgl1-mesa-dri \
+ && rm -rf /var/lib/apt/lists/*
+# PYGLET_HEADLESS: pyrender imports pyglet, which needs X libraries unless headless.
+ENV PATH=/opt/venv/bin:$PATH \
+    PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    PYOPENGL_PLATFORM=egl \
+    PYGLET_HEADLESS=1
+RUN groupadd --system --gid 10001 seasynth \
+ && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
+COPY --from=build /opt/venv /opt/venv
+COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
+WORKDIR /home/seasynth
+USER 10001:10001
+# Alive and its prefork pool up (a broker-level check: `celery inspect ping`).
+HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
+    CMD ["python", "/usr/local/lib/seasynth/healthcheck.py", "worker"]
+# SIGTERM = Celery warm shutdown: stop taking shards, finish the running one. Give the
+# container a stop grace period longer than one shard plus the soft shutdown timeout.
+STOPSIGNAL SIGTERM
+CMD ["seasynth", "worker"]
