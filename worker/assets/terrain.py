@@ -64,7 +64,7 @@ def bilinear(grid: np.ndarray, extent: tuple[float, float, float, float], xy: np
 
 
 def grid_faces(nx: int, ny: int) -> np.ndarray:
-    """Faces (2 (nx-1)(ny-1), 3) int64 of a vertex grid `index = iy * nx + ix`, normals +z when x, y increase with ix, iy."""
+    """Faces (2 (nx-1)(ny-1), 3) int64 of a vertex grid `iy * nx + ix`; normals +z when x, y grow with ix, iy."""
     ix, iy = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
     a = (iy * nx + ix).ravel()
     b, c, d = a + 1, a + nx + 1, a + nx

@@ -1,0 +1,184 @@
+"""Tests for procedural seabed terrains, height lookup, image textures and user terrain meshes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+from scipy.ndimage import gaussian_filter
+
+from worker.assets import AssetError
+from worker.assets.terrain import STYLES, Terrain, apply_texture, grid_faces, heightfield, procedural_terrain
+from worker.assets.user import load_user_terrain
+
+SIZE, CELLS, RELIEF = 4.0, 64, 0.3
+
+
+def terrain_bytes(t: Terrain) -> bytes:
+    return t.mesh.vertices.tobytes() + t.mesh.faces.tobytes() + t.mesh.visual.vertex_colors.tobytes()
+
+
+@pytest.mark.parametrize("style", STYLES)
+def test_grid_layout_and_conventions(style: str) -> None:
+    t = procedural_terrain(style, 0, SIZE, CELLS, RELIEF)
+    assert t.heights.shape == (CELLS + 1, CELLS + 1) and t.heights.dtype == np.float32
+    assert t.extent == (-SIZE / 2, SIZE / 2, -SIZE / 2, SIZE / 2)
+    v = t.mesh.vertices
+    axis = np.linspace(-SIZE / 2, SIZE / 2, CELLS + 1)
+    gx, gy = np.meshgrid(axis, axis)
+    np.testing.assert_array_equal(v[:, :2], np.column_stack([gx.ravel(), gy.ravel()]))
+    np.testing.assert_array_equal(v[:, 2], t.heights.ravel())
+    assert t.heights.min() == 0.0
+    assert RELIEF <= np.ptp(t.heights) <= RELIEF + 0.08  # large-scale relief plus a few cm of detail
+    assert len(t.mesh.faces) == 2 * CELLS * CELLS
+    assert np.all(t.mesh.face_normals[:, 2] > 0)  # wound to face +z
+    colours = t.mesh.visual.vertex_colors
+    assert colours.dtype == np.uint8 and colours.shape == (len(v), 4)
+    assert colours[:, :3].astype(float).std(axis=0).min() > 2.0  # varies with position
+    assert not v.flags.writeable and not t.heights.flags.writeable
+
+
+def test_grid_faces_point_up_on_a_flat_grid() -> None:
+    xs, ys = np.meshgrid(np.arange(4.0), np.arange(3.0))
+    mesh = trimesh.Trimesh(np.column_stack([xs.ravel(), ys.ravel(), np.zeros(12)]), grid_faces(4, 3), process=False)
+    np.testing.assert_array_equal(mesh.face_normals, np.tile([0.0, 0.0, 1.0], (12, 1)))
+    assert mesh.area == pytest.approx(6.0)
+
+
+@pytest.mark.parametrize("style", STYLES)
+def test_determinism_cache_and_keys(style: str) -> None:
+    first = procedural_terrain(style, 1, SIZE, CELLS, RELIEF)
+    procedural_terrain.cache_clear()
+    again = procedural_terrain(style, 1, SIZE, CELLS, RELIEF)
+    assert again is not first and terrain_bytes(again) == terrain_bytes(first) and again == first
+    assert procedural_terrain(style, 1, SIZE, CELLS, RELIEF) is again
+    other = procedural_terrain(style, 2, SIZE, CELLS, RELIEF)
+    assert terrain_bytes(other) != terrain_bytes(first)
+    keys = {first.key, other.key, procedural_terrain(style, 1, SIZE * 2, CELLS, RELIEF).key,
+            procedural_terrain(style, 1, SIZE, CELLS // 2, RELIEF).key,
+            procedural_terrain(style, 1, SIZE, CELLS, RELIEF * 2).key}
+    assert len(keys) == 5 and all(style in k for k in keys)
+
+
+def test_heightfield_key_names_content() -> None:
+    a = heightfield(np.random.default_rng(0), "sand", SIZE, 16, RELIEF)
+    b = heightfield(np.random.default_rng(1), "sand", SIZE, 16, RELIEF)
+    c = heightfield(np.random.default_rng(0), "sand", SIZE, 16, RELIEF)
+    assert a.key != b.key and a.key == c.key
+
+
+def test_height_at_matches_vertices_and_is_bilinear() -> None:
+    t = procedural_terrain("rock", 0, SIZE, CELLS, RELIEF)
+    v = t.mesh.vertices
+    np.testing.assert_allclose(t.height_at(v[:, :2]), v[:, 2], rtol=0, atol=1e-12)
+    rng = np.random.default_rng(5)
+    ix, iy = rng.integers(0, CELLS, 200), rng.integers(0, CELLS, 200)
+    tx, ty = rng.random(200), rng.random(200)
+    step = SIZE / CELLS
+    xy = np.column_stack([-SIZE / 2 + (ix + tx) * step, -SIZE / 2 + (iy + ty) * step])
+    h = t.heights.astype(np.float64)
+    expected = ((h[iy, ix] * (1 - tx) + h[iy, ix + 1] * tx) * (1 - ty)
+                + (h[iy + 1, ix] * (1 - tx) + h[iy + 1, ix + 1] * tx) * ty)
+    np.testing.assert_allclose(t.height_at(xy), expected, rtol=0, atol=1e-9)
+    # Outside the extent: clamped to the nearest edge; shape follows the input's leading axes.
+    np.testing.assert_allclose(t.height_at(np.array([[-10.0, -10.0], [10.0, 10.0]])), [h[0, 0], h[-1, -1]])
+    assert t.height_at(np.zeros((3, 4, 2))).shape == (3, 4)
+
+
+def roughness(h: np.ndarray) -> float:
+    """RMS height (m) left after removing features wider than a few cells."""
+    h = h.astype(np.float64)
+    return float(np.sqrt(np.mean((h - gaussian_filter(h, 2.0)) ** 2)))
+
+
+def test_styles_differ_pebbles_roughest_sand_smoothest() -> None:
+    for variant in range(3):
+        r = {s: roughness(procedural_terrain(s, variant, SIZE, CELLS, RELIEF).heights) for s in STYLES}
+        assert r["pebbles"] > 1.2 * r["rock"] > 1.2 * 1.2 * r["sand"], r
+        spread = {s: procedural_terrain(s, variant, SIZE, CELLS, RELIEF).mesh.visual.vertex_colors[:, :3]
+                  .astype(float).std(axis=0).mean() for s in STYLES}
+        assert spread["pebbles"] > 2.0 * max(spread["sand"], spread["rock"]), spread  # one colour per pebble
+        mean = {s: procedural_terrain(s, variant, SIZE, CELLS, RELIEF).mesh.visual.vertex_colors[:, :3]
+                .astype(float).mean() for s in STYLES}
+        assert mean["sand"] > mean["pebbles"] > mean["rock"], mean  # pale sand, dark rock
+
+
+def test_zero_relief_sand_is_ripples_only() -> None:
+    t = procedural_terrain("sand", 0, SIZE, CELLS, 0.0)
+    assert 0.004 <= np.ptp(t.heights) <= 0.016
+
+
+def test_bad_parameters_are_refused() -> None:
+    with pytest.raises(ValueError, match=r"'lava'.*sand"):
+        procedural_terrain("lava", 0, SIZE, CELLS, RELIEF)
+    with pytest.raises(ValueError, match="cells"):
+        procedural_terrain("sand", 0, SIZE, 0, RELIEF)
+    with pytest.raises(ValueError, match="variant"):
+        procedural_terrain("sand", -1, SIZE, CELLS, RELIEF)
+
+
+# ------------------------------------------------------------------ textures
+
+
+def test_apply_texture_tiles_the_image(tmp_path: Path) -> None:
+    image = np.zeros((2, 2, 3), np.uint8)
+    image[0, 0], image[0, 1], image[1, 0], image[1, 1] = [255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]
+    path = tmp_path / "quad.png"
+    Image.fromarray(image).save(path)
+    t = procedural_terrain("sand", 0, 2.0, 8, RELIEF)
+    tile = 1.0
+    textured = apply_texture(t, path, tile)
+    v = textured.mesh.vertices
+    np.testing.assert_array_equal(v, t.mesh.vertices)
+    colours = textured.mesh.visual.vertex_colors
+    # Texel centres of a 2 x 2 image tiled every metre sit at x, y in {0.25, 0.75} (mod 1); the grid's
+    # vertices at 0.25 m steps hit them, e.g. (0.25, 0.75) is the top-left texel (red).
+    at = {(round(x, 3), round(y, 3)): tuple(c[:3]) for (x, y, _), c in zip(v, colours)}
+    assert at[(0.25, 0.75)] == (255, 0, 0) and at[(0.75, 0.75)] == (0, 255, 0)
+    assert at[(0.25, 0.25)] == (0, 0, 255) and at[(-0.75, -0.75)] == (0, 0, 255)  # periodic
+    assert at[(0.5, 0.75)] == (128, 128, 0)  # bilinear between red and green
+    assert textured.key != t.key and t.key in textured.key
+    assert apply_texture(t, path, tile) is textured
+    np.testing.assert_array_equal(textured.height_at(v[:, :2]), t.height_at(v[:, :2]))
+
+
+def test_apply_texture_bad_image(tmp_path: Path) -> None:
+    t = procedural_terrain("sand", 0, 2.0, 8, RELIEF)
+    bad = tmp_path / "noise.png"
+    bad.write_bytes(b"not an image")
+    with pytest.raises(AssetError, match="noise.png"):
+        apply_texture(t, bad, 1.0)
+    with pytest.raises(AssetError, match="nothing.png"):
+        apply_texture(t, tmp_path / "nothing.png", 1.0)
+
+
+# ------------------------------------------------------------------ user terrain
+
+
+def test_user_terrain_height_at_is_exact_on_a_tilted_plane(tmp_path: Path) -> None:
+    n = 21
+    xs, ys = np.meshgrid(np.linspace(0.0, 4.0, n), np.linspace(10.0, 13.0, n))
+    z = 0.1 * xs - 0.05 * ys + 2.0
+    mesh = trimesh.Trimesh(np.column_stack([xs.ravel(), ys.ravel(), z.ravel()]), grid_faces(n, n), process=False)
+    path = tmp_path / "seabed.ply"
+    mesh.export(path)
+    t = load_user_terrain(path)
+    assert t.heights is None and t.key.startswith("terrain/file/")
+    assert t.extent == pytest.approx((-2.0, 2.0, -1.5, 1.5))
+    assert t.mesh.vertices[:, 2].min() == 0.0
+    rng = np.random.default_rng(0)
+    xy = rng.uniform([-2.0, -1.5], [2.0, 1.5], (500, 2))
+    # Centred on x, y and lifted so the lowest corner (x, y) = (-2, 1.5) is at z = 0.
+    expected = 0.1 * (xy[:, 0] + 2.0) - 0.05 * (xy[:, 1] - 1.5)
+    np.testing.assert_allclose(t.height_at(xy), expected, rtol=0, atol=1e-6)  # PLY stores float32
+    assert load_user_terrain(path) is t
+
+
+def test_user_terrain_bad_file(tmp_path: Path) -> None:
+    path = tmp_path / "seabed.stl"
+    path.write_bytes(b"")
+    with pytest.raises(AssetError, match="seabed.stl"):
+        load_user_terrain(path)
