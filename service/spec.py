@@ -200,8 +200,8 @@ class Workspaces(_Model):
 class Lighting(_Model):
     sun_elevation_deg: Annotated[Interval, AfterValidator(lambda v: _in(v, 0, 90))] = (45.0, 85.0)
     sun_azimuth_deg: Annotated[Interval, AfterValidator(lambda v: _in(v, -360, 360))] = (0.0, 360.0)
-    sun_intensity: NonNegInterval = (2.0, 3.5)
-    ambient: NonNegInterval = (0.25, 0.45)
+    sun_intensity: NonNegInterval = (0.8, 1.6)
+    ambient: NonNegInterval = (0.15, 0.35)
 
 
 def _in(v: tuple[float, float], lo: float, hi: float) -> tuple[float, float]:

@@ -1,0 +1,172 @@
+"""The `seasynth` command: the composition root. Each command imports its adapter when it runs, so `serve`
+never loads OpenGL and `generate` never loads the web stack."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from service.errors import SeasynthError, SpecError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="Labelled synthetic underwater images.")
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: throughput and accuracy tables.")
+app.add_typer(bench_app, name="bench")
+
+FramesOpt = Annotated[Optional[int], typer.Option("--frames", help="Override the spec's frame count.")]
+SeedOpt = Annotated[Optional[int], typer.Option("--seed", help="Override the spec's dataset seed.")]
+WidthOpt = Annotated[Optional[int], typer.Option("--width", help="Override camera.width.")]
+HeightOpt = Annotated[Optional[int], typer.Option("--height", help="Override camera.height.")]
+QualityOpt = Annotated[Optional[str], typer.Option("--quality", help="Override the quality preset.")]
+PlatformOpt = Annotated[str, typer.Option("--gl", help="Headless GL platform: egl or osmesa.")]
+
+
+def _load(spec_path: Path, frames, seed, width, height, quality=None):
+    from service.spec import load_spec
+
+    overrides = {"frames": frames, "seed": seed, "camera.width": width, "camera.height": height, "quality": quality}
+    return load_spec(spec_path, overrides)
+
+
+def _progress(total: int, description: str):
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    class FramesPerSecond(TextColumn):
+        def __init__(self) -> None:
+            super().__init__("")
+
+        def render(self, task):  # noqa: D102 (rich's column API)
+            speed = task.finished_speed or task.speed
+            from rich.text import Text
+
+            return Text(f"{speed:.2f} frames/s" if speed else "-- frames/s")
+
+    return Progress(
+        TextColumn(description),
+        BarColumn(),
+        MofNCompleteColumn(),
+        FramesPerSecond(),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        transient=False,
+    )
+
+
+@app.command()
+def generate(
+    spec: Annotated[Path, typer.Argument(help="Dataset spec (.yaml, .yml or .json).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder (KITTI layout).")],
+    frames: FramesOpt = None,
+    seed: SeedOpt = None,
+    width: WidthOpt = None,
+    height: HeightOpt = None,
+    quality: QualityOpt = None,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Local render processes.")] = 1,
+    resume: Annotated[bool, typer.Option("--resume", help="Complete a partly written dataset.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the dataset in OUT.")] = False,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Generate a dataset locally (no servers): image_2/, label_2/, calib/, meta/ and optional outputs."""
+    if resume and overwrite:
+        raise SpecError("--resume and --overwrite exclude each other")
+    from worker.generate import open_dataset, render_frames
+
+    s = _load(spec, frames, seed, width, height, quality)
+    todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")
+    with _progress(len(todo), "frames") as bar:
+        task = bar.add_task("render", total=len(todo))
+        report = render_frames(s, out, todo, workers=workers, on_frames=lambda n: bar.advance(task, n), platform=gl)
+    typer.echo(
+        f"{out}: {report.frames_total} frames ({report.frames_rendered} rendered, "
+        f"{report.frames_skipped} already complete) on {report.renderer or 'no renderer needed'}"
+    )
+
+
+@app.command()
+def reproduce(
+    spec: Annotated[Path, typer.Argument(help="The dataset's spec file.")],
+    frame: Annotated[int, typer.Option("--frame", min=0, help="Frame index.")],
+    out: Annotated[Path, typer.Option("--out", help="Folder to write the frame's files into.")],
+    frames: FramesOpt = None,
+    seed: SeedOpt = None,
+    width: WidthOpt = None,
+    height: HeightOpt = None,
+    quality: QualityOpt = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Re-render one frame from (spec, seed, frame index): byte-identical to the frame `generate` wrote."""
+    from worker.generate import reproduce as run
+
+    s = _load(spec, frames, seed, width, height, quality)
+    for rel in run(s, frame, out, platform=gl):
+        typer.echo(str(out / rel))
+
+
+@bench_app.command("throughput")
+def bench_throughput(
+    spec: Annotated[Path, typer.Option("--spec", help="Scene spec.")] = Path("examples/urchins.yaml"),
+    frames: Annotated[int, typer.Option("--frames", min=5)] = 50,
+    width: Annotated[int, typer.Option("--width")] = 640,
+    height: Annotated[int, typer.Option("--height")] = 480,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Also write the table and JSON here.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Per-stage times, steady-state seconds per frame, and the ratio to stock pyrender, in one run."""
+    from bench.throughput import run
+
+    run(spec, frames=frames, width=width, height=height, out=out, platform=gl)
+
+
+@bench_app.command("accuracy")
+def bench_accuracy(
+    out: Annotated[Path, typer.Option("--out", help="Folder for accuracy.json, .md and .png.")],
+    scene: Annotated[Optional[list[str]], typer.Option("--scene", help="Scene name (repeatable).")] = None,
+    preset: Annotated[Optional[list[str]], typer.Option("--preset", help="Preset name (repeatable).")] = None,
+    repeats: Annotated[int, typer.Option("--repeats", min=5)] = 5,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Each preset against a 16-sample float64 reference on pinned scenes: time, PSNR, errors."""
+    from bench.accuracy import run
+
+    run(out, scenes=scene, presets=preset, repeats=repeats, machine=machine, platform=gl)
+
+
+def main() -> None:
+    """Entry point: domain errors become one clear line and an exit code (2 for an invalid spec)."""
+    try:
+        app(standalone_mode=False)
+    except SpecError as err:
+        typer.echo(f"error: {err}", err=True)
+        sys.exit(2)
+    except SeasynthError as err:
+        typer.echo(f"error: {err}", err=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        typer.echo("interrupted: written frames are complete; the dataset is not marked complete", err=True)
+        sys.exit(130)
+    except Exception as err:
+        import click
+
+        if isinstance(err, click.exceptions.Exit):
+            sys.exit(err.exit_code)
+        if isinstance(err, click.ClickException):
+            err.show()
+            sys.exit(2 if isinstance(err, click.UsageError) else 1)
+        if isinstance(err, click.exceptions.Abort):
+            sys.exit(130)
+        raise
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,256 @@
+"""Local generation (the embedded default): frames rendered by K local processes into a KITTI folder."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import queue
+import shutil
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import service
+from service.errors import OutputError, SeasynthError
+from service.spec import DatasetSpec, spec_digest
+from worker.pipeline import RenderSession, frame_paths
+
+RECORD = "seasynth.json"  # the dataset record: spec, code version, and whether every frame is written
+OUTPUT_DIRS = ("image_2", "label_2", "calib", "meta", "depth", "instance", "clean", "range")
+CHUNK = 4  # frames a local worker takes at a time: small enough to balance, large enough to amortise IPC
+
+Mode = Literal["new", "resume", "overwrite"]
+
+
+@dataclass(frozen=True)
+class GenerateReport:
+    frames_total: int
+    frames_rendered: int
+    frames_skipped: int
+    renderer: str
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write `data` to `path` so that readers see the old file or the whole new one, never a part."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
+
+
+def write_frame(out: Path, files: dict[str, bytes]) -> None:
+    for rel, data in files.items():
+        write_atomic(out / rel, data)
+
+
+def prepare_output(out: Path, spec: DatasetSpec, mode: Mode) -> None:
+    """Check and set up the output folder; leave it marked incomplete until every frame is written."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        existing = [p for p in out.iterdir()]
+    except OSError as err:
+        raise OutputError(f"{out}: cannot create or list the output folder ({err.strerror or err})") from None
+    record_path = out / RECORD
+    if existing and mode == "new":
+        raise OutputError(f"{out}: folder is not empty; pass --resume to complete it or --overwrite to replace it")
+    if mode == "resume" and record_path.exists():
+        try:
+            old = json.loads(record_path.read_text())
+        except (OSError, ValueError) as err:
+            raise OutputError(f"{record_path}: unreadable dataset record ({err})") from None
+        if old.get("spec_sha256") != spec_digest(spec):
+            raise OutputError(
+                f"{out}: holds a dataset of another spec (spec_sha256 {old.get('spec_sha256')}); "
+                "use --overwrite or another folder"
+            )
+    elif mode == "resume" and existing:
+        raise OutputError(f"{out}: is not a seasynth dataset (no {RECORD}); use --overwrite or another folder")
+    if mode == "overwrite":
+        for name in (*OUTPUT_DIRS, RECORD):
+            target = out / name
+            if target.is_dir():
+                shutil.rmtree(target)
+            elif target.exists():
+                target.unlink()
+    for p in out.glob("*/.*.tmp-*"):  # left by an interrupted run
+        p.unlink()
+    for rel in frame_paths(spec, 0):
+        (out / rel).parent.mkdir(exist_ok=True)
+    write_record(out, spec, complete=False)
+
+
+def write_record(out: Path, spec: DatasetSpec, complete: bool) -> None:
+    record = {
+        "state": "complete" if complete else "incomplete",
+        "frames": spec.frames,
+        "seed": spec.seed,
+        "code_version": service.__version__,
+        "spec_sha256": spec_digest(spec),
+        "spec": spec.model_dump(mode="json"),
+    }
+    write_atomic(out / RECORD, (json.dumps(record, indent=1, sort_keys=True) + "\n").encode())
+
+
+def pending_frames(out: Path, spec: DatasetSpec, frames: Iterable[int]) -> list[int]:
+    """Frames not yet complete on disk (a frame is complete when every one of its files exists)."""
+    return [i for i in frames if not all((out / rel).exists() for rel in frame_paths(spec, i))]
+
+
+def check_assets(spec: DatasetSpec) -> None:
+    """Fail before any rendering if a user mesh or texture named by the spec cannot be used."""
+    from worker.assets.user import load_user_asset, load_user_terrain
+
+    for field, ref in spec.file_refs():
+        if ref.path is None:
+            continue
+        if field == "terrain.texture":
+            from worker.assets import read_source
+
+            read_source(Path(ref.path))
+        elif field == "terrain.mesh":
+            load_user_terrain(Path(ref.path))
+        else:
+            load_user_asset(Path(ref.path))
+
+
+def generate(
+    spec: DatasetSpec,
+    out: Path,
+    *,
+    workers: int = 1,
+    mode: Mode = "new",
+    on_frames: Callable[[int], None] | None = None,
+    platform: str = "egl",
+) -> GenerateReport:
+    """Render every frame of `spec` into `out`. Files are the same whatever `workers` or resuming."""
+    todo = open_dataset(spec, out, mode)
+    return render_frames(spec, out, todo, workers=workers, on_frames=on_frames, platform=platform)
+
+
+def open_dataset(spec: DatasetSpec, out: Path, mode: Mode = "new") -> list[int]:
+    """Check the spec's files and the output folder, mark the dataset incomplete; the frames still to render."""
+    check_assets(spec)
+    prepare_output(out, spec, mode)
+    return pending_frames(out, spec, range(spec.frames))
+
+
+def render_frames(
+    spec: DatasetSpec,
+    out: Path,
+    todo: list[int],
+    *,
+    workers: int = 1,
+    on_frames: Callable[[int], None] | None = None,
+    platform: str = "egl",
+) -> GenerateReport:
+    """Render `todo` into an opened dataset folder, then mark the dataset complete."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    skipped = spec.frames - len(todo)
+    renderer = _run(spec, out, todo, workers, on_frames or (lambda n: None), platform)
+    write_record(out, spec, complete=True)
+    return GenerateReport(spec.frames, len(todo), skipped, renderer)
+
+
+def reproduce(spec: DatasetSpec, index: int, out: Path, platform: str = "egl") -> list[str]:
+    """Write frame `index` at the same relative paths `generate` uses; returns those paths."""
+    if not 0 <= index < spec.frames:
+        raise OutputError(f"frame {index} is outside the dataset (frames 0..{spec.frames - 1})")
+    check_assets(spec)
+    with RenderSession(platform=platform) as session:
+        files = session.frame_files(spec, index)
+    for rel in files:
+        try:
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f"{out / rel}: cannot create folder ({err.strerror or err})") from None
+    write_frame(out, files)
+    return list(files)
+
+
+def _run(spec, out, todo, workers, on_frames, platform) -> str:
+    if not todo:
+        return ""
+    if workers == 1:
+        with RenderSession(platform=platform) as session:
+            for i in todo:
+                write_frame(out, session.frame_files(spec, i))
+                on_frames(1)
+            return session.renderer_name
+    return _run_pool(spec, out, todo, workers, on_frames, platform)
+
+
+def _run_pool(spec, out, todo, workers, on_frames, platform) -> str:
+    ctx = mp.get_context("spawn")  # a GL context must never cross a fork
+    tasks, results = ctx.Queue(), ctx.Queue()
+    chunks = [todo[k : k + CHUNK] for k in range(0, len(todo), CHUNK)]
+    for c in chunks:
+        tasks.put(c)
+    workers = min(workers, len(chunks))
+    for _ in range(workers):
+        tasks.put(None)
+    payload = spec.model_dump_json()
+    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform)) for _ in range(workers)]
+    for p in procs:
+        p.start()
+    renderer, done, finished = "", 0, 0
+    try:
+        while finished < workers:
+            try:
+                kind, value = results.get(timeout=1.0)
+            except queue.Empty:
+                dead = [p for p in procs if p.exitcode not in (None, 0)]
+                if dead:
+                    raise SeasynthError(f"a local worker died (exit code {dead[0].exitcode})") from None
+                continue
+            if kind == "frames":
+                done += value
+                on_frames(value)
+            elif kind == "renderer":
+                renderer = value
+            elif kind == "done":
+                finished += 1
+            elif kind == "error":
+                raise _rebuild_error(value)
+    finally:
+        for p in procs:
+            if p.is_alive() and finished < workers:
+                p.terminate()
+            p.join()
+    return renderer
+
+
+def _pool_main(payload: str, out: str, tasks, results, platform: str) -> None:
+    spec = DatasetSpec.model_validate_json(payload)
+    try:
+        with RenderSession(platform=platform) as session:
+            results.put(("renderer", session.renderer_name))
+            while (chunk := tasks.get()) is not None:
+                for i in chunk:
+                    write_frame(Path(out), session.frame_files(spec, i))
+                results.put(("frames", len(chunk)))
+    except KeyboardInterrupt:
+        return
+    except BaseException as err:  # report every failure to the parent, which decides
+        results.put(("error", (type(err).__module__, type(err).__qualname__, str(err))))
+        return
+    results.put(("done", None))
+
+
+def _rebuild_error(value: tuple[str, str, str]) -> Exception:
+    module, name, message = value
+    from service import errors
+
+    cls = getattr(errors, name, None) if module == errors.__name__ else None
+    if cls is None:
+        from worker.scene import SceneError
+
+        cls = SceneError if name == "SceneError" else SeasynthError
+        message = message if cls is SceneError else f"{name}: {message}"
+    return cls(message)
