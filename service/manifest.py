@@ -1,0 +1,50 @@
+"""The dataset manifest: committed shards with sha256 and size (as Croissant's FileObject), spec, seed, versions."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import Any
+
+from service.records import DatasetRecord, ShardCommit
+
+MANIFEST_FORMAT = "seasynth-manifest/1"
+
+
+def build_manifest(
+    record: DatasetRecord, commits: list[ShardCommit], url: Callable[[str], str] | None = None
+) -> dict[str, Any]:
+    """The manifest as a JSON object; `url` adds a download URL per shard (presigned ones expire, so the
+    stored manifest.json has none)."""
+    shards = []
+    for c in sorted(commits, key=lambda c: c.index):
+        entry: dict[str, Any] = {
+            "index": c.index,
+            "key": c.key,
+            "first_frame": c.first_frame,
+            "frame_count": c.frame_count,
+            "sha256": c.sha256,
+            "bytes": c.bytes,
+            "renderer": c.renderer,
+        }
+        if url is not None:
+            entry["url"] = url(c.key)
+        shards.append(entry)
+    return {
+        "format": MANIFEST_FORMAT,
+        "id": record.id,
+        "state": record.state,
+        "complete": len(shards) == record.shards_total,
+        "frames_total": record.frames_total,
+        "frames_done": sum(s["frame_count"] for s in shards),
+        "shards_total": record.shards_total,
+        "seed": record.seed,
+        "code_version": record.code_version,
+        "renderer": record.renderer,
+        "spec": record.spec,
+        "shards": shards,
+    }
+
+
+def manifest_bytes(manifest: dict[str, Any]) -> bytes:
+    return (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode()

@@ -1,0 +1,297 @@
+"""Dataset and shard status records in Redis: our own source of truth (never Celery's result backend).
+
+Keys (P = settings.key_prefix):
+  P:datasets          ZSET  dataset id -> creation time (ms), for newest-first listing
+  P:ds:{id}           HASH  the dataset record (spec, seed, versions, state, counters, times)
+  P:ds:{id}:done      SET   committed shard indices (SADD makes a retry's commit count once)
+  P:ds:{id}:failed    SET   shard indices given up on
+  P:ds:{id}:shards    HASH  shard index -> commit record JSON (key, sha256, bytes, frames, renderer)
+  P:ds:{id}:tries     HASH  shard index -> executions started
+  P:ds:{id}:errors    HASH  shard index -> last error
+  P:ds:{id}:running   HASH  shard index -> JSON {pid, host, attempt, since} while a process renders it
+  P:ds:{id}:final     STR   finalise guard (SET NX with a TTL, so a finaliser that died can be replaced)
+  P:reply:{uuid}      LIST  one single-frame answer, pushed by a worker and popped by the API
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from service.errors import NotFound
+
+QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED = "queued", "running", "succeeded", "failed", "cancelled"
+TERMINAL = frozenset({SUCCEEDED, FAILED, CANCELLED})
+
+# Counts an execution unless the shard has used up its attempts (then returns -1 and counts nothing).
+_START = """
+local tries = tonumber(redis.call('HGET', KEYS[2], ARGV[1]) or '0')
+if tries >= tonumber(ARGV[4]) then return -1 end
+tries = redis.call('HINCRBY', KEYS[2], ARGV[1], 1)
+redis.call('HINCRBY', KEYS[1], 'attempts', 1)
+redis.call('HSETNX', KEYS[1], 'started_at', ARGV[2])
+if redis.call('HGET', KEYS[1], 'state') == 'queued' then redis.call('HSET', KEYS[1], 'state', 'running') end
+redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
+return tries
+"""
+
+# SADD first: only the first commit of a shard adds its frames, however many times it runs.
+_COMMIT = """
+local added = redis.call('SADD', KEYS[2], ARGV[1])
+if added == 1 then
+  redis.call('HINCRBY', KEYS[1], 'frames_done', ARGV[2])
+  redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
+end
+return {added, redis.call('SCARD', KEYS[2]), redis.call('SCARD', KEYS[4])}
+"""
+
+_FAIL = """
+redis.call('HSET', KEYS[3], ARGV[1], ARGV[2])
+local added = 0
+if redis.call('SISMEMBER', KEYS[4], ARGV[1]) == 0 then added = redis.call('SADD', KEYS[2], ARGV[1]) end
+return {added, redis.call('SCARD', KEYS[4]), redis.call('SCARD', KEYS[2])}
+"""
+
+# Moves a live dataset to a terminal state; a terminal one keeps its state. Returns the state after.
+_FINISH = """
+local s = redis.call('HGET', KEYS[1], 'state')
+if not s then return nil end
+if s == 'queued' or s == 'running' then
+  redis.call('HSET', KEYS[1], 'state', ARGV[1], 'finished_at', ARGV[2])
+  return ARGV[1]
+end
+return s
+"""
+
+
+@dataclass(frozen=True)
+class DatasetRecord:
+    """One dataset's status as stored; counters are exact at the time of reading."""
+
+    id: str
+    created_at: float  # seconds since the epoch
+    spec: dict[str, Any]  # the validated spec, as JSON
+    seed: int
+    code_version: str
+    renderer: str | None
+    state: str
+    frames_total: int
+    shard_size: int
+    shards_total: int
+    frames_done: int
+    shards_done: int
+    shards_failed: int
+    attempts: int
+    started_at: float | None
+    finished_at: float | None
+    purged: bool
+    errors: dict[int, str] = field(default_factory=dict)  # failed shard -> last error
+
+
+@dataclass(frozen=True)
+class ShardCommit:
+    """What a committed shard's marker says (the manifest's shard entries)."""
+
+    index: int
+    key: str
+    first_frame: int
+    frame_count: int
+    sha256: str  # lowercase hex of the whole object
+    bytes: int
+    code_version: str
+    renderer: str
+
+    def to_json(self) -> str:
+        return json.dumps(self.__dict__, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> ShardCommit:
+        return cls(**json.loads(text))
+
+
+class Records:
+    """Dataset records on a Redis client made with decode_responses=True."""
+
+    def __init__(self, redis, prefix: str = "seasynth"):
+        self.r = redis
+        self.p = prefix
+        self._start = redis.register_script(_START)
+        self._commit = redis.register_script(_COMMIT)
+        self._fail = redis.register_script(_FAIL)
+        self._finish = redis.register_script(_FINISH)
+
+    def _k(self, dataset_id: str, part: str = "") -> str:
+        return f"{self.p}:ds:{dataset_id}" + (f":{part}" if part else "")
+
+    # --- datasets
+    def create(
+        self,
+        dataset_id: str,
+        spec: dict[str, Any],
+        *,
+        seed: int,
+        code_version: str,
+        frames: int,
+        shard_size: int,
+        shards: int,
+        now: float,
+    ) -> None:
+        fields = {
+            "id": dataset_id,
+            "created_at": repr(now),
+            "spec": json.dumps(spec, sort_keys=True),
+            "seed": seed,
+            "code_version": code_version,
+            "state": QUEUED,
+            "frames_total": frames,
+            "shard_size": shard_size,
+            "shards_total": shards,
+            "frames_done": 0,
+            "attempts": 0,
+        }
+        with self.r.pipeline() as pipe:
+            pipe.hset(self._k(dataset_id), mapping=fields)
+            pipe.zadd(f"{self.p}:datasets", {dataset_id: int(now * 1000)})
+            pipe.execute()
+
+    def get(self, dataset_id: str) -> DatasetRecord:
+        """The record; NotFound for an id that names no dataset."""
+        with self.r.pipeline(transaction=True) as pipe:
+            pipe.hgetall(self._k(dataset_id))
+            pipe.scard(self._k(dataset_id, "done"))
+            pipe.scard(self._k(dataset_id, "failed"))
+            pipe.hgetall(self._k(dataset_id, "errors"))
+            pipe.smembers(self._k(dataset_id, "failed"))
+            h, done, failed, errors, failed_set = pipe.execute()
+        if not h:
+            raise NotFound(f"no dataset {dataset_id}")
+        opt = lambda k: float(h[k]) if h.get(k) else None  # noqa: E731
+        return DatasetRecord(
+            id=h["id"],
+            created_at=float(h["created_at"]),
+            spec=json.loads(h["spec"]),
+            seed=int(h["seed"]),
+            code_version=h["code_version"],
+            renderer=h.get("renderer"),
+            state=h["state"],
+            frames_total=int(h["frames_total"]),
+            shard_size=int(h["shard_size"]),
+            shards_total=int(h["shards_total"]),
+            frames_done=int(h["frames_done"]),
+            shards_done=done,
+            shards_failed=failed,
+            attempts=int(h["attempts"]),
+            started_at=opt("started_at"),
+            finished_at=opt("finished_at"),
+            purged=h.get("purged") == "1",
+            errors={int(i): errors.get(i, "") for i in failed_set},
+        )
+
+    def exists(self, dataset_id: str) -> bool:
+        return bool(self.r.exists(self._k(dataset_id)))
+
+    def state(self, dataset_id: str) -> str | None:
+        return self.r.hget(self._k(dataset_id), "state")
+
+    def list_ids(self, offset: int, limit: int) -> tuple[list[str], int]:
+        """Dataset ids newest first, and how many there are."""
+        key = f"{self.p}:datasets"
+        with self.r.pipeline() as pipe:
+            pipe.zrevrange(key, offset, offset + limit - 1)
+            pipe.zcard(key)
+            ids, total = pipe.execute()
+        return ids, total
+
+    def set_renderer(self, dataset_id: str, renderer: str) -> str:
+        """Record the renderer the dataset started with (first writer wins); return the recorded one."""
+        self.r.hsetnx(self._k(dataset_id), "renderer", renderer)
+        return self.r.hget(self._k(dataset_id), "renderer")
+
+    def cancel(self, dataset_id: str, now: float) -> str:
+        """Cancel a live dataset at once; return the state after (a finished dataset keeps its own)."""
+        state = self._finish(keys=[self._k(dataset_id)], args=[CANCELLED, repr(now)])
+        if state is None:
+            raise NotFound(f"no dataset {dataset_id}")
+        return state
+
+    def finish(self, dataset_id: str, state: str, now: float) -> str:
+        return self._finish(keys=[self._k(dataset_id)], args=[state, repr(now)])
+
+    def mark_purged(self, dataset_id: str) -> None:
+        self.r.hset(self._k(dataset_id), "purged", "1")
+
+    # --- shards
+    def start_attempt(self, dataset_id: str, index: int, max_attempts: int, running: dict[str, Any]) -> int:
+        """Count one execution of a shard and note who runs it; -1 when its attempts are used up."""
+        keys = [self._k(dataset_id), self._k(dataset_id, "tries"), self._k(dataset_id, "running")]
+        return int(self._start(keys=keys, args=[index, repr(time.time()), json.dumps(running), max_attempts]))
+
+    def end_attempt(self, dataset_id: str, index: int) -> None:
+        self.r.hdel(self._k(dataset_id, "running"), index)
+
+    def running(self, dataset_id: str) -> dict[int, dict[str, Any]]:
+        return {int(i): json.loads(v) for i, v in self.r.hgetall(self._k(dataset_id, "running")).items()}
+
+    def tries(self, dataset_id: str) -> dict[int, int]:
+        return {int(i): int(v) for i, v in self.r.hgetall(self._k(dataset_id, "tries")).items()}
+
+    def record_error(self, dataset_id: str, index: int, message: str) -> None:
+        self.r.hset(self._k(dataset_id, "errors"), index, message[:2000])
+
+    def last_error(self, dataset_id: str, index: int) -> str | None:
+        return self.r.hget(self._k(dataset_id, "errors"), index)
+
+    def is_committed(self, dataset_id: str, index: int) -> bool:
+        return bool(self.r.sismember(self._k(dataset_id, "done"), index))
+
+    def commit(self, dataset_id: str, commit: ShardCommit) -> tuple[bool, int, int]:
+        """Count a committed shard once; return (newly added, shards done, shards failed)."""
+        keys = [self._k(dataset_id), self._k(dataset_id, "done"), self._k(dataset_id, "shards"),
+                self._k(dataset_id, "failed")]
+        added, done, failed = self._commit(keys=keys, args=[commit.index, commit.frame_count, commit.to_json()])
+        return bool(added), int(done), int(failed)
+
+    def fail(self, dataset_id: str, index: int, message: str) -> tuple[int, int]:
+        """Give up on a shard (unless it was committed meanwhile); return (shards done, shards failed)."""
+        keys = [self._k(dataset_id), self._k(dataset_id, "failed"), self._k(dataset_id, "errors"),
+                self._k(dataset_id, "done")]
+        _, done, failed = self._fail(keys=keys, args=[index, message[:2000]])
+        return int(done), int(failed)
+
+    def commits(self, dataset_id: str) -> list[ShardCommit]:
+        """Committed shards, in shard order."""
+        raw = self.r.hgetall(self._k(dataset_id, "shards"))
+        return sorted((ShardCommit.from_json(v) for v in raw.values()), key=lambda c: c.index)
+
+    def claim_finalise(self, dataset_id: str, ttl_s: int) -> bool:
+        """True for the one caller that may finalise now; the TTL lets a later caller replace a dead one."""
+        return bool(self.r.set(self._k(dataset_id, "final"), "1", nx=True, ex=ttl_s))
+
+    def release_finalise(self, dataset_id: str) -> None:
+        self.r.delete(self._k(dataset_id, "final"))
+
+    def is_finalising(self, dataset_id: str) -> bool:
+        return bool(self.r.exists(self._k(dataset_id, "final")))
+
+    # --- single-frame answers (on a client made with decode_responses=False)
+    def reply_key(self, token: str) -> str:
+        return f"{self.p}:reply:{token}"
+
+
+def push_reply(raw_redis, key: str, header: dict[str, Any], body: bytes, ttl_s: int) -> None:
+    """Hand one frame file (or an error) to the API waiting on `key`."""
+    with raw_redis.pipeline() as pipe:
+        pipe.rpush(key, json.dumps(header).encode() + b"\n" + body)
+        pipe.expire(key, ttl_s)
+        pipe.execute()
+
+
+def wait_reply(raw_redis, key: str, timeout_s: float) -> tuple[dict[str, Any], bytes] | None:
+    """Block until a worker answers on `key` or the timeout passes (None)."""
+    got = raw_redis.blpop([key], timeout=timeout_s)
+    if got is None:
+        return None
+    head, _, body = got[1].partition(b"\n")
+    return json.loads(head), body

@@ -1,0 +1,81 @@
+"""Service settings from the environment (prefix SEASYNTH_), built once at an entry point and passed down."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from service import __version__
+
+
+class Settings(BaseSettings):
+    """Everything the API, the workers and `seasynth fetch` read from the environment.
+
+    S3 credentials and region come from boto3's own chain (AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY,
+    AWS_DEFAULT_REGION, instance roles), not from here.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="SEASYNTH_", extra="ignore", frozen=True)
+
+    # --- infrastructure
+    redis_url: str = "redis://localhost:6379/0"
+    key_prefix: str = Field("seasynth", pattern=r"^[A-Za-z0-9_.-]+$")  # Redis record keys start with it
+    storage: Literal["s3", "local"] = "s3"
+    local_root: Path = Path("seasynth-data")  # storage=local: objects are files under this folder
+    s3_endpoint_url: str | None = None  # None: AWS
+    s3_public_endpoint_url: str | None = None  # what presigned URLs are signed for; default s3_endpoint_url
+    s3_bucket: str = "seasynth"
+    s3_create_bucket: bool = False
+    presign_expiry_s: int = Field(3600, ge=60, le=7 * 24 * 3600)  # SigV4 allows at most 7 days
+
+    # --- API
+    api_keys: str = ""  # comma-separated; empty: no authentication
+    # Workers of this code version render the API's datasets (queue names carry it). Default: the API's own.
+    worker_version: str = __version__
+    max_frames: int = Field(1_000_000, ge=1)
+    max_side: int = Field(4096, ge=8)  # camera.width and camera.height
+    max_objects: int = Field(64, ge=0)  # per role and frame (upper end of targets.count, distractors.count)
+    max_asset_bytes: int = Field(256 * 2**20, ge=1)
+    frame_timeout_s: float = Field(60.0, gt=0)  # GET /datasets/{id}/frames/{i} waits this long, then 503
+    retry_after_s: int = Field(10, ge=1)
+
+    # --- workers
+    task_time_limit_s: int = Field(1800, ge=10)  # hard limit T of one shard task
+    max_attempts: int = Field(3, ge=1)  # executions of one shard before it is marked failed
+    plan_batch: int = Field(2000, ge=1)  # shard messages published per planner task
+    worker_max_tasks_per_child: int = Field(50, ge=1)
+    worker_soft_shutdown_s: float = Field(30.0, ge=0)
+    asset_cache_dir: Path | None = None  # default: a per-process temporary folder
+    shard_compression: Literal["none", "gz"] = "none"  # PNGs do not compress further; gz helps label-heavy sets
+
+    # --- client (`seasynth fetch`)
+    api_url: str = "http://localhost:8000"
+    api_key: str | None = None
+
+    @model_validator(mode="after")
+    def _limits_consistent(self) -> Settings:
+        if self.task_soft_time_limit_s < 1:
+            raise ValueError("task_time_limit_s is too short to leave a soft limit")
+        return self
+
+    @property
+    def api_key_set(self) -> frozenset[str]:
+        return frozenset(k.strip() for k in self.api_keys.split(",") if k.strip())
+
+    @property
+    def task_soft_time_limit_s(self) -> int:
+        """The soft limit leaves a minute (or a tenth of T) to record the error before the hard kill."""
+        return self.task_time_limit_s - min(60, self.task_time_limit_s // 10)
+
+    @property
+    def visibility_timeout_s(self) -> int:
+        """Redis redelivers an unacknowledged message after this long: 3x the hard limit, so never mid-task."""
+        return 3 * self.task_time_limit_s
+
+    @property
+    def retry_backoff_max_s(self) -> int:
+        # Retry delays stay far below the visibility timeout (a longer ETA would loop on redelivery).
+        return 30

@@ -1,0 +1,247 @@
+"""Object storage behind one small Protocol: S3 (any endpoint) for the service, the filesystem for local runs."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
+
+from service.errors import NotFound, OutputError, SeasynthError, Unavailable
+
+if TYPE_CHECKING:
+    from service.settings import Settings
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    key: str
+    bytes: int
+
+
+class ObjectStore(Protocol):
+    """Keys are '/'-separated relative paths. Every write is atomic: readers see the old object or the new one."""
+
+    def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None: ...
+
+    def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None: ...
+
+    def get_bytes(self, key: str) -> bytes: ...  # NotFound naming the key
+
+    def download(self, key: str, path: Path) -> None: ...  # NotFound naming the key
+
+    def head(self, key: str) -> ObjectInfo | None: ...
+
+    def list(self, prefix: str) -> Iterator[ObjectInfo]: ...
+
+    def delete_prefix(self, prefix: str) -> int: ...  # objects deleted
+
+    def url(self, key: str) -> str: ...  # where a client can GET the object (presigned for S3)
+
+    def check(self) -> None: ...  # Unavailable when unreachable
+
+
+def _check_key(key: str) -> str:
+    parts = key.split("/")
+    if not key or key.startswith("/") or any(p in ("", ".", "..") for p in parts):
+        raise ValueError(f"invalid object key {key!r}")
+    return key
+
+
+class LocalStore:
+    """Objects as files under `root`; writes go to a temporary file in the same folder, then rename."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root).resolve()
+
+    def _path(self, key: str) -> Path:
+        return self.root / _check_key(key)
+
+    def _write(self, key: str, write) -> None:
+        dest = self._path(key)
+        try:
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=".tmp-", suffix=dest.name)
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    write(f)
+                os.replace(tmp, dest)
+            except BaseException:
+                Path(tmp).unlink(missing_ok=True)
+                raise
+        except OSError as err:
+            raise OutputError(f"{dest}: cannot write object {key} ({err.strerror or err})") from err
+
+    def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
+        self._write(key, lambda f: f.write(data))
+
+    def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
+        def copy(f) -> None:
+            with open(path, "rb") as src:
+                while chunk := src.read(1 << 20):
+                    f.write(chunk)
+
+        self._write(key, copy)
+
+    def get_bytes(self, key: str) -> bytes:
+        try:
+            return self._path(key).read_bytes()
+        except FileNotFoundError:
+            raise NotFound(f"no object {key}") from None
+
+    def download(self, key: str, path: Path) -> None:
+        data = self.get_bytes(key)
+        path.write_bytes(data)
+
+    def head(self, key: str) -> ObjectInfo | None:
+        p = self._path(key)
+        return ObjectInfo(key, p.stat().st_size) if p.is_file() else None
+
+    def list(self, prefix: str) -> Iterator[ObjectInfo]:
+        base = self.root / prefix.rstrip("/") if prefix else self.root
+        if not base.is_dir():
+            return
+        for p in sorted(base.rglob("*")):
+            if p.is_file() and not p.name.startswith(".tmp-"):
+                key = p.relative_to(self.root).as_posix()
+                if key.startswith(prefix):
+                    yield ObjectInfo(key, p.stat().st_size)
+
+    def delete_prefix(self, prefix: str) -> int:
+        n = 0
+        for info in list(self.list(prefix)):
+            self._path(info.key).unlink(missing_ok=True)
+            n += 1
+        return n
+
+    def url(self, key: str) -> str:
+        return self._path(key).as_uri()
+
+    def check(self) -> None:
+        if not os.access(self.root if self.root.exists() else self.root.parent, os.W_OK):
+            raise Unavailable(f"{self.root}: storage folder is not writable")
+
+
+class S3Store:
+    """A bucket on any S3 endpoint. Small objects go in one PUT; files over the multipart threshold are
+    uploaded in parts that become visible only when the upload is completed, so both are atomic."""
+
+    def __init__(self, client, bucket: str, public_client=None, presign_expiry_s: int = 3600):
+        self.client = client
+        self.bucket = bucket
+        self.public_client = public_client or client
+        self.presign_expiry_s = presign_expiry_s
+
+    def _fail(self, err: Exception, key: str) -> SeasynthError:
+        from botocore.exceptions import ClientError
+
+        if isinstance(err, ClientError):
+            code = err.response.get("Error", {}).get("Code", "")
+            if code in ("404", "NoSuchKey", "NotFound"):
+                return NotFound(f"no object {key} in bucket {self.bucket}")
+        return Unavailable(f"s3://{self.bucket}/{key}: {err}")
+
+    def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
+        try:
+            self.client.put_object(Bucket=self.bucket, Key=_check_key(key), Body=data, ContentType=content_type)
+        except Exception as err:
+            raise self._fail(err, key) from err
+
+    def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
+        try:
+            self.client.upload_file(
+                str(path), self.bucket, _check_key(key), ExtraArgs={"ContentType": content_type}
+            )
+        except Exception as err:
+            raise self._fail(err, key) from err
+
+    def get_bytes(self, key: str) -> bytes:
+        try:
+            return self.client.get_object(Bucket=self.bucket, Key=key)["Body"].read()
+        except Exception as err:
+            raise self._fail(err, key) from err
+
+    def download(self, key: str, path: Path) -> None:
+        try:
+            self.client.download_file(self.bucket, key, str(path))
+        except Exception as err:
+            raise self._fail(err, key) from err
+
+    def head(self, key: str) -> ObjectInfo | None:
+        try:
+            r = self.client.head_object(Bucket=self.bucket, Key=key)
+        except Exception as err:
+            e = self._fail(err, key)
+            if isinstance(e, NotFound):
+                return None
+            raise e from err
+        return ObjectInfo(key, int(r["ContentLength"]))
+
+    def list(self, prefix: str) -> Iterator[ObjectInfo]:
+        try:
+            for page in self.client.get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=prefix):
+                for o in page.get("Contents", []):
+                    yield ObjectInfo(o["Key"], int(o["Size"]))
+        except Exception as err:
+            raise self._fail(err, prefix) from err
+
+    def delete_prefix(self, prefix: str) -> int:
+        keys = [o.key for o in self.list(prefix)]
+        try:
+            for i in range(0, len(keys), 1000):
+                batch = [{"Key": k} for k in keys[i : i + 1000]]
+                self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
+        except Exception as err:
+            raise self._fail(err, prefix) from err
+        return len(keys)
+
+    def url(self, key: str) -> str:
+        return self.public_client.generate_presigned_url(
+            "get_object", Params={"Bucket": self.bucket, "Key": key}, ExpiresIn=self.presign_expiry_s
+        )
+
+    def check(self) -> None:
+        try:
+            self.client.head_bucket(Bucket=self.bucket)
+        except Exception as err:
+            raise Unavailable(f"bucket {self.bucket} is not reachable: {err}") from err
+
+    def ensure_bucket(self) -> None:
+        """Create the bucket unless it exists (SEASYNTH_S3_CREATE_BUCKET)."""
+        from botocore.exceptions import ClientError
+
+        try:
+            self.client.head_bucket(Bucket=self.bucket)
+            return
+        except ClientError:
+            pass
+        region = self.client.meta.region_name
+        kwargs = {}
+        if region and region != "us-east-1":
+            kwargs["CreateBucketConfiguration"] = {"LocationConstraint": region}
+        try:
+            self.client.create_bucket(Bucket=self.bucket, **kwargs)
+        except ClientError as err:
+            if err.response.get("Error", {}).get("Code") not in ("BucketAlreadyOwnedByYou", "BucketAlreadyExists"):
+                raise Unavailable(f"cannot create bucket {self.bucket}: {err}") from err
+
+
+def open_store(settings: Settings) -> ObjectStore:
+    """The store the settings name; creates the S3 bucket when configured to."""
+    if settings.storage == "local":
+        return LocalStore(settings.local_root)
+    import boto3
+    from botocore.config import Config
+
+    cfg = Config(retries={"max_attempts": 5, "mode": "standard"}, signature_version="s3v4")
+    session = boto3.session.Session()
+    client = session.client("s3", endpoint_url=settings.s3_endpoint_url, config=cfg)
+    public = None
+    if settings.s3_public_endpoint_url and settings.s3_public_endpoint_url != settings.s3_endpoint_url:
+        public = session.client("s3", endpoint_url=settings.s3_public_endpoint_url, config=cfg)
+    store = S3Store(client, settings.s3_bucket, public, settings.presign_expiry_s)
+    if settings.s3_create_bucket:
+        store.ensure_bucket()
+    return store

@@ -1,0 +1,75 @@
+"""The Celery app of the render workers: Redis broker, prefork pool, late acks, version-pinned queues.
+
+Configuration follows the broker's known traps (see the project's distributed notes): late acks with rejection on
+worker loss plus our own attempt counter, prefetch 1, a visibility timeout of 3x the hard time limit, cancelling
+long-running tasks on connection loss, a soft shutdown for scale-down, and no result backend.
+"""
+
+from __future__ import annotations
+
+import uuid
+
+from celery import Celery
+
+from service import __version__
+from service.queues import broker_options, frame_queue, shard_queue
+from service.settings import Settings
+
+QUEUE_KINDS = ("shards", "frames")
+
+
+def create_app(settings: Settings) -> Celery:
+    """A worker app with its tasks registered; per-process resources open in each pool process after fork."""
+    from worker import tasks
+
+    app = Celery("seasynth", broker=settings.redis_url, set_as_current=False)
+    app.conf.update(
+        task_serializer="json",
+        accept_content=["json"],
+        task_ignore_result=True,  # status lives in our Redis records
+        task_acks_late=True,
+        task_reject_on_worker_lost=True,
+        worker_prefetch_multiplier=1,
+        worker_max_tasks_per_child=settings.worker_max_tasks_per_child,
+        worker_cancel_long_running_tasks_on_connection_loss=True,
+        task_soft_time_limit=settings.task_soft_time_limit_s,
+        task_time_limit=settings.task_time_limit_s,
+        broker_transport_options=broker_options(settings.visibility_timeout_s),
+        broker_connection_retry_on_startup=True,
+        worker_soft_shutdown_timeout=settings.worker_soft_shutdown_s,
+        task_default_queue=shard_queue(__version__),
+        worker_hijack_root_logger=True,
+        worker_redirect_stdouts=False,
+    )
+    tasks.register(app, settings)
+    return app
+
+
+def worker_argv(concurrency: int, queues: list[str], loglevel: str = "INFO") -> list[str]:
+    """Arguments of `celery worker`: a unique node name so any number of workers can share a host."""
+    unknown = set(queues) - set(QUEUE_KINDS)
+    if unknown:
+        raise ValueError(f"unknown queue kind(s) {sorted(unknown)}; choose from {', '.join(QUEUE_KINDS)}")
+    names = [shard_queue(__version__) if q == "shards" else frame_queue(__version__) for q in queues]
+    return [
+        "worker",
+        "--pool=prefork",
+        f"--concurrency={concurrency}",
+        f"--hostname=seasynth-{uuid.uuid4().hex[:12]}@%h",
+        f"--queues={','.join(names)}",
+        "--without-gossip",
+        "--without-mingle",
+        f"--loglevel={loglevel}",
+    ]
+
+
+def run_worker(settings: Settings, concurrency: int, queues: list[str] | None = None, loglevel: str = "INFO") -> None:
+    """Run a worker in the foreground until it is stopped (SIGTERM: soft shutdown, then warm shutdown)."""
+    app = create_app(settings)
+    app.worker_main(worker_argv(concurrency, list(queues or QUEUE_KINDS), loglevel))
+
+
+if __name__ == "__main__":  # python -m worker.celery_app [concurrency]
+    import sys
+
+    run_worker(Settings(), int(sys.argv[1]) if len(sys.argv) > 1 else 1)

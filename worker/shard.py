@@ -1,0 +1,350 @@
+"""One shard end to end: render its frames, pack a deterministic tar, upload it atomically, commit, track completion.
+
+Every step is idempotent: keys are deterministic, a shard's tar is a pure function of (spec, frames, renderer),
+a committed shard is skipped, and a retry's commit counts once (records.commit). Celery tasks wrap these
+functions and map `RetryShard` onto a task retry.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import logging
+import os
+import socket
+import tarfile
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field, replace
+from enum import Enum
+from pathlib import Path
+from typing import IO, Any, Protocol
+
+from service import __version__
+from service.errors import AssetError, NotFound
+from service.manifest import build_manifest, manifest_bytes
+from service.records import CANCELLED, FAILED, SUCCEEDED, TERMINAL, Records, ShardCommit
+from service.settings import Settings
+from service.shards import (
+    FRAME_PARTS,
+    Shard,
+    asset_info_key,
+    asset_key,
+    commit_key,
+    commit_prefix,
+    frame_file,
+    manifest_key,
+    shard_at,
+    shard_key,
+)
+from service.spec import DatasetSpec, parse_spec
+from service.storage import ObjectStore
+
+log = logging.getLogger(__name__)
+
+FINALISE_LOCK_S = 300
+
+
+class FrameSource(Protocol):
+    """What a shard needs of the pipeline's RenderSession."""
+
+    renderer_name: str
+
+    def frame_files(self, spec: DatasetSpec, index: int) -> dict[str, bytes]: ...
+
+
+class Outcome(str, Enum):
+    COMMITTED = "committed"
+    ALREADY_COMMITTED = "already-committed"
+    CANCELLED = "cancelled"
+    MISSING = "missing"  # no such dataset (expired or never created)
+    FAILED = "failed"
+
+
+class RetryShard(Exception):
+    """The attempt failed with attempts left: run the shard again after `countdown` seconds."""
+
+    def __init__(self, message: str, countdown: float):
+        super().__init__(message)
+        self.countdown = countdown
+
+
+class WrongVersion(Exception):
+    """A shard of a dataset pinned to another code version reached this worker; it must go back untouched."""
+
+    def __init__(self, version: str):
+        super().__init__(f"dataset is pinned to code version {version}, this worker runs {__version__}")
+        self.version = version
+
+
+@dataclass
+class ShardContext:
+    """Per-process resources a shard or frame task uses; built in each pool process after the fork."""
+
+    settings: Settings
+    records: Records
+    raw_redis: Any  # a redis client with decode_responses=False, for frame answers
+    store: ObjectStore
+    session: FrameSource
+    host: str = field(default_factory=socket.gethostname)
+    code_version: str = __version__
+    _specs: dict[str, DatasetSpec] = field(default_factory=dict)
+
+    def spec(self, dataset_id: str, spec_json: dict[str, Any]) -> DatasetSpec:
+        """The dataset's spec, parsed once per process (a few recent datasets are kept)."""
+        if dataset_id not in self._specs:
+            if len(self._specs) >= 16:
+                self._specs.pop(next(iter(self._specs)))
+            self._specs[dataset_id] = parse_spec(spec_json, source=f"dataset {dataset_id}")
+        return self._specs[dataset_id]
+
+
+# --- packing
+
+
+class _HashingWriter:
+    """A write-only file that hashes and counts what passes through it."""
+
+    def __init__(self, f: IO[bytes]):
+        self.f = f
+        self.sha = hashlib.sha256()
+        self.size = 0
+
+    def write(self, data: bytes) -> int:
+        self.f.write(data)
+        self.sha.update(data)
+        self.size += len(data)
+        return len(data)
+
+    def flush(self) -> None:
+        self.f.flush()
+
+
+def _check_member(name: str) -> str:
+    parts = name.split("/")
+    if name.startswith("/") or any(p in ("", ".", "..") for p in parts):
+        raise ValueError(f"frame file {name!r} is not a plain relative path")
+    return name
+
+
+def pack_tar(files: Iterable[tuple[str, bytes]], out: IO[bytes], compression: str = "none") -> tuple[str, int]:
+    """Write a tar of (relative path, bytes) in the given order to `out`; return (sha256 hex, bytes).
+
+    Headers carry no time, owner or mode of the machine, so equal files give an equal tar on any worker.
+    """
+    writer = _HashingWriter(out)
+    gz = gzip.GzipFile(filename="", fileobj=writer, mode="wb", mtime=0) if compression == "gz" else None
+    with tarfile.open(fileobj=gz or writer, mode="w|", format=tarfile.USTAR_FORMAT) as tar:
+        for name, data in files:
+            info = tarfile.TarInfo(_check_member(name))
+            info.size, info.mtime, info.mode = len(data), 0, 0o644
+            info.uid = info.gid = 0
+            info.uname = info.gname = ""
+            tar.addfile(info, _BytesReader(data))
+    if gz is not None:
+        gz.close()
+    return writer.sha.hexdigest(), writer.size
+
+
+class _BytesReader:
+    def __init__(self, data: bytes):
+        self.data, self.pos = memoryview(data), 0
+
+    def read(self, n: int = -1) -> bytes:
+        end = len(self.data) if n < 0 else self.pos + n
+        out = self.data[self.pos : end].tobytes()
+        self.pos += len(out)
+        return out
+
+
+class _Cancelled(Exception):
+    pass
+
+
+def shard_files(
+    session: FrameSource, spec: DatasetSpec, shard: Shard, cancelled: Callable[[], bool]
+) -> Iterator[tuple[str, bytes]]:
+    """A shard's members in order: frame by frame, each frame's files by name."""
+    for index in shard.frames:
+        if cancelled():
+            raise _Cancelled
+        files = session.frame_files(spec, index)
+        for name in sorted(files):
+            yield name, files[name]
+
+
+# --- the shard task body
+
+
+def run_shard(ctx: ShardContext, dataset_id: str, index: int) -> Outcome:
+    """Render, pack, upload and commit one shard unless it is committed, cancelled or out of attempts.
+
+    Raises RetryShard when an attempt failed with attempts left, WrongVersion for another version's dataset.
+    """
+    try:
+        rec = ctx.records.get(dataset_id)
+    except NotFound:
+        log.warning("shard %s of dataset %s: no such dataset, dropped", index, dataset_id)
+        return Outcome.MISSING
+    if rec.code_version != ctx.code_version:
+        raise WrongVersion(rec.code_version)
+    if rec.state == CANCELLED:
+        return Outcome.CANCELLED
+    shard = shard_at(rec.frames_total, rec.shard_size, index)
+    if ctx.records.is_committed(dataset_id, index) or _adopt_marker(ctx, dataset_id, index):
+        maybe_finalise(ctx, dataset_id)
+        return Outcome.ALREADY_COMMITTED
+
+    running = {"pid": os.getpid(), "host": ctx.host, "since": time.time()}
+    attempt = ctx.records.start_attempt(dataset_id, index, ctx.settings.max_attempts, running)
+    if attempt < 0:
+        last = ctx.records.last_error(dataset_id, index) or "the worker was lost while rendering it"
+        fail_shard(ctx, dataset_id, index, f"gave up after {ctx.settings.max_attempts} attempts; last: {last}")
+        return Outcome.FAILED
+    try:
+        return _render_and_commit(ctx, dataset_id, shard)
+    except _Cancelled:
+        return Outcome.CANCELLED
+    except Exception as err:
+        msg = f"attempt {attempt}: {type(err).__name__}: {err}"
+        log.exception("shard %s of dataset %s failed", index, dataset_id)
+        ctx.records.record_error(dataset_id, index, msg)
+        if attempt >= ctx.settings.max_attempts:
+            fail_shard(ctx, dataset_id, index, f"gave up after {attempt} attempts; last: {msg}")
+            return Outcome.FAILED
+        raise RetryShard(msg, countdown=min(2.0 ** (attempt - 1), ctx.settings.retry_backoff_max_s)) from err
+    finally:
+        ctx.records.end_attempt(dataset_id, index)
+
+
+def _render_and_commit(ctx: ShardContext, dataset_id: str, shard: Shard) -> Outcome:
+    rec = ctx.records.get(dataset_id)
+    spec = ctx.spec(dataset_id, rec.spec)
+    renderer = ctx.session.renderer_name
+    ctx.records.set_renderer(dataset_id, renderer)
+    compression = ctx.settings.shard_compression
+    key = shard_key(dataset_id, shard.index, compression)
+    cancelled = lambda: ctx.records.state(dataset_id) == CANCELLED  # noqa: E731
+    with tempfile.NamedTemporaryFile(prefix="seasynth-shard-", suffix=".tar") as tmp:
+        sha, size = pack_tar(shard_files(ctx.session, spec, shard, cancelled), tmp, compression)
+        tmp.flush()
+        if cancelled():
+            return Outcome.CANCELLED
+        # The tar becomes visible whole (one PUT or a completed multipart upload), then the marker commits it.
+        ctx.store.put_file(key, Path(tmp.name), "application/gzip" if compression == "gz" else "application/x-tar")
+    commit = ShardCommit(
+        index=shard.index,
+        key=key,
+        first_frame=shard.first_frame,
+        frame_count=shard.frame_count,
+        sha256=sha,
+        bytes=size,
+        code_version=ctx.code_version,
+        renderer=renderer,
+    )
+    ctx.store.put_bytes(commit_key(dataset_id, shard.index), commit.to_json().encode(), "application/json")
+    ctx.records.commit(dataset_id, commit)
+    if ctx.records.get(dataset_id).purged:  # purged while we uploaded: take our objects back out
+        ctx.store.delete_prefix(f"datasets/{dataset_id}/")
+        return Outcome.CANCELLED
+    maybe_finalise(ctx, dataset_id)
+    return Outcome.COMMITTED
+
+
+def _adopt_marker(ctx: ShardContext, dataset_id: str, index: int) -> bool:
+    """A commit marker in storage that Redis does not know (e.g. Redis lost it): count it now."""
+    try:
+        data = ctx.store.get_bytes(commit_key(dataset_id, index))
+    except NotFound:
+        return False
+    ctx.records.commit(dataset_id, ShardCommit.from_json(data))
+    return True
+
+
+def fail_shard(ctx: ShardContext, dataset_id: str, index: int, message: str) -> None:
+    ctx.records.fail(dataset_id, index, message)
+    maybe_finalise(ctx, dataset_id)
+
+
+def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
+    """When every shard is committed or failed, write manifest.json and the final state, exactly once."""
+    rec = ctx.records.get(dataset_id)
+    if rec.state in TERMINAL or rec.shards_done + rec.shards_failed < rec.shards_total:
+        return False
+    if not ctx.records.claim_finalise(dataset_id, FINALISE_LOCK_S):
+        return False
+    try:
+        state = SUCCEEDED if rec.shards_failed == 0 else FAILED
+        manifest = build_manifest(replace(rec, state=state), ctx.records.commits(dataset_id))
+        if ctx.records.state(dataset_id) == CANCELLED:
+            return False
+        ctx.store.put_bytes(manifest_key(dataset_id), manifest_bytes(manifest), "application/json")
+        ctx.records.finish(dataset_id, state, time.time())
+    except BaseException:
+        ctx.records.release_finalise(dataset_id)
+        raise
+    log.info("dataset %s %s", dataset_id, state)
+    return True
+
+
+def reconcile(ctx: ShardContext, dataset_id: str) -> list[int]:
+    """Adopt commit markers Redis missed, finalise if complete; return the shards still pending."""
+    rec = ctx.records.get(dataset_id)
+    for info in ctx.store.list(commit_prefix(dataset_id)):
+        commit = ShardCommit.from_json(ctx.store.get_bytes(info.key))
+        ctx.records.commit(dataset_id, commit)
+    maybe_finalise(ctx, dataset_id)
+    rec = ctx.records.get(dataset_id)
+    if rec.state in TERMINAL:
+        return []
+    done = {c.index for c in ctx.records.commits(dataset_id)} | set(rec.errors)
+    return [i for i in range(rec.shards_total) if i not in done]
+
+
+# --- single frames
+
+
+def render_frame(ctx: ShardContext, dataset_id: str, index: int, part: str) -> tuple[dict[str, Any], bytes]:
+    """One file of one frame, re-rendered from (spec, seed, index): (header, body) for the waiting API."""
+    rec = ctx.records.get(dataset_id)
+    if rec.code_version != ctx.code_version:
+        raise WrongVersion(rec.code_version)
+    if not 0 <= index < rec.frames_total or part not in FRAME_PARTS:
+        raise NotFound(f"dataset {dataset_id} has no frame {index} part {part}")
+    files = ctx.session.frame_files(ctx.spec(dataset_id, rec.spec), index)
+    name = frame_file(part, index)
+    if name not in files:
+        raise NotFound(f"frame {index} of dataset {dataset_id} has no {name} (is that output switched on?)")
+    return {"ok": True, "name": name, "renderer": ctx.session.renderer_name}, files[name]
+
+
+# --- uploaded assets
+
+
+class AssetCache:
+    """Maps an uploaded asset id to a local file: downloaded once per process, verified by its sha256."""
+
+    def __init__(self, store: ObjectStore, folder: Path):
+        self.store = store
+        self.folder = Path(folder)
+
+    def __call__(self, asset_id: str) -> Path:
+        info = json.loads(self.store.get_bytes(asset_info_key(asset_id)))
+        suffix = Path(info.get("filename", "")).suffix.lower()
+        dest = self.folder / f"{asset_id}{suffix}"
+        if dest.is_file():
+            return dest
+        self.folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=self.folder, prefix=".part-")
+        os.close(fd)
+        try:
+            self.store.download(asset_key(asset_id), Path(tmp))
+            digest = hashlib.sha256(Path(tmp).read_bytes()).hexdigest()
+            if digest != asset_id:
+                raise AssetError(f"asset {asset_id}: downloaded bytes have sha256 {digest}")
+            os.replace(tmp, dest)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+        return dest
