@@ -1,0 +1,68 @@
+"""Jerlov water types: per-metre transmittance, attenuation and default veiling light."""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+import numpy as np
+
+JERLOV_TYPES: tuple[str, ...] = ("I", "II", "III", "1C", "3C", "5C", "7C", "9C")
+"""Known Jerlov water types: oceanic I-III (clearest first), then coastal 1C-9C (clearest first)."""
+
+# Per-metre transmittance N (fraction of light left after 1 m), linear (R, G, B).
+# The table stores N, not beta: beta = -ln N.  Each N is exp(-beta) rounded to 4 decimals,
+# with beta the approximate values of the reference table (I: 0.10, 0.04, 0.018 1/m, ...),
+# so -ln N reproduces them to 1e-4 1/m.  1C is not in the reference table; its betas
+# (0.31, 0.15, 0.16) are chosen between III and 3C.
+_TRANSMITTANCE: dict[str, tuple[float, float, float]] = {
+    "I": (0.9048, 0.9608, 0.9822),
+    "II": (0.8025, 0.9231, 0.9418),
+    "III": (0.7483, 0.8869, 0.8869),
+    "1C": (0.7334, 0.8607, 0.8521),
+    "3C": (0.7118, 0.8187, 0.8025),
+    "5C": (0.6703, 0.7261, 0.6703),
+    "7C": (0.6188, 0.6126, 0.5886),
+    "9C": (0.5488, 0.4584, 0.2894),
+}
+
+# Default veiling light B_inf, linear RGB (R, G, B) in [0, 1].  Plausible choices, not
+# measurements: oceanic water is blue, brighter for the clearer types (III is close to the
+# reference "deep blue" (0, 0, 0.064)); coastal water shifts to green (3C is the reference
+# "green coastal" (0.007, 0.147, 0.233)) and towards yellow-green for the most turbid types.
+_VEILING_LIGHT: dict[str, tuple[float, float, float]] = {
+    "I": (0.001, 0.020, 0.110),
+    "II": (0.001, 0.016, 0.090),
+    "III": (0.001, 0.012, 0.075),
+    "1C": (0.004, 0.080, 0.170),
+    "3C": (0.007, 0.147, 0.233),
+    "5C": (0.012, 0.160, 0.190),
+    "7C": (0.020, 0.150, 0.130),
+    "9C": (0.030, 0.130, 0.070),
+}
+
+JERLOV_TRANSMITTANCE: MappingProxyType[str, tuple[float, float, float]] = MappingProxyType(_TRANSMITTANCE)
+"""Read-only: type name -> per-metre transmittance N, (R, G, B), dimensionless in (0, 1)."""
+
+JERLOV_VEILING_LIGHT: MappingProxyType[str, tuple[float, float, float]] = MappingProxyType(_VEILING_LIGHT)
+"""Read-only: type name -> default veiling light B_inf, linear (R, G, B) in [0, 1]."""
+
+
+def _check_name(name: str) -> str:
+    if not isinstance(name, str) or name not in _TRANSMITTANCE:
+        raise ValueError(f"unknown Jerlov water type {name!r}; known types: {', '.join(JERLOV_TYPES)}")
+    return name
+
+
+def jerlov_transmittance(name: str) -> np.ndarray:
+    """Per-metre transmittance N of water type `name`: (3,) float64, (R, G, B), in (0, 1)."""
+    return np.array(_TRANSMITTANCE[_check_name(name)], dtype=np.float64)
+
+
+def jerlov_beta(name: str) -> np.ndarray:
+    """Attenuation coefficient beta = -ln N of water type `name`: (3,) float64, 1/m, (R, G, B)."""
+    return -np.log(jerlov_transmittance(name))
+
+
+def jerlov_veiling_light(name: str) -> np.ndarray:
+    """Default veiling light B_inf of water type `name`: (3,) float64, linear RGB in [0, 1]."""
+    return np.array(_VEILING_LIGHT[_check_name(name)], dtype=np.float64)
