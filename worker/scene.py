@@ -229,8 +229,10 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
     if inside.size:
         pick = int(inside[rng.integers(inside.size)])
         look_at, look_id = centres[pick].copy(), ids[pick]
-    else:
+    else:  # a point of the seabed inside the look-at workspace
         look_at, look_id = uniform3(rng, ws.look_at.min, ws.look_at.max), None
+        ground = float(terrain.height_at(look_at[None, :2])[0])
+        look_at[2] = min(max(ground, ws.look_at.min[2]), ws.look_at.max[2])
     look_at = look_at + rng.normal(0.0, spec.camera.look_at_jitter_m, size=3)
 
     spheres = [_bounding_sphere(p) for p in placed]

@@ -42,7 +42,8 @@ void main() {
     vec3 n = len > 1e-20 ? v_nrm / len : -normalize(v_pos);
     if (dot(n, v_pos) > 0.0) n = -n;   // face the camera: thin sheets are seen from both sides
     vec3 albedo = clamp(v_col * u_scale + u_bias, 0.0, 1.0);
-    o_J = vec4(albedo * (u_ambient + u_sun * max(dot(n, u_sun_cam), 0.0)), 1.0);
+    // J is the in-air image (the paper's J): radiance in the sensor's range [0, 1], so clean/ is J exactly.
+    o_J = vec4(clamp(albedo * (u_ambient + u_sun * max(dot(n, u_sun_cam), 0.0)), 0.0, 1.0), 1.0);
 #ifdef WITH_RANGE
     o_range = length(v_pos);
 #endif
