@@ -142,6 +142,53 @@ def bench_accuracy(
     run(out, scenes=scene, presets=preset, repeats=repeats, machine=machine, platform=gl)
 
 
+@app.command()
+def serve(
+    host: Annotated[str, typer.Option("--host", help="Interface to bind.")] = "0.0.0.0",
+    port: Annotated[int, typer.Option("--port", min=1, max=65535, help="TCP port.")] = 8000,
+    processes: Annotated[int, typer.Option("--workers", min=1, help="uvicorn worker processes.")] = 1,
+) -> None:
+    """Run the HTTP API (settings from SEASYNTH_* and AWS_* environment variables)."""
+    from api.main import serve as run
+    from service.settings import Settings
+
+    run(Settings(), host=host, port=port, workers=processes)
+
+
+@app.command()
+def worker(
+    concurrency: Annotated[int, typer.Option("--concurrency", "-c", min=1, help="Render processes.")] = 1,
+    queues: Annotated[str, typer.Option("--queues", "-Q", help="shards, frames, or both (comma-separated).")]
+    = "shards,frames",
+    loglevel: Annotated[str, typer.Option("--loglevel", help="Celery log level.")] = "INFO",
+) -> None:
+    """Run a render worker (Celery, prefork) on this code version's queues; several may share a host."""
+    from service.settings import Settings
+    from worker.celery_app import run_worker
+
+    run_worker(Settings(), concurrency, [q.strip() for q in queues.split(",") if q.strip()], loglevel)
+
+
+@app.command()
+def fetch(
+    dataset_id: Annotated[str, typer.Argument(help="Dataset id (from POST /datasets).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder to assemble the KITTI tree in.")],
+    api: Annotated[Optional[str], typer.Option("--api", help="API URL [env SEASYNTH_API_URL].")] = None,
+    api_key: Annotated[Optional[str], typer.Option("--api-key", help="API key [env SEASYNTH_API_KEY].")] = None,
+    parallel: Annotated[int, typer.Option("--parallel", min=1, help="Shards downloaded at once.")] = 4,
+    partial: Annotated[bool, typer.Option("--partial", help="Fetch the shards committed so far.")] = False,
+) -> None:
+    """Download a dataset's shards, verify sha256, resume after interruption, and assemble one KITTI tree."""
+    from service.fetch import fetch_dataset
+    from service.settings import Settings
+
+    s = Settings()
+    r = fetch_dataset(api or s.api_url, dataset_id, out, api_key=api_key or s.api_key, parallel=parallel,
+                      partial=partial)
+    typer.echo(f"{out}: {r.shards_total} shards ({r.shards_fetched} fetched, {r.shards_skipped} already "
+               f"complete), {r.files} files written")
+
+
 def main() -> None:
     """Entry point: domain errors become one clear line and an exit code (2 for an invalid spec)."""
     try:

@@ -48,6 +48,7 @@ class Settings(BaseSettings):
     plan_batch: int = Field(2000, ge=1)  # shard messages published per planner task
     worker_max_tasks_per_child: int = Field(50, ge=1)
     worker_soft_shutdown_s: float = Field(30.0, ge=0)
+    gl_platform: Literal["egl", "osmesa"] = "egl"  # headless GL of the render processes
     asset_cache_dir: Path | None = None  # default: a per-process temporary folder
     shard_compression: Literal["none", "gz"] = "none"  # PNGs do not compress further; gz helps label-heavy sets
 

@@ -38,7 +38,7 @@ class ProcessResources:
         stack = contextlib.ExitStack()
         store = open_store(s)
         folder = s.asset_cache_dir or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="seasynth-assets-")))
-        session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder)))
+        session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=s.gl_platform))
         records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
         raw = redis.Redis.from_url(s.redis_url)
         self._ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=store, session=session)

@@ -1,0 +1,84 @@
+"""Dependencies: the per-app Services (Redis, storage, task producer), API keys, dataset ids from paths."""
+
+from __future__ import annotations
+
+import hmac
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import Depends, Path, Request
+
+from service.errors import NotFound, Unauthorized
+from service.records import Records
+from service.settings import Settings
+from service.shards import DATASET_ID
+from service.storage import ObjectStore
+
+
+@dataclass
+class Services:
+    """What the routes use; opened in the app's lifespan, never at import."""
+
+    settings: Settings
+    records: Records
+    raw_redis: Any  # decode_responses=False: single-frame answers are bytes
+    store: ObjectStore
+    producer: Any  # a Celery app used only to publish tasks by name
+
+    def close(self) -> None:
+        self.records.r.close()
+        self.raw_redis.close()
+
+
+def open_services(settings: Settings) -> Services:
+    import redis
+    from celery import Celery
+
+    from service.queues import broker_options
+    from service.storage import open_store
+
+    producer = Celery("seasynth-api", broker=settings.redis_url, set_as_current=False)
+    producer.conf.update(
+        task_serializer="json",
+        accept_content=["json"],
+        task_ignore_result=True,
+        broker_transport_options=broker_options(settings.visibility_timeout_s),
+        broker_connection_retry_on_startup=True,
+    )
+    return Services(
+        settings=settings,
+        records=Records(redis.Redis.from_url(settings.redis_url, decode_responses=True), settings.key_prefix),
+        raw_redis=redis.Redis.from_url(settings.redis_url),
+        store=open_store(settings),
+        producer=producer,
+    )
+
+
+def get_services(request: Request) -> Services:
+    return request.app.state.services
+
+
+ServicesDep = Annotated[Services, Depends(get_services)]
+
+
+def require_api_key(request: Request, services: ServicesDep) -> None:
+    """With SEASYNTH_API_KEYS set, a request needs one of them in X-API-Key or Authorization: Bearer."""
+    keys = services.settings.api_key_set
+    if not keys:
+        return
+    given = request.headers.get("x-api-key")
+    auth = request.headers.get("authorization", "")
+    if given is None and auth[:7].lower() == "bearer ":
+        given = auth[7:].strip()
+    if not given or not any(hmac.compare_digest(given.encode(), k.encode()) for k in keys):
+        raise Unauthorized("a valid API key is required (X-API-Key header or Authorization: Bearer)")
+
+
+def dataset_id(id: Annotated[str, Path(description="Dataset id (32 lowercase hex digits)")]) -> str:
+    """A syntactically valid dataset id; any other string names no dataset (404, like an unknown id)."""
+    if not DATASET_ID.fullmatch(id):
+        raise NotFound(f"no dataset {id[:80]!r}")
+    return id
+
+
+DatasetId = Annotated[str, Depends(dataset_id)]

@@ -1,0 +1,84 @@
+"""Domain errors to HTTP answers, in one place. Every error body is {"detail": str, "errors": [str, ...]}."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from service.errors import (
+    AssetError,
+    Conflict,
+    LimitExceeded,
+    NotFound,
+    OutputError,
+    SeasynthError,
+    SpecError,
+    Unauthorized,
+    Unavailable,
+)
+
+log = logging.getLogger(__name__)
+
+# Most specific first: the first class an error is an instance of decides its status.
+STATUS: list[tuple[type[Exception], int]] = [
+    (SpecError, 422),
+    (AssetError, 422),
+    (LimitExceeded, 413),
+    (NotFound, 404),
+    (Conflict, 409),
+    (Unauthorized, 401),
+    (Unavailable, 503),
+    (OutputError, 503),
+]
+
+
+def error_body(message: str) -> dict:
+    lines = [line for line in message.splitlines() if line.strip()] or [message]
+    return {"detail": message, "errors": lines}
+
+
+def status_of(err: Exception) -> int:
+    for cls, code in STATUS:
+        if isinstance(err, cls):
+            return code
+    return 500
+
+
+def install(app: FastAPI, retry_after_s: int) -> None:
+    """Register the handlers that turn domain errors, bad requests and unreachable dependencies into HTTP."""
+
+    async def domain(request: Request, err: SeasynthError) -> JSONResponse:
+        code = status_of(err)
+        if code >= 500:
+            log.error("%s %s: %s", request.method, request.url.path, err)
+        headers = {}
+        if code == 503:
+            headers["Retry-After"] = str(retry_after_s)
+        if code == 401:
+            headers["WWW-Authenticate"] = 'Bearer realm="seasynth"'
+        return JSONResponse(error_body(str(err)), status_code=code, headers=headers)
+
+    async def invalid(request: Request, err: RequestValidationError) -> JSONResponse:
+        lines = []
+        for e in err.errors():
+            loc = list(e.get("loc", ()))
+            if loc and loc[0] == "body":  # the body is the spec: name fields as spec files do
+                loc = loc[1:]
+            where = ".".join(str(p) for p in loc) or "(body)"
+            lines.append(f"{where}: {str(e.get('msg', 'invalid')).removeprefix('Value error, ')}")
+        return JSONResponse({"detail": "invalid request\n" + "\n".join(lines), "errors": lines}, status_code=422)
+
+    async def redis_down(request: Request, err: Exception) -> JSONResponse:
+        log.error("%s %s: Redis: %s", request.method, request.url.path, err)
+        return JSONResponse(
+            error_body(f"status store unavailable: {err}"), status_code=503, headers={"Retry-After": str(retry_after_s)}
+        )
+
+    import redis
+
+    app.add_exception_handler(SeasynthError, domain)
+    app.add_exception_handler(RequestValidationError, invalid)
+    app.add_exception_handler(redis.RedisError, redis_down)

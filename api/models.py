@@ -1,0 +1,97 @@
+"""Pydantic models at the HTTP edge: what the API answers (requests take the DatasetSpec itself)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+
+class DatasetLinks(BaseModel):
+    self: str
+    manifest: str
+    frames: str = Field(description="Template: replace {index} with a frame index")
+
+
+class DatasetCreated(BaseModel):
+    id: str
+    state: str
+    frames_total: int
+    shards_total: int
+    code_version: str
+    links: DatasetLinks
+
+
+class ShardErrorPublic(BaseModel):
+    shard: int
+    error: str
+
+
+class DatasetPublic(BaseModel):
+    id: str
+    state: str = Field(description="queued, running, succeeded, failed or cancelled")
+    frames_done: int = Field(description="Sum of frame_count over committed shards (a retry never counts twice)")
+    frames_total: int
+    shards_done: int
+    shards_failed: int
+    shards_total: int
+    shard_size: int
+    attempts: int = Field(description="Shard task executions started, retries included")
+    frames_per_s: float | None
+    eta_s: float | None
+    errors: list[ShardErrorPublic]
+    seed: int
+    code_version: str
+    renderer: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    purged: bool
+    links: DatasetLinks
+
+
+class DatasetList(BaseModel):
+    items: list[DatasetPublic]
+    total: int
+    offset: int
+    limit: int
+    next: str | None
+
+
+class ManifestShard(BaseModel):
+    index: int
+    key: str = Field(description="Object key in the bucket")
+    first_frame: int
+    frame_count: int
+    sha256: str = Field(description="Lowercase hex sha256 of the whole object")
+    bytes: int
+    renderer: str
+    url: str = Field(description="Presigned GET URL (expires)")
+
+
+class ManifestPublic(BaseModel):
+    format: str
+    id: str
+    state: str
+    complete: bool
+    frames_total: int
+    frames_done: int
+    shards_total: int
+    seed: int
+    code_version: str
+    renderer: str | None
+    spec: dict[str, Any]
+    shards: list[ManifestShard]
+
+
+class AssetPublic(BaseModel):
+    asset_id: str = Field(description="sha256 of the file; reference it as {\"asset_id\": ...} in a spec")
+    filename: str
+    bytes: int
+
+
+class Health(BaseModel):
+    status: str
+    version: str
+    checks: dict[str, str] = {}

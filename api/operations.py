@@ -1,0 +1,234 @@
+"""What the routes do, as plain functions of Services: admit and enqueue datasets, report status, cancel, purge,
+build manifests, fetch single frames and store uploaded assets."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+import time
+import uuid
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import BinaryIO
+
+from api.deps import Services
+from api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPublic
+from service.errors import AssetError, Conflict, LimitExceeded, NotFound, SpecError, Unavailable
+from service.manifest import build_manifest
+from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
+from service.records import CANCELLED, RUNNING, TERMINAL, DatasetRecord, wait_reply
+from service.settings import Settings
+from service.shards import FRAME_PARTS, asset_info_key, asset_key, dataset_prefix, frame_file, shard_count
+from service.spec import DatasetSpec
+
+UPLOAD_SUFFIXES = (".glb", ".obj", ".ply", ".stl", ".png", ".jpg", ".jpeg")
+
+
+# --- admission
+
+
+def check_limits(spec: DatasetSpec, settings: Settings) -> None:
+    """LimitExceeded naming each configured limit the spec goes over."""
+    over = []
+    if spec.frames > settings.max_frames:
+        over.append(f"frames: {spec.frames} is over the limit of {settings.max_frames} (SEASYNTH_MAX_FRAMES)")
+    for side in ("width", "height"):
+        v = getattr(spec.camera, side)
+        if v > settings.max_side:
+            over.append(f"camera.{side}: {v} is over the limit of {settings.max_side} (SEASYNTH_MAX_SIDE)")
+    for role in ("targets", "distractors"):
+        hi = getattr(spec, role).count[1]
+        if hi > settings.max_objects:
+            over.append(
+                f"{role}.count: max {hi} is over the limit of {settings.max_objects} objects (SEASYNTH_MAX_OBJECTS)"
+            )
+    if over:
+        raise LimitExceeded("\n".join(over))
+
+
+def check_files(spec: DatasetSpec, services: Services) -> None:
+    """A POSTed spec names uploaded assets only: SpecError naming every path and every unknown asset id."""
+    bad = []
+    for where, ref in spec.file_refs():
+        if ref.path is not None:
+            bad.append(f"{where}.path: local paths and URLs are not accepted here; upload the file to POST /assets "
+                       "and reference it by asset_id")
+        elif services.store.head(asset_key(ref.asset_id)) is None:
+            bad.append(f"{where}.asset_id: no uploaded asset {ref.asset_id}")
+    if bad:
+        raise SpecError("invalid spec\n" + "\n".join(bad))
+
+
+# --- datasets
+
+
+def links(dataset_id: str) -> DatasetLinks:
+    base = f"/datasets/{dataset_id}"
+    return DatasetLinks(self=base, manifest=f"{base}/manifest", frames=f"{base}/frames/{{index}}")
+
+
+def create_dataset(services: Services, spec: DatasetSpec) -> DatasetCreated:
+    """Record the dataset and publish one planner task: O(1) broker writes whatever the frame count."""
+    s = services.settings
+    check_limits(spec, s)
+    check_files(spec, services)
+    dataset_id = uuid.uuid4().hex
+    shards = shard_count(spec.frames, spec.shard_size)
+    services.records.create(
+        dataset_id,
+        spec.model_dump(mode="json"),
+        seed=spec.seed,
+        code_version=s.worker_version,
+        frames=spec.frames,
+        shard_size=spec.shard_size,
+        shards=shards,
+        now=time.time(),
+    )
+    services.producer.send_task(TASK_PLAN, args=[dataset_id, 0], queue=shard_queue(s.worker_version))
+    return DatasetCreated(
+        id=dataset_id,
+        state="queued",
+        frames_total=spec.frames,
+        shards_total=shards,
+        code_version=s.worker_version,
+        links=links(dataset_id),
+    )
+
+
+def _time(t: float | None) -> datetime | None:
+    return None if t is None else datetime.fromtimestamp(t, tz=timezone.utc)
+
+
+def public(rec: DatasetRecord, now: float) -> DatasetPublic:
+    rate = eta = None
+    if rec.started_at is not None and rec.frames_done > 0:
+        elapsed = (rec.finished_at or now) - rec.started_at
+        if elapsed > 0:
+            rate = rec.frames_done / elapsed
+            eta = 0.0 if rec.state in TERMINAL else (rec.frames_total - rec.frames_done) / rate
+    return DatasetPublic(
+        id=rec.id,
+        state=rec.state,
+        frames_done=rec.frames_done,
+        frames_total=rec.frames_total,
+        shards_done=rec.shards_done,
+        shards_failed=rec.shards_failed,
+        shards_total=rec.shards_total,
+        shard_size=rec.shard_size,
+        attempts=rec.attempts,
+        frames_per_s=rate,
+        eta_s=eta,
+        errors=[ShardErrorPublic(shard=i, error=e) for i, e in sorted(rec.errors.items())],
+        seed=rec.seed,
+        code_version=rec.code_version,
+        renderer=rec.renderer,
+        created_at=_time(rec.created_at),
+        started_at=_time(rec.started_at),
+        finished_at=_time(rec.finished_at),
+        purged=rec.purged,
+        links=links(rec.id),
+    )
+
+
+def dataset_status(services: Services, dataset_id: str) -> DatasetPublic:
+    rec = services.records.get(dataset_id)
+    if (
+        rec.state == RUNNING
+        and rec.shards_done + rec.shards_failed == rec.shards_total
+        and not services.records.is_finalising(dataset_id)
+    ):
+        # Every shard is in but nobody finalised (the finaliser died): let a worker reconcile.
+        services.producer.send_task(TASK_RECONCILE, args=[dataset_id, False], queue=shard_queue(rec.code_version))
+    return public(rec, time.time())
+
+
+def list_datasets(services: Services, offset: int, limit: int) -> tuple[list[DatasetPublic], int]:
+    ids, total = services.records.list_ids(offset, limit)
+    now, out = time.time(), []
+    for i in ids:
+        try:
+            out.append(public(services.records.get(i), now))
+        except NotFound:  # deleted between the two reads
+            continue
+    return out, total
+
+
+def cancel_dataset(services: Services, dataset_id: str, purge: bool) -> DatasetPublic:
+    """Cancel at once (pending shards will be skipped); with purge, also delete the dataset's objects."""
+    state = services.records.cancel(dataset_id, time.time())
+    if state != CANCELLED and not purge:
+        raise Conflict(f"dataset {dataset_id} already {state}; nothing to cancel (add ?purge=true to delete it)")
+    if purge:
+        services.records.mark_purged(dataset_id)
+        services.store.delete_prefix(dataset_prefix(dataset_id))
+    return public(services.records.get(dataset_id), time.time())
+
+
+def reconcile_dataset(services: Services, dataset_id: str, requeue: bool) -> DatasetPublic:
+    rec = services.records.get(dataset_id)
+    services.producer.send_task(TASK_RECONCILE, args=[dataset_id, requeue], queue=shard_queue(rec.code_version))
+    return public(rec, time.time())
+
+
+def manifest(services: Services, dataset_id: str) -> dict:
+    rec = services.records.get(dataset_id)
+    if rec.purged:
+        raise NotFound(f"dataset {dataset_id} was purged; its objects are gone")
+    return build_manifest(rec, services.records.commits(dataset_id), url=services.store.url)
+
+
+# --- single frames
+
+
+def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[str, bytes]:
+    """Re-render one file of one frame on a frames-queue worker; Unavailable (503) when none answers in time."""
+    rec = services.records.get(dataset_id)
+    if not 0 <= index < rec.frames_total:
+        raise NotFound(f"dataset {dataset_id} has no frame {index} (frames 0..{rec.frames_total - 1})")
+    if part not in FRAME_PARTS:
+        raise NotFound(f"no frame part {part!r}")
+    timeout = services.settings.frame_timeout_s
+    key = services.records.reply_key(uuid.uuid4().hex)
+    services.producer.send_task(
+        TASK_FRAME, args=[dataset_id, index, part, key], queue=frame_queue(rec.code_version), expires=timeout
+    )
+    got = wait_reply(services.raw_redis, key, timeout)
+    if got is None:
+        raise Unavailable(f"no frame worker rendered frame {index} of dataset {dataset_id} within {timeout:g} s")
+    header, body = got
+    if not header.get("ok"):
+        if header.get("status") == 404:
+            raise NotFound(header.get("error", f"frame {index} part {part} not found"))
+        raise Unavailable(f"frame {index} of dataset {dataset_id} failed on the worker: {header.get('error')}")
+    return header.get("name", frame_file(part, index)), body
+
+
+# --- assets
+
+
+def store_asset(services: Services, filename: str, stream: BinaryIO) -> tuple[str, int]:
+    """Stream an upload to a temporary file while hashing it, then store it as assets/{sha256}."""
+    suffix = Path(filename or "").suffix.lower()
+    if suffix not in UPLOAD_SUFFIXES:
+        raise AssetError(f"{filename or '(no name)'}: unsupported file type {suffix!r}; "
+                         f"upload one of {', '.join(UPLOAD_SUFFIXES)}")
+    limit = services.settings.max_asset_bytes
+    sha, size = hashlib.sha256(), 0
+    with tempfile.NamedTemporaryFile(prefix="seasynth-upload-") as tmp:
+        while chunk := stream.read(1 << 20):
+            size += len(chunk)
+            if size > limit:
+                raise LimitExceeded(f"{filename}: over the limit of {limit} bytes (SEASYNTH_MAX_ASSET_BYTES)")
+            sha.update(chunk)
+            tmp.write(chunk)
+        tmp.flush()
+        if size == 0:
+            raise AssetError(f"{filename}: the file is empty")
+        asset_id = sha.hexdigest()
+        # The sidecar goes first: an asset whose object exists always has its sidecar.
+        info = {"filename": Path(filename).name, "bytes": size, "sha256": asset_id}
+        services.store.put_bytes(asset_info_key(asset_id), json.dumps(info).encode(), "application/json")
+        if services.store.head(asset_key(asset_id)) is None:
+            services.store.put_file(asset_key(asset_id), Path(tmp.name))
+    return asset_id, size

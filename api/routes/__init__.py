@@ -1,0 +1,1 @@
+"""Route modules: health (no auth), datasets and assets (API key when configured)."""

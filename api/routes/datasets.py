@@ -1,0 +1,87 @@
+"""Dataset routes: create, list, status, manifest, single frames, cancel and purge."""
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Response, status
+
+from api import operations
+from api.deps import DatasetId, ServicesDep
+from api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic
+from service.spec import DatasetSpec
+
+router = APIRouter(prefix="/datasets", tags=["datasets"])
+
+MEDIA = {".png": "image/png", ".txt": "text/plain; charset=utf-8", ".json": "application/json",
+         ".npy": "application/octet-stream"}
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=DatasetCreated)
+def create_dataset(spec: DatasetSpec, services: ServicesDep, response: Response) -> DatasetCreated:
+    """Accept a dataset spec (the spec-file schema as JSON) and queue its shards."""
+    created = operations.create_dataset(services, spec)
+    response.headers["Location"] = created.links.self
+    return created
+
+
+@router.get("", response_model=DatasetList)
+def list_datasets(
+    services: ServicesDep,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Annotated[int, Query(ge=1, le=100)] = 20,
+) -> DatasetList:
+    """Datasets, newest first."""
+    items, total = operations.list_datasets(services, offset, limit)
+    nxt = f"/datasets?offset={offset + limit}&limit={limit}" if offset + limit < total else None
+    return DatasetList(items=items, total=total, offset=offset, limit=limit, next=nxt)
+
+
+@router.get("/{id}", response_model=DatasetPublic)
+def get_dataset(id: DatasetId, services: ServicesDep) -> DatasetPublic:
+    """State, progress (frames_done counts committed shards only), frames/s, ETA and shard errors."""
+    return operations.dataset_status(services, id)
+
+
+@router.get("/{id}/manifest", response_model=ManifestPublic)
+def get_manifest(id: DatasetId, services: ServicesDep) -> dict:
+    """Committed shards so far (key, frames, sha256, bytes, presigned url), with spec, seed and code version."""
+    return operations.manifest(services, id)
+
+
+@router.get(
+    "/{id}/frames/{index}",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}, "text/plain": {}, "application/json": {}}},
+               503: {"description": "No frame worker answered in time; retry after Retry-After seconds"}},
+)
+def get_frame(
+    id: DatasetId,
+    index: int,
+    services: ServicesDep,
+    part: Annotated[
+        Literal["image", "label", "calib", "meta", "depth", "instance", "clean", "range"],
+        Query(description="Which of the frame's files: the PNG by default"),
+    ] = "image",
+) -> Response:
+    """Re-render frame `index` from (spec, seed, index) on a worker: byte-identical to the file in its shard."""
+    name, body = operations.frame(services, id, index, part)
+    suffix = name[name.rfind("."):]
+    return Response(body, media_type=MEDIA.get(suffix, "application/octet-stream"),
+                    headers={"Content-Disposition": f'inline; filename="{name.replace("/", "_")}"'})
+
+
+@router.delete("/{id}", response_model=DatasetPublic)
+def delete_dataset(
+    id: DatasetId, services: ServicesDep, purge: Annotated[bool, Query(description="Also delete its objects")] = False
+) -> DatasetPublic:
+    """Cancel at once: pending shards are not rendered, committed ones are kept (purge=true deletes them too)."""
+    return operations.cancel_dataset(services, id, purge)
+
+
+@router.post("/{id}/reconcile", response_model=DatasetPublic, status_code=status.HTTP_202_ACCEPTED)
+def reconcile(
+    id: DatasetId,
+    services: ServicesDep,
+    requeue: Annotated[bool, Query(description="Publish every pending shard again (after losing the broker)")] = False,
+) -> DatasetPublic:
+    """Ask a worker to adopt commit markers Redis missed and finalise a complete dataset."""
+    return operations.reconcile_dataset(services, id, requeue)

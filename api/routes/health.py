@@ -1,0 +1,34 @@
+"""Liveness and readiness; never behind an API key."""
+
+from fastapi import APIRouter
+from fastapi.responses import JSONResponse
+
+from api.deps import ServicesDep
+from api.models import Health
+from service import __version__
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz", response_model=Health)
+def healthz() -> Health:
+    """The process is up."""
+    return Health(status="ok", version=__version__)
+
+
+@router.get("/readyz", response_model=Health, responses={503: {"model": Health}})
+def readyz(services: ServicesDep):
+    """Redis and the bucket are reachable."""
+    checks, ok = {}, True
+    try:
+        services.records.r.ping()
+        checks["redis"] = "ok"
+    except Exception as err:  # any failure means not ready; the reason is reported, not hidden
+        checks["redis"], ok = f"unreachable: {err}", False
+    try:
+        services.store.check()
+        checks["storage"] = "ok"
+    except Exception as err:
+        checks["storage"], ok = f"unreachable: {err}", False
+    body = Health(status="ok" if ok else "unavailable", version=__version__, checks=checks)
+    return body if ok else JSONResponse(body.model_dump(), status_code=503)
