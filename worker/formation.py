@@ -269,7 +269,8 @@ def transmission(beta: np.ndarray, range_m: np.ndarray, dtype: type = np.float32
     dt = _check_dtype(dtype)
     b = _check_beta(beta, "beta")
     zc = _capped_range(range_m, dt, b)
-    return _transmission_from(zc, b, dt)
+    with np.errstate(under="ignore"):  # see haze
+        return _transmission_from(zc, b, dt)
 
 
 def haze(
@@ -299,11 +300,15 @@ def haze(
     if j.ndim != 3 or j.shape[2] != 3 or j.shape[:2] != np.shape(range_m):
         raise ValueError(f"J must have shape (h, w, 3) matching range_m {np.shape(range_m)}, got {j.shape}")
     zc = _capped_range(range_m, dt, bd, bb)
-    out = _transmission_from(zc, bd, dt)
-    out *= j
-    back = _one_minus_exp_from(zc, bb, dt)
-    _scale_channels(back, binf)
-    out += back
+    # Underflow can only come from subnormal-scale inputs (ranges or betas near 1e-38): those terms
+    # are as good as 0 and rounding them there is right.  Large optical depths are clipped before
+    # exp, so no underflow (and no denormal slow path) arises from them.
+    with np.errstate(under="ignore"):
+        out = _transmission_from(zc, bd, dt)
+        out *= j
+        back = _one_minus_exp_from(zc, bb, dt)
+        _scale_channels(back, binf)
+        out += back
     return out
 
 
