@@ -1,0 +1,873 @@
+"""Deployment files: docker/*.Dockerfile, docker-compose.yml and the Kubernetes manifests in deploy/.
+
+No Docker engine and no cluster run where this is tested, so: compose is checked by Debian's
+docker-compose (`config`, its own schema and interpolation), the manifests by kubernetes-validate's
+bundled Kubernetes schemas (KEDA's ScaledObject against deploy/schemas/), and the Dockerfiles by
+parsing their instructions and building the package from exactly what they COPY.
+`.ci/validate-deploy` installs the tools and runs this file; a missing tool fails with its install hint.
+"""
+
+from __future__ import annotations
+
+import ast
+import http.server
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+HEALTHCHECK = ROOT / "docker" / "healthcheck.py"
+INSTALL_HINT = "run .ci/validate-deploy, which installs it"
+
+# One shard task is budgeted at up to 5 min; Celery's soft shutdown adds 30 s. A worker's stop
+# grace period must cover both, or a scale-down kills shards that were about to commit.
+SHARD_BUDGET_S = 300
+SOFT_SHUTDOWN_S = 30
+
+OPENGL_MODULES = {"pyrender", "OpenGL", "pyglet", "trimesh", "worker"}
+API_ONLY_MODULES = {"fastapi", "uvicorn", "starlette", "api", "multipart"}
+MESA_PACKAGES = {"libegl1", "libgl1", "libegl-mesa0", "libgles2", "libgl1-mesa-dri"}
+GL_PACKAGE_RE = re.compile(r"\b(lib(egl|gl|gles|glx|glvnd|opengl|osmesa)[\w.+-]*|mesa[\w.+-]*)\b")
+NVIDIA_VENDOR_FILE = "/usr/share/glvnd/egl_vendor.d/10_nvidia.json"
+
+IMAGES = {
+    "api": {
+        "dockerfile": "docker/api.Dockerfile",
+        "extra": "api",
+        "packages": {"service", "api"},
+        "cmd": ["seasynth", "serve", "--host", "0.0.0.0", "--port", "8000"],
+        "forbidden_imports": OPENGL_MODULES,
+        "k8s_image": "seasynth/api",
+    },
+    "worker": {
+        "dockerfile": "docker/worker.Dockerfile",
+        "extra": "worker",
+        "packages": {"service", "worker"},
+        "cmd": ["seasynth", "worker"],
+        "forbidden_imports": API_ONLY_MODULES,
+        "k8s_image": "seasynth/worker",
+    },
+    "worker-gpu": {
+        "dockerfile": "docker/worker-gpu.Dockerfile",
+        "extra": "worker",
+        "packages": {"service", "worker"},
+        "cmd": ["seasynth", "worker"],
+        "forbidden_imports": API_ONLY_MODULES,
+        "k8s_image": "seasynth/worker-gpu",
+    },
+}
+
+SETTINGS_KEYS = {
+    "SEASYNTH_REDIS_URL",
+    "SEASYNTH_S3_ENDPOINT_URL",
+    "SEASYNTH_S3_PUBLIC_ENDPOINT_URL",
+    "SEASYNTH_S3_BUCKET",
+    "SEASYNTH_S3_CREATE_BUCKET",
+    "AWS_ACCESS_KEY_ID",
+    "AWS_SECRET_ACCESS_KEY",
+    "AWS_DEFAULT_REGION",
+}
+
+
+def _import_or_fail(name: str, pip_name: str):
+    try:
+        return __import__(name)
+    except ImportError:
+        pytest.fail(f"python package {pip_name!r} is missing: pip install {pip_name} ({INSTALL_HINT})")
+
+
+def _which_or_fail(binary: str, hint: str) -> str:
+    path = shutil.which(binary)
+    if path is None:
+        pytest.fail(f"{binary} is not installed: {hint} ({INSTALL_HINT})")
+    return path
+
+
+yaml = _import_or_fail("yaml", "pyyaml")
+
+
+def _duration_s(text: str) -> float:
+    """Compose durations: '6m', '1m30s', '90s', '500ms'."""
+    parts = re.findall(r"(\d+(?:\.\d+)?)(ms|us|h|m|s)", str(text))
+    assert parts and "".join(n + u for n, u in parts) == str(text), f"not a duration: {text!r}"
+    scale = {"h": 3600, "m": 60, "s": 1, "ms": 1e-3, "us": 1e-6}
+    return sum(float(n) * scale[u] for n, u in parts)
+
+
+# --------------------------------------------------------------------------------------------
+# Dockerfiles
+
+
+def parse_dockerfile(path: Path) -> list[list[tuple[str, str]]]:
+    """Stages of (INSTRUCTION, arguments), line continuations joined, comments dropped."""
+    stages: list[list[tuple[str, str]]] = []
+    logical = ""
+    for raw in path.read_text().splitlines():
+        line = raw.strip()
+        if line.startswith("#") or not line:
+            continue  # comments and blank lines may sit inside a continuation too
+        if line.endswith("\\"):
+            logical += line[:-1] + " "
+            continue
+        logical += line
+        instr, _, args = logical.partition(" ")
+        logical = ""
+        instr = instr.upper()
+        if instr == "FROM":
+            stages.append([])
+        assert stages, f"{path}: {instr} before FROM"
+        stages[-1].append((instr, " ".join(args.split())))
+    assert not logical, f"{path}: dangling line continuation"
+    return stages
+
+
+def _exec_form(args: str) -> list[str]:
+    value = json.loads(args)
+    assert isinstance(value, list) and all(isinstance(v, str) for v in value), args
+    return value
+
+
+def _env(stage: list[tuple[str, str]]) -> dict[str, str]:
+    env: dict[str, str] = {}
+    for instr, args in stage:
+        if instr == "ENV":
+            for token in shlex.split(args):
+                key, sep, value = token.partition("=")
+                assert sep, f"ENV {args!r}: use the KEY=value form"
+                env[key] = value
+    return env
+
+
+def _apt_packages(stage: list[tuple[str, str]]) -> set[str]:
+    packages: set[str] = set()
+    for instr, args in stage:
+        if instr != "RUN":
+            continue
+        for command in re.split(r"&&|;", args):
+            words = command.split()
+            if "apt-get" in words and "install" in words:
+                packages |= {w for w in words[words.index("install") + 1 :] if not w.startswith("-")}
+    return packages
+
+
+def _copies(stage: list[tuple[str, str]]) -> list[tuple[list[str], str]]:
+    """(sources, destination) of the stage's COPY instructions from the build context."""
+    out = []
+    for instr, args in stage:
+        if instr in ("COPY", "ADD"):
+            words = args.split()
+            if any(w.startswith("--from=") for w in words):
+                continue
+            words = [w for w in words if not w.startswith("--")]
+            out.append((words[:-1], words[-1]))
+    return out
+
+
+def _dockerignore() -> list[str]:
+    path = ROOT / ".dockerignore"
+    assert path.is_file(), ".dockerignore is missing: the build context would carry .venv and .git"
+    return [line.strip() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+
+
+def _dockerignore_regex(pattern: str) -> re.Pattern:
+    """Docker's .dockerignore matching: `**` spans folders, `*` and `?` stay within one."""
+    out, i = "", 0
+    while i < len(pattern):
+        if pattern.startswith("**/", i):
+            out, i = out + "(?:.*/)?", i + 3
+        elif pattern.startswith("**", i):
+            out, i = out + ".*", i + 2
+        elif pattern[i] == "*":
+            out, i = out + "[^/]*", i + 1
+        elif pattern[i] == "?":
+            out, i = out + "[^/]", i + 1
+        else:
+            out, i = out + re.escape(pattern[i]), i + 1
+    return re.compile(out)
+
+
+def _ignored(rel: str, patterns: list[str]) -> bool:
+    """Whether .dockerignore leaves `rel` (or a folder holding it) out of the build context."""
+    parts = rel.strip("/").split("/")
+    prefixes = ["/".join(parts[: i + 1]) for i in range(len(parts))]
+    ignored = False
+    for pattern in patterns:
+        negate = pattern.startswith("!")
+        regex = _dockerignore_regex(pattern.lstrip("!").strip("/"))
+        if any(regex.fullmatch(p) for p in prefixes):
+            ignored = not negate
+    return ignored
+
+
+@pytest.fixture(scope="module", params=sorted(IMAGES))
+def image(request):
+    name = request.param
+    spec = IMAGES[name]
+    path = ROOT / spec["dockerfile"]
+    assert path.is_file(), f"{spec['dockerfile']} is missing"
+    return name, spec, parse_dockerfile(path)
+
+
+def test_dockerfile_base_user_and_command(image):
+    name, spec, stages = image
+    for stage in stages:
+        assert stage[0] == ("FROM", stage[0][1]) and stage[0][1].split()[0] == "python:3.11-slim", (
+            f"{name}: every stage builds on python:3.11-slim, not {stage[0][1]!r}"
+        )
+    final = stages[-1]
+    instrs = [i for i, _ in final]
+    cmds = [_exec_form(a) for i, a in final if i == "CMD"]
+    assert cmds and cmds[-1] == spec["cmd"], f"{name}: CMD should be {spec['cmd']} (exec form), got {cmds}"
+    assert "ENTRYPOINT" not in instrs, f"{name}: no ENTRYPOINT, so compose/k8s commands are whole command lines"
+
+    users = [a for i, a in final if i == "USER"]
+    assert users, f"{name}: the final stage must switch to a non-root USER"
+    uid = users[-1].split(":")[0]
+    assert uid.isdigit() and int(uid) != 0, (
+        f"{name}: USER {users[-1]!r} must be a numeric non-root uid (Kubernetes runAsNonRoot checks it)"
+    )
+    last_user = max(k for k, i in enumerate(instrs) if i == "USER")
+    assert all(i not in ("RUN",) for i in instrs[last_user:]), f"{name}: a RUN after USER runs unprivileged by accident"
+    assert "HEALTHCHECK" in instrs, f"{name}: HEALTHCHECK missing"
+    stop = [a for i, a in final if i == "STOPSIGNAL"]
+    assert stop == ["SIGTERM"], f"{name}: STOPSIGNAL SIGTERM (Celery/uvicorn graceful shutdown), got {stop}"
+
+
+def test_dockerfile_installs_its_extra_with_constraints(image):
+    name, spec, stages = image
+    installs = [a for st in stages for i, a in st if i == "RUN" and "pip install" in a]
+    assert len(installs) == 1, f"{name}: one pip install of the project, got {installs}"
+    words = shlex.split(installs[0])
+    assert "-c" in words and words[words.index("-c") + 1] == "constraints.txt", (
+        f"{name}: install with -c constraints.txt so the image gets the tested versions"
+    )
+    assert f".[{spec['extra']}]" in words, f"{name}: should install .[{spec['extra']}]: {installs[0]}"
+    assert not any(re.fullmatch(r"\.\[.*\]", w) and w != f".[{spec['extra']}]" for w in words)
+
+
+def test_dockerfile_healthcheck_runs_the_shipped_probe(image):
+    name, spec, stages = image
+    final = stages[-1]
+    check = next(a for i, a in final if i == "HEALTHCHECK")
+    probe = _exec_form(check[check.index("CMD") + 3 :].strip())
+    assert probe[:2] == ["python", "/usr/local/lib/seasynth/healthcheck.py"], probe
+    copied = {dest for srcs, dest in _copies(final) if srcs == ["docker/healthcheck.py"]}
+    assert copied == {probe[1]}, f"{name}: the probe must be copied to {probe[1]}"
+    if name == "api":
+        assert probe[2:] == ["http", "http://127.0.0.1:8000/healthz"], probe
+    else:
+        assert probe[2:] == ["worker"], probe
+
+
+def test_api_image_has_no_opengl():
+    stages = parse_dockerfile(ROOT / IMAGES["api"]["dockerfile"])
+    for stage in stages:
+        gl = {p for p in _apt_packages(stage) if GL_PACKAGE_RE.fullmatch(p)}
+        assert not gl, f"the API image must not install OpenGL libraries: {sorted(gl)}"
+        env = _env(stage)
+        assert not {k for k in env if "OPENGL" in k or "EGL" in k or "PYGLET" in k}, env
+        copied = {s.rstrip("/") for srcs, _ in _copies(stage) for s in srcs}
+        assert "worker" not in copied, "the API image must not contain the worker package"
+
+
+def test_cpu_worker_image_renders_with_mesa_egl():
+    final = parse_dockerfile(ROOT / IMAGES["worker"]["dockerfile"])[-1]
+    missing = MESA_PACKAGES - _apt_packages(final)
+    assert not missing, f"worker image lacks Mesa EGL packages {sorted(missing)}"
+    env = _env(final)
+    assert env.get("PYOPENGL_PLATFORM") == "egl" and env.get("PYGLET_HEADLESS") == "1", env
+    assert "__EGL_VENDOR_LIBRARY_FILENAMES" not in env, "the CPU image must let glvnd find Mesa"
+
+
+def test_gpu_worker_image_renders_with_nvidia_egl():
+    stages = parse_dockerfile(ROOT / IMAGES["worker-gpu"]["dockerfile"])
+    final = stages[-1]
+    packages = _apt_packages(final)
+    assert {"libglvnd0", "libegl1", "libgl1", "libopengl0"} <= packages, packages
+    assert "libegl-mesa0" not in packages, "Mesa's EGL vendor would compete with NVIDIA's"
+    env = _env(final)
+    assert env.get("PYOPENGL_PLATFORM") == "egl" and env.get("PYGLET_HEADLESS") == "1", env
+    assert env.get("__EGL_VENDOR_LIBRARY_FILENAMES") == NVIDIA_VENDOR_FILE, env
+    caps = set(env.get("NVIDIA_DRIVER_CAPABILITIES", "").split(","))
+    assert {"graphics", "compute", "utility"} <= caps, f"NVIDIA_DRIVER_CAPABILITIES needs graphics: {caps}"
+    writes_vendor = [a for i, a in final if i == "RUN" and NVIDIA_VENDOR_FILE in a]
+    assert writes_vendor, f"the image should carry {NVIDIA_VENDOR_FILE} for glvnd"
+    vendor_json = re.search(r"printf '(\{.*\})\\n'", writes_vendor[0])
+    assert vendor_json, writes_vendor[0]
+    assert json.loads(vendor_json.group(1))["ICD"]["library_path"] == "libEGL_nvidia.so.0"
+
+
+def test_copied_sources_exist_and_are_in_the_build_context(image):
+    name, _, stages = image
+    patterns = _dockerignore()
+    for stage in stages:
+        for sources, _ in _copies(stage):
+            for src in sources:
+                assert (ROOT / src).exists(), f"{name}: COPY {src}: no such file at the repository root"
+                assert not _ignored(src.rstrip("/"), patterns), f"{name}: COPY {src} is excluded by .dockerignore"
+    for heavy in (".git", ".venv", "tests", "out"):
+        assert _ignored(heavy, patterns), f".dockerignore should exclude {heavy}/"
+
+
+def _build_context(stage: list[tuple[str, str]], dest: Path) -> None:
+    """Lay out what the build stage's COPY instructions put in its WORKDIR."""
+    for sources, target in _copies(stage):
+        for src in sources:
+            to = dest / target if target not in ("./", ".") else dest / Path(src).name
+            if target.endswith("/") and target not in ("./",):
+                to = dest / target / Path(src).name
+            if (ROOT / src).is_dir():
+                shutil.copytree(ROOT / src, to, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+            else:
+                to.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(ROOT / src, to)
+
+
+@pytest.mark.parametrize("name", ["api", "worker"])  # worker-gpu copies the same as worker
+def test_build_stage_packages_exactly_the_image_packages(name, tmp_path):
+    """Build the wheel from what the build stage copies: it must build, and hold only its packages."""
+    spec = IMAGES[name]
+    build = parse_dockerfile(ROOT / spec["dockerfile"])[0]
+    ctx = tmp_path / "src"
+    ctx.mkdir()
+    _build_context(build, ctx)
+    wheels = tmp_path / "wheels"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(ctx)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, f"{name}: the package does not build from the COPYed files:\n{proc.stderr[-3000:]}"
+    (wheel,) = wheels.glob("*.whl")
+    with zipfile.ZipFile(wheel) as zf:
+        top = {n.split("/")[0] for n in zf.namelist() if "/" in n and ".dist-info" not in n.split("/")[0]}
+    assert top == spec["packages"], f"{name}: the image would hold packages {sorted(top)}, not {sorted(spec['packages'])}"
+
+
+def _module_level_imports(path: Path) -> set[str]:
+    """Top-level names imported when the module is imported (not inside functions, not TYPE_CHECKING)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    found: set[str] = set()
+
+    def visit(body):
+        for node in body:
+            if isinstance(node, ast.Import):
+                found.update(a.name.split(".")[0] for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                found.add(node.module.split(".")[0])
+            elif isinstance(node, ast.If):
+                if "TYPE_CHECKING" not in ast.unparse(node.test):
+                    visit(node.body)
+                    visit(node.orelse)
+            elif isinstance(node, ast.Try):
+                # `try: import x / except ImportError:` is an optional import: it cannot break the start.
+                caught = " ".join(ast.unparse(h.type) for h in node.handlers if h.type is not None)
+                if "ImportError" not in caught and "ModuleNotFoundError" not in caught:
+                    visit(node.body)
+            elif isinstance(node, (ast.With,)):
+                visit(node.body)
+
+    visit(tree.body)
+    return found
+
+
+@pytest.mark.parametrize("name", ["api", "worker"])
+def test_image_modules_import_nothing_the_image_lacks(name):
+    """A module-level import of OpenGL in the API image (or FastAPI in a worker) breaks its start."""
+    spec = IMAGES[name]
+    offenders = []
+    for package in sorted(spec["packages"]):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            bad = _module_level_imports(path) & spec["forbidden_imports"]
+            if bad:
+                offenders.append(f"{path.relative_to(ROOT)}: {sorted(bad)}")
+    assert not offenders, f"modules in the {name} image import at load time what it does not install: {offenders}"
+
+
+# ---- the shipped health probe, run for real
+
+
+class _Health(http.server.BaseHTTPRequestHandler):
+    def do_GET(self):  # noqa: N802 (http.server's name)
+        self.send_response(200 if self.path == "/healthz" else 503)
+        self.end_headers()
+
+    def log_message(self, *args):
+        pass
+
+
+def _probe(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(HEALTHCHECK), *args], capture_output=True, text=True, timeout=30)
+
+
+def test_healthcheck_http_mode():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Health)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    try:
+        assert _probe("http", f"{base}/healthz").returncode == 0
+        failing = _probe("http", f"{base}/other")
+        assert failing.returncode == 1 and "503" in failing.stderr
+    finally:
+        server.shutdown()
+        server.server_close()
+    down = _probe("http", f"{base}/healthz")
+    assert down.returncode == 1 and "unreachable" in down.stderr
+
+
+def test_healthcheck_worker_mode_needs_a_live_pool():
+    with_child = subprocess.Popen(["sh", "-c", "sleep 60 & wait"])
+    alone = subprocess.Popen(["sleep", "60"])
+    try:
+        deadline = time.monotonic() + 10
+        while _probe("worker", str(with_child.pid)).returncode != 0:
+            assert time.monotonic() < deadline, "a process with a child was reported unhealthy"
+            time.sleep(0.1)
+        lonely = _probe("worker", str(alone.pid))
+        assert lonely.returncode == 1 and "no pool processes" in lonely.stderr
+    finally:
+        for p in (with_child, alone):
+            p.kill()
+            p.wait()
+    gone = _probe("worker", str(alone.pid))
+    assert gone.returncode == 1 and "gone" in gone.stderr
+    assert _probe().returncode == 2
+
+
+# --------------------------------------------------------------------------------------------
+# docker-compose.yml
+
+
+def _compose(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    binary = _which_or_fail("docker-compose", "apt-get install -y docker-compose")
+    clean = {k: v for k, v in os.environ.items() if not k.startswith(("SEASYNTH_", "MINIO_", "COMPOSE_", "AWS_"))}
+    clean.update(env or {})
+    return subprocess.run(
+        [binary, "-f", str(ROOT / "docker-compose.yml"), "--project-directory", str(ROOT), *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=clean,
+        cwd=ROOT,
+    )
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    """The resolved compose file (anchors merged, variables at their defaults), gpu profile on."""
+    quiet = _compose("config", "-q")
+    assert quiet.returncode == 0, f"docker-compose config rejects docker-compose.yml:\n{quiet.stderr}"
+    full = _compose("--profile", "gpu", "config")
+    assert full.returncode == 0, full.stderr
+    return yaml.safe_load(full.stdout)
+
+
+def test_compose_services(compose):
+    assert set(compose["services"]) == {"redis", "minio", "minio-init", "api", "worker", "worker-gpu"}
+    for name, svc in compose["services"].items():
+        if name != "minio-init":
+            assert "healthcheck" in svc, f"{name}: no healthcheck"
+            assert svc.get("restart") == "unless-stopped", f"{name}: should restart unless stopped"
+
+
+def test_compose_redis_never_evicts_and_persists(compose):
+    redis = compose["services"]["redis"]
+    assert redis["image"].split(":")[0] == "redis" and redis["image"].split(":")[1].startswith("7")
+    cmd = redis["command"]
+    assert cmd[0] == "redis-server"
+    opts = dict(zip(cmd[1::2], cmd[2::2]))
+    assert opts == {"--appendonly": "yes", "--maxmemory-policy": "noeviction"}, cmd
+    # docker-compose v1 prints short syntax ("redis-data:/data:rw"), v2 the long one.
+    mounts = [v if isinstance(v, dict) else dict(zip(("source", "target"), v.split(":"))) for v in redis["volumes"]]
+    assert any(m["source"] in compose["volumes"] and m["target"] == "/data" for m in mounts), redis["volumes"]
+    assert redis["healthcheck"]["test"] == ["CMD", "redis-cli", "ping"]
+
+
+def test_compose_minio_bucket_is_created(compose):
+    svcs = compose["services"]
+    init = svcs["minio-init"]
+    assert init["depends_on"] == {"minio": {"condition": "service_healthy"}}
+    script = " ".join(init["command"])
+    bucket = svcs["api"]["environment"]["SEASYNTH_S3_BUCKET"]
+    assert f"mc mb --ignore-existing local/{bucket}" in script, script
+    assert "mc alias set local http://minio:9000" in script
+    assert init["restart"] == "no"
+    assert "9000:9000" in [f"{p['published']}:{p['target']}" for p in svcs["minio"]["ports"]] or any(
+        str(p).startswith("9000:9000") for p in svcs["minio"]["ports"]
+    ), svcs["minio"]["ports"]
+
+
+@pytest.mark.parametrize("name", ["api", "worker", "worker-gpu"])
+def test_compose_app_services_share_settings_and_wait_for_backends(compose, name):
+    svc = compose["services"][name]
+    env = svc["environment"]
+    assert SETTINGS_KEYS <= set(env), f"{name}: missing settings {sorted(SETTINGS_KEYS - set(env))}"
+    assert env["SEASYNTH_REDIS_URL"] == "redis://redis:6379/0"
+    assert env["SEASYNTH_S3_ENDPOINT_URL"] == "http://minio:9000"
+    assert env["SEASYNTH_S3_PUBLIC_ENDPOINT_URL"] == "http://localhost:9000"
+    assert env["SEASYNTH_S3_BUCKET"] == "seasynth" and env["SEASYNTH_S3_CREATE_BUCKET"] == "true"
+    assert env["AWS_DEFAULT_REGION"] == "us-east-1"
+    minio_env = compose["services"]["minio"]["environment"]
+    assert (env["AWS_ACCESS_KEY_ID"], env["AWS_SECRET_ACCESS_KEY"]) == (
+        minio_env["MINIO_ROOT_USER"],
+        minio_env["MINIO_ROOT_PASSWORD"],
+    ), f"{name}: S3 credentials differ from MinIO's"
+    assert len(minio_env["MINIO_ROOT_PASSWORD"]) >= 8, "MinIO refuses passwords under 8 characters"
+    assert svc["depends_on"] == {
+        "redis": {"condition": "service_healthy"},
+        "minio": {"condition": "service_healthy"},
+        "minio-init": {"condition": "service_completed_successfully"},
+    }
+    assert svc["build"]["dockerfile"] == IMAGES[name]["dockerfile"]
+    if name == "api":
+        assert "command" not in svc, "the api runs its image's CMD"
+    else:
+        assert svc["command"][:2] == IMAGES[name]["cmd"], svc["command"]
+
+
+def test_compose_api(compose):
+    api = compose["services"]["api"]
+    assert [(str(p["published"]), p["target"]) for p in api["ports"]] == [("8000", 8000)]
+    assert api["healthcheck"]["test"][-1] == "http://127.0.0.1:8000/healthz"
+    # Null: passed through from the caller's environment when set there, else not set at all.
+    assert api["environment"].get("SEASYNTH_API_KEYS") is None, "API keys are off unless the user sets them"
+    with_keys = _compose("config", env={"SEASYNTH_API_KEYS": "k-one"})
+    assert with_keys.returncode == 0, with_keys.stderr
+    resolved = yaml.safe_load(with_keys.stdout)["services"]
+    assert resolved["api"]["environment"]["SEASYNTH_API_KEYS"] == "k-one"
+    assert "SEASYNTH_API_KEYS" not in resolved["worker"]["environment"]
+
+
+@pytest.mark.parametrize("name", ["worker", "worker-gpu"])
+def test_compose_workers_scale_and_stop_gracefully(compose, name):
+    svc = compose["services"][name]
+    assert "container_name" not in svc and "ports" not in svc, f"{name}: would break --scale {name}=N"
+    assert "hostname" not in svc, f"{name}: a fixed hostname gives every replica the same Celery node name"
+    assert svc["stop_signal"] == "SIGTERM"
+    grace = _duration_s(svc["stop_grace_period"])
+    assert grace >= SHARD_BUDGET_S + SOFT_SHUTDOWN_S, f"{name}: stop_grace_period {grace}s < one shard + soft shutdown"
+    assert svc["healthcheck"]["test"][-1] == "worker"
+    assert svc["command"][2] == "--concurrency" and int(svc["command"][3]) >= 1
+
+
+def test_compose_gpu_worker_is_an_opt_in_profile_with_an_nvidia_device(compose):
+    svc = compose["services"]["worker-gpu"]
+    assert svc["profiles"] == ["gpu"]
+    (device,) = svc["deploy"]["resources"]["reservations"]["devices"]
+    assert device["driver"] == "nvidia" and device["count"] == 1
+    assert {"gpu", "graphics"} <= set(device["capabilities"]), "graphics: EGL needs the driver's GL libraries"
+    assert "profiles" not in compose["services"]["worker"]
+
+
+def test_compose_scale_override_is_accepted():
+    """`--scale` itself needs an engine; the file-level equivalent is a replicas count."""
+    proc = _compose("config", "-q")
+    assert proc.returncode == 0
+    raw = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    assert "version" not in raw, "no version key: the file follows the Compose Specification"
+
+
+# --------------------------------------------------------------------------------------------
+# Kubernetes manifests (deploy/)
+
+KUSTOMIZATIONS = ["deploy/base", "deploy", "deploy/overlays/gpu"]
+CLUSTER_SCOPED = {"Namespace"}
+SUPPORTED_KUSTOMIZE_KEYS = {"apiVersion", "kind", "namespace", "labels", "resources", "components", "images"}
+NAMESPACE = "seasynth"
+
+
+def _load_yaml_docs(path: Path) -> list[dict]:
+    return [d for d in yaml.safe_load_all(path.read_text()) if d is not None]
+
+
+def _pod_templates(doc: dict) -> list[dict]:
+    if doc["kind"] in ("Deployment", "StatefulSet", "DaemonSet", "Job"):
+        return [doc["spec"]["template"]]
+    return []
+
+
+def _apply_transformers(k: dict, docs: list[dict], where: Path) -> list[dict]:
+    unsupported = set(k) - SUPPORTED_KUSTOMIZE_KEYS
+    assert not unsupported, (
+        f"{where}: {sorted(unsupported)} is beyond this test's offline kustomize renderer; extend "
+        "_apply_transformers (and compare with `kubectl kustomize`)"
+    )
+    for doc in docs:
+        meta = doc.setdefault("metadata", {})
+        if "namespace" in k and doc["kind"] not in CLUSTER_SCOPED:
+            meta["namespace"] = k["namespace"]
+        for entry in k.get("labels", []):
+            assert set(entry) == {"pairs"}, f"{where}: only plain label pairs are supported: {entry}"
+            meta.setdefault("labels", {}).update(entry["pairs"])
+        for img in k.get("images", []):
+            for tmpl in _pod_templates(doc):
+                for c in tmpl["spec"].get("containers", []) + tmpl["spec"].get("initContainers", []):
+                    name, _, tag = c["image"].partition(":")
+                    if name == img["name"]:
+                        c["image"] = f"{img.get('newName', name)}:{img.get('newTag', tag)}"
+    return docs
+
+
+def render_kustomization(directory: Path, used: set[Path] | None = None) -> list[dict]:
+    """An offline `kustomize build` for the subset deploy/ uses (resources, components, namespace,
+    labels, images); compared with the real one where kubectl is installed."""
+    kfile = directory / "kustomization.yaml"
+    assert kfile.is_file(), f"{directory}: no kustomization.yaml"
+    k = yaml.safe_load(kfile.read_text())
+    assert k["kind"] == "Kustomization", kfile
+    if used is not None:
+        used.add(kfile)
+    docs: list[dict] = []
+    for res in k.get("resources", []):
+        path = (directory / res).resolve()
+        assert path.exists(), f"{kfile}: resource {res} does not exist"
+        if path.is_dir():
+            docs += render_kustomization(path, used)
+        else:
+            if used is not None:
+                used.add(path)
+            docs += _load_yaml_docs(path)
+    for comp in k.get("components", []):
+        cdir = (directory / comp).resolve()
+        cfile = cdir / "kustomization.yaml"
+        assert cfile.is_file(), f"{kfile}: component {comp} has no kustomization.yaml"
+        ck = yaml.safe_load(cfile.read_text())
+        assert ck["kind"] == "Component" and ck["apiVersion"] == "kustomize.config.k8s.io/v1alpha1", cfile
+        if used is not None:
+            used.add(cfile)
+        for res in ck.get("resources", []):
+            path = cdir / res
+            assert path.is_file(), f"{cfile}: resource {res} does not exist"
+            if used is not None:
+                used.add(path.resolve())
+            docs += _load_yaml_docs(path)
+        docs = _apply_transformers({kk: v for kk, v in ck.items() if kk != "resources"}, docs, cfile)
+    docs = _apply_transformers({kk: v for kk, v in k.items() if kk not in ("resources", "components")}, docs, kfile)
+    keys = [(d["kind"], d["metadata"].get("namespace"), d["metadata"]["name"]) for d in docs]
+    assert len(keys) == len(set(keys)), f"{directory}: duplicate objects {keys}"
+    return docs
+
+
+@pytest.fixture(scope="module")
+def rendered() -> dict[str, list[dict]]:
+    return {k: render_kustomization(ROOT / k) for k in KUSTOMIZATIONS}
+
+
+def _by(docs: list[dict], kind: str, name: str) -> dict:
+    found = [d for d in docs if d["kind"] == kind and d["metadata"]["name"] == name]
+    assert len(found) == 1, f"expected one {kind}/{name}, found {len(found)}"
+    return found[0]
+
+
+def _container(doc: dict) -> dict:
+    (container,) = doc["spec"]["template"]["spec"]["containers"]
+    return container
+
+
+def test_every_manifest_file_is_used():
+    used: set[Path] = set()
+    for k in KUSTOMIZATIONS:
+        render_kustomization(ROOT / k, used)
+    on_disk = {p.resolve() for p in DEPLOY.rglob("*.yaml")} | {p.resolve() for p in DEPLOY.rglob("*.yml")}
+    orphans = sorted(str(p.relative_to(ROOT)) for p in on_disk - used)
+    assert not orphans, f"manifests no kustomization applies: {orphans}"
+
+
+def _k8s_versions() -> list[str]:
+    kv = _import_or_fail("kubernetes_validate", "kubernetes-validate")
+    latest = kv.latest_version()
+    return sorted({"1.27", ".".join(latest.split(".")[:2])})
+
+
+@pytest.mark.parametrize("kustomization", KUSTOMIZATIONS)
+def test_manifests_match_the_kubernetes_schemas(rendered, kustomization):
+    kv = _import_or_fail("kubernetes_validate", "kubernetes-validate")
+    jsonschema = _import_or_fail("jsonschema", "jsonschema")
+    keda_schema = json.loads((DEPLOY / "schemas" / "keda-scaledobject.schema.json").read_text())
+    errors = []
+    for doc in rendered[kustomization]:
+        what = f"{doc['kind']}/{doc['metadata']['name']}"
+        if doc["apiVersion"].startswith("keda.sh/"):
+            # KEDA's CRD comes with KEDA, not with the Kubernetes schemas.
+            for err in jsonschema.Draft202012Validator(keda_schema).iter_errors(doc):
+                errors.append(f"{what}: {'/'.join(map(str, err.absolute_path))}: {err.message}")
+            continue
+        for version in _k8s_versions():
+            try:
+                kv.validate(doc, version, strict=True)
+            except kv.SchemaNotFoundError:
+                errors.append(f"{what}: no Kubernetes {version} schema for {doc['apiVersion']} {doc['kind']}")
+            except kv.ValidationError as err:
+                path = "/".join(map(str, getattr(err, "absolute_path", []) or getattr(err, "path", [])))
+                errors.append(f"{what} (k8s {version}): {path}: {getattr(err, 'message', str(err)).splitlines()[0]}")
+    assert not errors, "\n".join(errors)
+
+
+def test_keda_schema_rejects_what_keda_rejects():
+    """The vendored schema is ours: show it catches the mistakes it exists for."""
+    jsonschema = _import_or_fail("jsonschema", "jsonschema")
+    schema = json.loads((DEPLOY / "schemas" / "keda-scaledobject.schema.json").read_text())
+    good = _load_yaml_docs(DEPLOY / "components" / "keda" / "scaledobject.yaml")[0]
+    assert not list(jsonschema.Draft202012Validator(schema).iter_errors(good))
+    numeric = json.loads(json.dumps(good))
+    numeric["spec"]["triggers"][0]["metadata"]["listLength"] = 4
+    no_list = json.loads(json.dumps(good))
+    del no_list["spec"]["triggers"][0]["metadata"]["listName"]
+    typo = json.loads(json.dumps(good))
+    typo["spec"]["maxReplicas"] = 3
+    for bad in (numeric, no_list, typo):
+        assert list(jsonschema.Draft202012Validator(schema).iter_errors(bad))
+
+
+@pytest.mark.parametrize("kustomization", KUSTOMIZATIONS)
+def test_offline_render_equals_kubectl_kustomize(rendered, kustomization):
+    kubectl = shutil.which("kubectl")
+    if kubectl is None:
+        pytest.skip(
+            "kubectl is not installed, so the offline render was not compared with kustomize's own "
+            "(the schema checks above still ran on it); install kubectl to compare"
+        )
+    proc = subprocess.run([kubectl, "kustomize", str(ROOT / kustomization)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+    def key(d):
+        return (d["kind"], d["metadata"].get("namespace") or "", d["metadata"]["name"])
+
+    assert sorted(_load_yaml_docs_text(proc.stdout), key=key) == sorted(rendered[kustomization], key=key)
+
+
+def _load_yaml_docs_text(text: str) -> list[dict]:
+    return [d for d in yaml.safe_load_all(text) if d is not None]
+
+
+@pytest.mark.parametrize("kustomization", KUSTOMIZATIONS)
+def test_references_resolve_within_the_namespace(rendered, kustomization):
+    docs = rendered[kustomization]
+    names = {(d["kind"], d["metadata"]["name"]) for d in docs}
+    assert ("Namespace", NAMESPACE) in names
+    for d in docs:
+        if d["kind"] not in CLUSTER_SCOPED:
+            assert d["metadata"].get("namespace") == NAMESPACE, f"{d['kind']}/{d['metadata']['name']} outside {NAMESPACE}"
+        assert d["metadata"]["labels"]["app.kubernetes.io/part-of"] == "seasynth"
+        for tmpl in _pod_templates(d):
+            assert d["spec"]["selector"]["matchLabels"].items() <= tmpl["metadata"]["labels"].items()
+            for c in tmpl["spec"]["containers"]:
+                for src in c.get("envFrom", []):
+                    ref = ("ConfigMap", src["configMapRef"]["name"]) if "configMapRef" in src else ("Secret", src["secretRef"]["name"])
+                    assert ref in names, f"{d['metadata']['name']}: envFrom {ref} does not exist"
+        if d["kind"] == "Service":
+            selector = d["spec"]["selector"].items()
+            targets = [t for t in docs for tmpl in _pod_templates(t) if selector <= tmpl["metadata"]["labels"].items()]
+            assert len(targets) == 1, f"Service/{d['metadata']['name']} selects {len(targets)} workloads"
+            ports = {p["name"] for p in _container(targets[0]).get("ports", [])}
+            for p in d["spec"]["ports"]:
+                assert p["targetPort"] in ports, f"Service/{d['metadata']['name']}: no container port {p['targetPort']}"
+        if d["kind"] == "ScaledObject":
+            target = d["spec"]["scaleTargetRef"]["name"]
+            assert ("Deployment", target) in names, f"ScaledObject/{d['metadata']['name']} targets missing {target}"
+            for trig in d["spec"]["triggers"]:
+                assert trig["type"] == "redis"
+                host, port = trig["metadata"]["address"].rsplit(":", 1)
+                assert host == f"redis.{NAMESPACE}.svc.cluster.local" and ("Service", "redis") in names
+                assert int(port) == _by(docs, "Service", "redis")["spec"]["ports"][0]["port"]
+                settings = _by(docs, "ConfigMap", "seasynth-settings")["data"]
+                assert settings["SEASYNTH_REDIS_URL"].endswith(f":{port}/{trig['metadata']['databaseIndex']}"), (
+                    "KEDA must watch the Redis database the workers use"
+                )
+
+
+def test_kustomizations_hold_the_right_objects(rendered):
+    def kinds(k):
+        return sorted(f"{d['kind']}/{d['metadata']['name']}" for d in rendered[k])
+
+    base = [
+        "ConfigMap/seasynth-settings", "Deployment/api", "Deployment/worker", "Namespace/seasynth",
+        "Secret/seasynth-s3", "Service/api", "Service/redis", "StatefulSet/redis",
+    ]  # fmt: skip
+    assert kinds("deploy/base") == base, "the base needs no CRD"
+    assert kinds("deploy") == sorted(base + ["ScaledObject/worker"])
+    assert kinds("deploy/overlays/gpu") == sorted(base + ["ScaledObject/worker", "Deployment/worker-gpu", "ScaledObject/worker-gpu"])
+
+
+def test_k8s_redis_never_evicts_and_persists(rendered):
+    docs = rendered["deploy/base"]
+    sts = _by(docs, "StatefulSet", "redis")
+    c = _container(sts)
+    assert c["image"].startswith("redis:7")
+    args = dict(zip(c["args"][::2], c["args"][1::2]))
+    assert args["--appendonly"] == "yes" and args["--maxmemory-policy"] == "noeviction", c["args"]
+    (claim,) = sts["spec"]["volumeClaimTemplates"]
+    mounts = {m["name"]: m["mountPath"] for m in c["volumeMounts"]}
+    assert mounts[claim["metadata"]["name"]] == args["--dir"], "the append-only file must land on the volume"
+    assert sts["spec"]["replicas"] == 1 and sts["spec"]["serviceName"] == "redis"
+
+
+def test_k8s_api_probes_and_service(rendered):
+    docs = rendered["deploy/base"]
+    c = _container(_by(docs, "Deployment", "api"))
+    assert c["args"] == IMAGES["api"]["cmd"]
+    assert c["image"].split(":")[0] == IMAGES["api"]["k8s_image"]
+    assert c["readinessProbe"]["httpGet"]["path"] == "/readyz"
+    assert c["livenessProbe"]["httpGet"]["path"] == "/healthz"
+    (port,) = c["ports"]
+    assert port["containerPort"] == 8000
+    assert c["readinessProbe"]["httpGet"]["port"] == port["name"] == c["livenessProbe"]["httpGet"]["port"]
+
+
+@pytest.mark.parametrize(("name", "kustomization"), [("worker", "deploy/base"), ("worker-gpu", "deploy/overlays/gpu")])
+def test_k8s_workers(rendered, compose, name, kustomization):
+    dep = _by(rendered[kustomization], "Deployment", name)
+    pod = dep["spec"]["template"]["spec"]
+    c = _container(dep)
+    assert c["args"][:2] == IMAGES[name]["cmd"] and c["args"][2] == "--concurrency"
+    assert c["image"].split(":")[0] == IMAGES[name]["k8s_image"]
+    assert pod["terminationGracePeriodSeconds"] == _duration_s(compose["services"][name]["stop_grace_period"]), (
+        "Kubernetes and compose should give a stopping worker the same time"
+    )
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    env = {e["name"]: e["value"] for e in c.get("env", [])}
+    dockerfile_env = _env(parse_dockerfile(ROOT / IMAGES[name]["dockerfile"])[-1])
+    for key, value in env.items():
+        assert dockerfile_env.get(key) == value, f"{name}: env {key}={value} disagrees with the image"
+    assert env["PYOPENGL_PLATFORM"] == "egl"
+    assert c["livenessProbe"]["exec"]["command"] == ["python", "/usr/local/lib/seasynth/healthcheck.py", "worker"]
+    req, lim = c["resources"]["requests"], c["resources"]["limits"]
+    assert "cpu" in req and "memory" in req and "memory" in lim
+    assert int(c["args"][3]) <= int(req["cpu"]), f"{name}: more pool processes than requested CPUs"
+    if name == "worker-gpu":
+        assert lim["nvidia.com/gpu"] == 1
+        assert "graphics" in env["NVIDIA_DRIVER_CAPABILITIES"].split(",")
+        assert env["__EGL_VENDOR_LIBRARY_FILENAMES"] == NVIDIA_VENDOR_FILE
+    else:
+        assert "nvidia.com/gpu" not in lim
+
+
+def test_k8s_settings_match_compose(rendered, compose):
+    docs = rendered["deploy/base"]
+    config = _by(docs, "ConfigMap", "seasynth-settings")["data"]
+    secret = _by(docs, "Secret", "seasynth-s3")["stringData"]
+    assert set(config) | set(secret) == set(compose["services"]["worker"]["environment"]) == SETTINGS_KEYS
+    assert not set(config) & {"AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"}, "credentials belong in the Secret"
+    assert all(v.startswith("CHANGE-ME") for v in secret.values()), "the Secret is a template: placeholders only"
+    assert config["SEASYNTH_REDIS_URL"].startswith("redis://redis:6379/")
+
+
+def test_keda_scales_on_the_celery_queue(rendered):
+    objs = [d for d in rendered["deploy/overlays/gpu"] if d["kind"] == "ScaledObject"]
+    lists = {t["metadata"]["listName"] for d in objs for t in d["spec"]["triggers"]}
+    assert lists == {"celery"}, f"all workers drain one shard queue, got {lists}"
+    cpu = _by(objs, "ScaledObject", "worker")["spec"]
+    assert cpu["minReplicaCount"] >= 1, "one worker stays up for on-demand frame renders"
+    assert cpu["cooldownPeriod"] >= SHARD_BUDGET_S
