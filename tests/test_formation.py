@@ -1,5 +1,7 @@
 """Tests for worker.formation: haze hard cases, float32 vs float64, exact 8-bit sRGB."""
 
+import shutil
+import subprocess
 import warnings
 
 import numpy as np
@@ -292,7 +294,7 @@ def test_encode_rounds_a_tie_up(c):
     assert encode_srgb8(np.array([np.nextafter(up, np.float32(0))]))[0] == c
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(x=hnp.arrays(np.float32, 64, elements=st.floats(-0.5, 1.5, width=32)), dtype=st.sampled_from(DTYPES))
 def test_encode_is_round_half_up_of_the_transfer(x, dtype):
     s = 255 * linear_to_srgb(np.clip(x.astype(np.float64), 0, 1))
@@ -336,3 +338,41 @@ def test_glsl_defines_haze_with_the_hard_cases():
     assert "isinf(z)" in GLSL_HAZE and "beta <= 0.0" in GLSL_HAZE
     assert GLSL_HAZE.count("{") == GLSL_HAZE.count("}")
     assert "#version" not in GLSL_HAZE  # included into a shader that declares its own
+
+
+@pytest.mark.skipif(shutil.which("glslangValidator") is None, reason="glslangValidator not installed")
+def test_glsl_compiles_as_a_330_fragment_shader(tmp_path):
+    shader = tmp_path / "haze.frag"
+    shader.write_text(
+        "#version 330 core\n" + GLSL_HAZE + "uniform vec3 betaD; uniform vec3 betaB; uniform vec3 Binf;\n"
+        "in vec3 J; in float z; out vec4 color;\n"
+        "void main() { color = vec4(haze(J, z, betaD, betaB, Binf), 1.0); }\n"
+    )
+    result = subprocess.run(["glslangValidator", str(shader)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout
+
+
+def _glsl_haze_in_numpy(J, z, beta_D, beta_B, b_inf):
+    """The GLSL branches, transliterated in float32 (what a driver computes, up to its exp)."""
+    f = np.float32
+    J, z = J.astype(f), z.astype(f)[..., None]
+
+    def depth(beta):
+        beta = beta.astype(f)
+        return np.where(beta <= 0, f(0), np.where(np.isinf(z), f(87), np.minimum(beta * z, f(87)))).astype(f)
+
+    with np.errstate(all="ignore"):  # GPUs do not trap; np.where evaluates both branches
+        xd, xb = depth(beta_D), depth(beta_B)
+        t = np.where(xd >= 87, f(0), np.exp(-xd))
+        series = xb * (1 - xb * (f(0.5) - xb * (f(1 / 6) - xb * f(1 / 24))))
+        a = np.where(xb < 0.01, series, np.where(xb >= 87, f(1), 1 - np.exp(-xb)))
+        return (J * t + b_inf.astype(f) * a).astype(f)
+
+
+@FAST
+@given(data=image_and_range(), beta_D=betas, beta_B=betas, b_inf=colours)
+def test_glsl_algorithm_agrees_with_numpy_within_one_code(data, beta_D, beta_B, b_inf):
+    J, z = data
+    glsl = encode_srgb8(_glsl_haze_in_numpy(J, z, beta_D, beta_B, b_inf)).astype(int)
+    ours = encode_srgb8(haze(J, z, beta_D, beta_B, b_inf)).astype(int)
+    assert np.abs(glsl - ours).max() <= 1
