@@ -230,24 +230,35 @@ class RenderSession:
             )
         return items
 
-    def frame_files(self, spec: DatasetSpec, index: int) -> dict[str, bytes]:
-        """Every file of frame `index`, keyed by its relative path (`image_2/000123.png`, ...)."""
+    def frame_files(
+        self, spec: DatasetSpec, index: int, mark: Callable[[str], None] | None = None
+    ) -> dict[str, bytes]:
+        """Every file of frame `index`, keyed by its relative path (`image_2/000123.png`, ...).
+
+        mark: benchmarks pass a stopwatch, called with each finished stage's name.
+        """
+        timer = mark
+        mark = mark or (lambda stage: None)
         scene = self.scene(spec, index)
         view = self.view(spec, scene)
         items = self.draw_items(scene)
+        mark("sampling")
         o = spec.outputs
         passes = Passes(clean=o.clean, ids=o.labels or o.instance, range=o.range or o.depth)
-        result = self.renderer.render(view, items, scene.lighting, scene.water, PRESETS[spec.quality], passes)
+        result = self.renderer.render(
+            view, items, scene.lighting, scene.water, PRESETS[spec.quality], passes, mark=timer
+        )
         image = result.image
         noise = None
         if spec.noise.gaussian_sigma > 0:
             noise_rng = frame_rng(spec.seed, index, STREAM_NOISE)
             image = image + noise_rng.normal(0.0, spec.noise.gaussian_sigma, image.shape).astype(np.float32)
             noise = {"gaussian_sigma_linear": spec.noise.gaussian_sigma}
+        frame_labels = self.labels(view, scene, items, result) if o.labels else None
+        mark("labels")
 
         n = frame_name(index)
         files: dict[str, bytes] = {f"image_2/{n}.png": png_bytes(encode_srgb8(image))}
-        frame_labels = self.labels(view, scene, items, result) if o.labels else None
         if o.labels:
             files[f"label_2/{n}.txt"] = kitti.format_label_file(frame_labels.objects).encode()
         files[f"calib/{n}.txt"] = kitti.format_calib(view.K).encode()
@@ -261,6 +272,7 @@ class RenderSession:
             files[f"clean/{n}.png"] = png_bytes(encode_srgb8(result.clean))
         if o.range:
             files[f"range/{n}.npy"] = npy_bytes(result.range_m)
+        mark("encode")
         return files
 
     def labels(self, view: View, scene: Scene, items: list[DrawItem], result: RenderResult) -> FrameLabels:

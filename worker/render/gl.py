@@ -11,6 +11,7 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -315,26 +316,34 @@ class GLRenderer:
         water: WaterParams | None,
         sampling: Sampling,
         passes: Passes,
+        mark: Callable[[str], None] | None = None,
     ) -> RenderResult:
-        """Render one frame: linear hazed image, and the optional clean image, ids and range."""
-        image, clean = self._surface(view, items, lighting, water, sampling, passes.clean, only_sample=-1)
+        """Render one frame: linear hazed image, and the optional clean image, ids and range.
+
+        mark: called with a stage name when each stage's GL work has finished (benchmarks only: it waits).
+        """
+        self._platform.make_current()
+        done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
+        image, clean = self._surface(view, items, lighting, water, sampling, passes.clean, -1, done=done)
         instance = range_m = None
         if passes.ids or passes.range:
             instance, range_m = self._ids(view, items, passes.ids, passes.range)
+            done("ids")
         return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m)
 
     def samples(
         self, view: View, items: list[DrawItem], lighting: Lighting, sampling: Sampling
     ) -> tuple[np.ndarray, np.ndarray]:
         """Every sample of a frame, for audits: J (k, h, w, 3) float32 linear and range (k, h, w) float32."""
+        self._platform.make_current()
         Js, Rs = [], []
         for k in range(sampling.per_pixel):
-            J, R = self._surface(view, items, lighting, None, sampling, False, only_sample=k, sample_range=True)
+            J, R = self._surface(view, items, lighting, None, sampling, False, k, sample_range=True)
             Js.append(J)
             Rs.append(R[..., 0])
         return np.stack(Js), np.stack(Rs)
 
-    def _surface(self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False):
+    def _surface(self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, done=None):
         GL = self._gl
         if sampling.msaa > self.max_samples:
             raise RenderError(f"{sampling.msaa}x MSAA asked for, {self.name} supports at most {self.max_samples}")
@@ -356,6 +365,8 @@ class GLRenderer:
         GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
         GL.glUniform1f(locs["u_ambient"], lighting.ambient)
         self._draw(view, items, locs, lit=True, ids=False)
+        if done is not None:
+            done("render")
 
         from worker.formation import GLSL_HAZE
 
@@ -394,6 +405,8 @@ class GLRenderer:
         w, h = view.width, view.height
         image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
         second = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3) if n_out == 2 else None
+        if done is not None:
+            done("formation")
         return image, second
 
     def _ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool):
@@ -421,6 +434,7 @@ class GLRenderer:
         only that part of the framebuffer is cleared and read.
         """
         GL = self._gl
+        self._platform.make_current()
         w, h = view.width, view.height
         x0, y0, x1, y1 = (0, 0, w - 1, h - 1) if region is None else region
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
