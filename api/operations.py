@@ -57,7 +57,7 @@ def check_files(spec: DatasetSpec, services: Services) -> None:
         elif services.store.head(asset_key(ref.asset_id)) is None:
             bad.append(f"{where}.asset_id: no uploaded asset {ref.asset_id}")
     if bad:
-        raise SpecError("invalid spec\n" + "\n".join(bad))
+        raise SpecError("\n".join(bad))
 
 
 # --- datasets
