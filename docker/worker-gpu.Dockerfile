@@ -32,6 +32,7 @@ ENV PATH=/opt/venv/bin:$PATH \
     PYTHONDONTWRITEBYTECODE=1 \
     PYOPENGL_PLATFORM=egl \
     PYGLET_HEADLESS=1 \
+    REMAP_SIGTERM=SIGQUIT \
     __EGL_VENDOR_LIBRARY_FILENAMES=/usr/share/glvnd/egl_vendor.d/10_nvidia.json \
     NVIDIA_VISIBLE_DEVICES=all \
     NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics
@@ -43,5 +44,9 @@ WORKDIR /home/seasynth
 USER 10001:10001
 HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
     CMD ["python", "/usr/local/lib/seasynth/healthcheck.py", "worker"]
+# REMAP_SIGTERM=SIGQUIT makes Celery answer SIGTERM with its soft shutdown: running shards get
+# SEASYNTH_WORKER_SOFT_SHUTDOWN_S (30 s) to finish, the rest are cancelled and handed back to the
+# queue at once. Plain SIGTERM would be a warm shutdown that waits for every shard however long,
+# and a kill after the grace period would leave them to the visibility timeout (3x the time limit).
 STOPSIGNAL SIGTERM
 CMD ["seasynth", "worker"]

@@ -25,17 +25,20 @@ ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
     PYOPENGL_PLATFORM=egl \
-    PYGLET_HEADLESS=1
+    PYGLET_HEADLESS=1 \
+    REMAP_SIGTERM=SIGQUIT
 RUN groupadd --system --gid 10001 seasynth \
  && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
 COPY --from=build /opt/venv /opt/venv
 COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
 WORKDIR /home/seasynth
 USER 10001:10001
-# Alive and its prefork pool up (a broker-level check: `celery inspect ping`).
+# Alive with its prefork pool up (no broker round trip, unlike `celery inspect ping`).
 HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
     CMD ["python", "/usr/local/lib/seasynth/healthcheck.py", "worker"]
-# SIGTERM = Celery warm shutdown: stop taking shards, finish the running one. Give the
-# container a stop grace period longer than one shard plus the soft shutdown timeout.
+# REMAP_SIGTERM=SIGQUIT makes Celery answer SIGTERM with its soft shutdown: running shards get
+# SEASYNTH_WORKER_SOFT_SHUTDOWN_S (30 s) to finish, the rest are cancelled and handed back to the
+# queue at once. Plain SIGTERM would be a warm shutdown that waits for every shard however long,
+# and a kill after the grace period would leave them to the visibility timeout (3x the time limit).
 STOPSIGNAL SIGTERM
 CMD ["seasynth", "worker"]
