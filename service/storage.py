@@ -144,15 +144,17 @@ class S3Store:
         return Unavailable(f"s3://{self.bucket}/{key}: {err}")
 
     def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
+        _check_key(key)
         try:
-            self.client.put_object(Bucket=self.bucket, Key=_check_key(key), Body=data, ContentType=content_type)
+            self.client.put_object(Bucket=self.bucket, Key=key, Body=data, ContentType=content_type)
         except Exception as err:
             raise self._fail(err, key) from err
 
     def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
+        _check_key(key)
         try:
             self.client.upload_file(
-                str(path), self.bucket, _check_key(key), ExtraArgs={"ContentType": content_type}
+                str(path), self.bucket, key, ExtraArgs={"ContentType": content_type}
             )
         except Exception as err:
             raise self._fail(err, key) from err

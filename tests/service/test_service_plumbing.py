@@ -1,0 +1,258 @@
+"""Shard plumbing on real Redis and both object stores, with a stand-in frame source: determinism of shard tars,
+exactly-once counting, the attempt counter, finalising once, reconciliation, and the Celery configuration."""
+
+from __future__ import annotations
+
+import io
+import json
+import tarfile
+import threading
+import time
+
+import pytest
+
+from service.errors import NotFound
+from service.records import Records
+from service.shards import Shard, commit_key, manifest_key, shard_at, shard_count, shard_key
+from service.storage import LocalStore, open_store
+from worker.shard import (
+    Outcome,
+    RetryShard,
+    ShardContext,
+    maybe_finalise,
+    pack_tar,
+    reconcile,
+    run_shard,
+)
+
+
+class FakeSession:
+    """Frame files as a pure function of (seed, index), or an error on every call."""
+
+    renderer_name = "fake renderer 1.0"
+
+    def __init__(self, fail: Exception | None = None):
+        self.fail = fail
+        self.calls: list[int] = []
+
+    def frame_files(self, spec, index):
+        self.calls.append(index)
+        if self.fail is not None:
+            raise self.fail
+        n = f"{index:06d}"
+        return {f"image_2/{n}.png": f"png {spec.seed} {index}".encode() * 3, f"calib/{n}.txt": b"P0: 1\n",
+                f"label_2/{n}.txt": b""}
+
+
+@pytest.fixture
+def records(infra):
+    import redis
+
+    settings = infra.settings()
+    r = redis.Redis.from_url(settings.redis_url, decode_responses=True)
+    yield Records(r, prefix=f"unit{time.monotonic_ns()}")
+    r.close()
+
+
+def make_ctx(infra, records, tmp_path, session, **settings) -> ShardContext:
+    import redis
+
+    s = infra.settings(storage="local", local_root=tmp_path / "store", max_attempts=3, **settings)
+    return ShardContext(settings=s, records=records, raw_redis=redis.Redis.from_url(s.redis_url),
+                        store=LocalStore(s.local_root), session=session)
+
+
+def new_dataset(records: Records, frames: int = 5, shard_size: int = 2, dataset_id: str = "a" * 32) -> str:
+    from service import __version__
+
+    spec = {"seed": 3, "frames": frames, "shard_size": shard_size, "camera": {"width": 32, "height": 24}}
+    records.create(dataset_id, spec, seed=3, code_version=__version__, frames=frames, shard_size=shard_size,
+                   shards=shard_count(frames, shard_size), now=time.time())
+    return dataset_id
+
+
+@pytest.mark.parametrize("frames, size", [(1, 1), (7, 2), (10, 5), (10, 3), (3, 10)])
+def test_shards_cover_every_frame_exactly_once(frames, size):
+    shards = [shard_at(frames, size, i) for i in range(shard_count(frames, size))]
+    assert [f for s in shards for f in s.frames] == list(range(frames))
+    assert all(0 < s.frame_count <= size for s in shards)
+    with pytest.raises(ValueError):
+        shard_at(frames, size, len(shards))
+
+
+@pytest.mark.parametrize("compression", ["none", "gz"])
+def test_shard_tar_is_a_pure_function_of_its_files(compression):
+    files = [("image_2/000004.png", b"\x89PNG..."), ("label_2/000004.txt", b""), ("calib/000005.txt", b"P2")]
+    a, b = io.BytesIO(), io.BytesIO()
+    sha_a, size_a = pack_tar(iter(files), a, compression)
+    time.sleep(1.1)  # a different clock second must not change a byte
+    sha_b, _ = pack_tar(iter(files), b, compression)
+    assert a.getvalue() == b.getvalue() and sha_a == sha_b and size_a == len(a.getvalue())
+    with tarfile.open(fileobj=io.BytesIO(a.getvalue()), mode="r:*") as tar:
+        members = tar.getmembers()
+        assert [(m.name, tar.extractfile(m).read()) for m in members] == files
+        assert {(m.mtime, m.uid, m.gid, m.uname, m.mode) for m in members} == {(0, 0, 0, "", 0o644)}
+    with pytest.raises(ValueError):
+        pack_tar(iter([("../x", b"")]), io.BytesIO())
+
+
+def test_shard_commits_once_and_is_skipped_after(infra, records, tmp_path):
+    session = FakeSession()
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ds = new_dataset(records)
+    assert run_shard(ctx, ds, 1) is Outcome.COMMITTED
+    assert session.calls == [2, 3]
+    assert run_shard(ctx, ds, 1) is Outcome.ALREADY_COMMITTED and session.calls == [2, 3]
+    rec = records.get(ds)
+    assert (rec.frames_done, rec.shards_done, rec.attempts, rec.state) == (2, 1, 1, "running")
+    marker = json.loads(ctx.store.get_bytes(commit_key(ds, 1)))
+    assert marker["key"] == shard_key(ds, 1) and marker["first_frame"] == 2 and marker["frame_count"] == 2
+    assert rec.renderer == "fake renderer 1.0"
+    # A second commit of the same shard (a duplicate delivery) adds nothing.
+    (commit,) = records.commits(ds)
+    assert records.commit(ds, commit) == (False, 1, 0) and records.get(ds).frames_done == 2
+
+
+def test_complete_dataset_finalises_once_with_its_manifest(infra, records, tmp_path):
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    ds = new_dataset(records, frames=5, shard_size=2)
+    for i in range(3):
+        run_shard(ctx, ds, i)
+    rec = records.get(ds)
+    assert (rec.state, rec.frames_done, rec.shards_done) == ("succeeded", 5, 3)
+    man = json.loads(ctx.store.get_bytes(manifest_key(ds)))
+    assert man["complete"] and [s["first_frame"] for s in man["shards"]] == [0, 2, 4]
+    assert all("url" not in s for s in man["shards"])
+    # Racing finalisers after the fact: nobody finalises again.
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(maybe_finalise(ctx, ds))) for _ in range(8)]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    assert results == [False] * 8
+
+
+def test_racing_finalisers_write_once(infra, records, tmp_path):
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    ds = new_dataset(records, frames=2, shard_size=2)
+    from service.records import ShardCommit
+
+    records.commit(ds, ShardCommit(0, shard_key(ds, 0), 0, 2, "0" * 64, 10, "v", "r"))
+    results: list[bool] = []
+    threads = [threading.Thread(target=lambda: results.append(maybe_finalise(ctx, ds))) for _ in range(8)]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    assert sorted(results) == [False] * 7 + [True] and records.get(ds).state == "succeeded"
+
+
+def test_attempt_counter_fails_a_shard_after_n_attempts(infra, records, tmp_path):
+    session = FakeSession(fail=RuntimeError("GL context lost"))
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ds = new_dataset(records, frames=2, shard_size=2)
+    for attempt in (1, 2):
+        with pytest.raises(RetryShard) as retry:
+            run_shard(ctx, ds, 0)
+        assert retry.value.countdown == 2 ** (attempt - 1)
+    assert run_shard(ctx, ds, 0) is Outcome.FAILED
+    rec = records.get(ds)
+    assert (rec.state, rec.shards_failed, rec.attempts, rec.frames_done) == ("failed", 1, 3, 0)
+    assert "gave up after 3 attempts" in rec.errors[0] and "GL context lost" in rec.errors[0]
+    assert json.loads(ctx.store.get_bytes(manifest_key(ds)))["complete"] is False
+    # A redelivery after that changes nothing and counts no attempt.
+    assert run_shard(ctx, ds, 0) is Outcome.FAILED and records.get(ds).attempts == 3
+
+
+def test_lost_attempts_count_towards_the_limit(infra, records, tmp_path):
+    """Attempts whose process died (no error recorded) still use up the shard's budget."""
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    ds = new_dataset(records, frames=2, shard_size=2)
+    for _ in range(3):
+        assert records.start_attempt(ds, 0, 3, {"pid": 1}) > 0  # as if SIGKILLed mid-shard
+    assert run_shard(ctx, ds, 0) is Outcome.FAILED
+    assert "worker was lost" in records.get(ds).errors[0]
+
+
+def test_cancelled_dataset_skips_shards(infra, records, tmp_path):
+    session = FakeSession()
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ds = new_dataset(records)
+    assert records.cancel(ds, time.time()) == "cancelled"
+    assert run_shard(ctx, ds, 0) is Outcome.CANCELLED and session.calls == [] and records.get(ds).attempts == 0
+    assert records.cancel(ds, time.time()) == "cancelled"
+    with pytest.raises(NotFound):
+        records.cancel("b" * 32, time.time())
+    assert run_shard(ctx, "b" * 32, 0) is Outcome.MISSING
+
+
+def test_reconcile_adopts_markers_redis_lost(infra, records, tmp_path):
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    ds = new_dataset(records, frames=4, shard_size=2)
+    run_shard(ctx, ds, 0)
+    run_shard(ctx, ds, 1)
+    # Redis forgets shard 1's commit and the final state (as after a restore from an old snapshot).
+    records.r.srem(f"{records.p}:ds:{ds}:done", 1)
+    records.r.hdel(f"{records.p}:ds:{ds}:shards", 1)
+    records.r.hset(f"{records.p}:ds:{ds}", mapping={"state": "running", "frames_done": 2})
+    records.release_finalise(ds)
+    assert reconcile(ctx, ds) == []
+    rec = records.get(ds)
+    assert (rec.state, rec.frames_done, rec.shards_done) == ("succeeded", 4, 2)
+
+
+def test_pending_shards_are_reported_for_requeue(infra, records, tmp_path):
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    ds = new_dataset(records, frames=6, shard_size=2)
+    run_shard(ctx, ds, 1)
+    assert reconcile(ctx, ds) == [0, 2]
+
+
+@pytest.mark.parametrize("kind", ["local", "s3"])
+def test_object_store_contract(infra, tmp_path, kind):
+    store = open_store(infra.settings(storage=kind, local_root=tmp_path / "objects"))
+    prefix = f"contract-{time.monotonic_ns()}/"
+    src = tmp_path / "src.bin"
+    src.write_bytes(b"\x00" * 1000)
+    store.put_bytes(prefix + "a/one.json", b"{}", "application/json")
+    store.put_file(prefix + "a/two.bin", src)
+    assert store.get_bytes(prefix + "a/one.json") == b"{}"
+    assert store.head(prefix + "a/two.bin").bytes == 1000 and store.head(prefix + "nope") is None
+    assert [o.key for o in store.list(prefix)] == [prefix + "a/one.json", prefix + "a/two.bin"]
+    with pytest.raises(NotFound):
+        store.get_bytes(prefix + "missing")
+    store.download(prefix + "a/two.bin", tmp_path / "back.bin")
+    assert (tmp_path / "back.bin").read_bytes() == src.read_bytes()
+    assert store.url(prefix + "a/one.json").startswith("file://" if kind == "local" else "http://")
+    store.check()
+    assert store.delete_prefix(prefix) == 2 and list(store.list(prefix)) == []
+    with pytest.raises(ValueError):
+        store.put_bytes("../escape", b"")
+
+
+def test_presigned_urls_use_the_public_endpoint(infra):
+    store = open_store(infra.settings(s3_public_endpoint_url="http://storage.example.com:9000"))
+    assert store.url("datasets/x/shards/shard-000000.tar").startswith(
+        "http://storage.example.com:9000/seasynth-test/datasets/x/shards/shard-000000.tar?"
+    )
+
+
+def test_celery_configuration_guards_against_lost_and_duplicated_work(infra):
+    from service.queues import frame_queue, shard_queue
+    from worker.celery_app import create_app, worker_argv
+
+    s = infra.settings(task_time_limit_s=600)
+    conf = create_app(s).conf
+    assert conf.task_acks_late and conf.task_reject_on_worker_lost and conf.worker_prefetch_multiplier == 1
+    assert conf.worker_cancel_long_running_tasks_on_connection_loss
+    assert conf.task_time_limit == 600 and conf.task_soft_time_limit == 540
+    assert conf.broker_transport_options["visibility_timeout"] >= 3 * conf.task_time_limit
+    assert conf.task_ignore_result and not conf.result_backend
+    a, b = worker_argv(2, ["shards", "frames"]), worker_argv(2, ["shards", "frames"])
+    name = next(x for x in a if x.startswith("--hostname="))
+    assert name != next(x for x in b if x.startswith("--hostname=")) and "--pool=prefork" in a
+    from service import __version__
+
+    assert f"--queues={shard_queue(__version__)},{frame_queue(__version__)}" in a
+    assert __version__ in shard_queue(__version__)
+
+
+def test_shard_dataclass_frames():
+    assert list(Shard(3, 6, 2).frames) == [6, 7]
