@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -74,7 +75,8 @@ Vec3 = tuple[float, float, float]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN and inf would slip past every bound check (NaN compares false), so no float field takes them.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Box(_Model):
@@ -109,12 +111,17 @@ class Camera(_Model):
     clip: PositiveInterval = (0.02, 300.0)
     look_at_jitter_m: float = Field(0.05, ge=0)
 
+    @field_validator("clip")
+    @classmethod
+    def _near_before_far(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if v[0] >= v[1]:
+            raise ValueError(f"near {v[0]} must be < far {v[1]}")
+        return v
+
     @model_validator(mode="after")
     def _one_projection(self) -> Camera:
         if self.hfov_deg is not None and self.intrinsics is not None:
             raise ValueError("give either hfov_deg or intrinsics, not both")
-        if self.clip[0] >= self.clip[1]:
-            raise ValueError("clip: near must be < far")
         return self
 
     def K(self) -> list[list[float]]:
@@ -352,18 +359,21 @@ def read_spec_file(path: str | Path) -> dict[str, Any]:
         raise SpecError(f"{path}: spec files must end in .yaml, .yml or .json")
     try:
         text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise SpecError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
     except OSError as err:
         raise SpecError(f"{path}: cannot read spec file ({err.strerror or err})") from None
-    try:
-        if suffix == ".json":
-            data = json.loads(text)
-        else:
-            import yaml
+    import yaml
 
-            data = yaml.safe_load(text)
-    except Exception as err:  # the parsers' own error types differ; all mean a malformed file
+    try:
+        data = json.loads(text) if suffix == ".json" else yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError) as err:  # json's errors are ValueErrors
         raise SpecError(f"{path}: not valid {suffix[1:].upper()}: {err}") from None
-    return {} if data is None else data
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise SpecError(f"{path}: the spec must be a mapping, got {type(data).__name__}")
+    return data
 
 
 def resolve_paths(data: dict[str, Any], base: Path) -> dict[str, Any]:
@@ -372,15 +382,19 @@ def resolve_paths(data: dict[str, Any], base: Path) -> dict[str, Any]:
     def fix(p: Any) -> Any:
         return str((base / p).resolve()) if isinstance(p, str) and not Path(p).is_absolute() else p
 
-    out = json.loads(json.dumps(data))
+    # Ill-typed parts are left as they are for validation to name; YAML may hold non-JSON values (dates).
+    out = copy.deepcopy(data)
+    refs = []
     for role in ("targets", "distractors"):
-        for a in (out.get(role) or {}).get("assets") or []:
-            if isinstance(a, dict) and "path" in a:
-                a["path"] = fix(a["path"])
-    terrain = out.get("terrain") or {}
-    for key in ("mesh", "texture"):
-        if isinstance(terrain.get(key), dict) and "path" in terrain[key]:
-            terrain[key]["path"] = fix(terrain[key]["path"])
+        section = out.get(role)
+        assets = section.get("assets") if isinstance(section, dict) else None
+        refs += assets if isinstance(assets, list) else []
+    terrain = out.get("terrain")
+    if isinstance(terrain, dict):
+        refs += [terrain.get("mesh"), terrain.get("texture")]
+    for ref in refs:
+        if isinstance(ref, dict) and "path" in ref:
+            ref["path"] = fix(ref["path"])
     return out
 
 
@@ -388,19 +402,27 @@ def load_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> Data
     """Load a spec file, apply dotted-key overrides (e.g. {"camera.width": 64}), validate."""
     path = Path(path)
     data = resolve_paths(read_spec_file(path), path.parent)
-    return parse_spec(apply_overrides(data, overrides or {}), source=str(path))
+    try:
+        data = apply_overrides(data, overrides or {})
+    except SpecError as err:
+        raise SpecError(f"{path}: {err}") from None
+    return parse_spec(data, source=str(path))
 
 
 def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
     """Return a copy of `data` with dotted keys set (None values are skipped)."""
-    out = json.loads(json.dumps(data))
+    out = copy.deepcopy(data)
     for dotted, value in overrides.items():
         if value is None:
             continue
         node = out
         *parents, leaf = dotted.split(".")
-        for p in parents:
-            node = node.setdefault(p, {})
+        for i, p in enumerate(parents):
+            if node.get(p) is None:  # `camera:` with nothing under it reads as null
+                node[p] = {}
+            if not isinstance(node[p], dict):
+                raise SpecError(f"{'.'.join(parents[: i + 1])}: must be a mapping to set {dotted}")
+            node = node[p]
         node[leaf] = value
     return out
 
