@@ -1,0 +1,252 @@
+"""Accuracy against time: each quality preset against a 16-sample float64 reference, on pinned hard scenes.
+
+Reference: the same scene at 4x4 samples per pixel (a regular grid), range per sample, the water applied per sample
+in float64, averaged in linear light and encoded to 8-bit sRGB once. Reference labels come from the majority id of
+each pixel's 16 samples.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from service.spec import DatasetSpec, apply_overrides, read_spec_file
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
+WIDTH, HEIGHT = 640, 480
+REFERENCE_GRID = 4  # 4x4 samples per pixel
+
+# Pinned scenes: overrides on the example spec, and the frame rendered. Seeds, water and cameras are fixed here.
+SCENES: dict[str, dict] = {
+    "spines-open-water": {
+        "seed": 11,
+        "terrain.size_m": 1.2,
+        "terrain.cells": 48,
+        "terrain.relief_m": 0.02,
+        "terrain.styles": ["sand"],
+        "targets.count": [6, 8],
+        "targets.scale": [1.2, 1.4],
+        "distractors.count": [0, 0],
+        "workspaces.targets": {"min": [-0.5, -0.5, -1.0], "max": [0.5, 0.5, 1.0]},
+        "workspaces.look_at": {"min": [-0.3, -0.3, -1.0], "max": [0.3, 0.3, 1.0]},
+        "workspaces.camera": {"min": [-0.2, -0.95, 0.06], "max": [0.2, -0.85, 0.1]},
+        "water.jerlov": ["3C"],
+    },
+    "wide-fov": {"seed": 12, "camera.hfov_deg": 110.0},
+    "turbid-far": {
+        "seed": 13,
+        "terrain.size_m": 80.0,
+        "terrain.cells": 256,
+        "targets.scale": [2.5, 3.5],
+        "targets.count": [6, 10],
+        "distractors.scale": [2.0, 3.0],
+        "workspaces.targets": {"min": [-8.0, 10.0, -5.0], "max": [8.0, 30.0, 5.0]},
+        "workspaces.distractors": {"min": [-10.0, 10.0, -5.0], "max": [10.0, 30.0, 5.0]},
+        "workspaces.look_at": {"min": [-8.0, 10.0, -5.0], "max": [8.0, 30.0, 5.0]},
+        "workspaces.camera": {"min": [-1.0, -0.5, 1.5], "max": [1.0, 0.5, 2.5]},
+        "water.jerlov": ["9C"],
+        "water.beta_jitter": [1.0, 1.0],
+    },
+    "clear-water": {
+        "seed": 14,
+        "water.jerlov": [],
+        "water.beta_D": {"min": [0, 0, 0], "max": [0, 0, 0]},
+        "water.beta_B": {"min": [0, 0, 0], "max": [0, 0, 0]},
+        "water.B_inf": {"min": [0.0, 0.1, 0.2], "max": [0.0, 0.1, 0.2]},
+    },
+    "grazing": {
+        "seed": 15,
+        "terrain.size_m": 40.0,
+        "terrain.cells": 256,
+        "workspaces.camera": {"min": [-0.5, -2.0, 0.25], "max": [0.5, -1.8, 0.3]},
+        "workspaces.look_at": {"min": [-1.0, 15.0, 0.0], "max": [1.0, 18.0, 0.2]},
+        "workspaces.targets": {"min": [-2.0, -1.0, -5.0], "max": [2.0, 6.0, 5.0]},
+        "workspaces.distractors": {"min": [-3.0, -1.0, -5.0], "max": [3.0, 10.0, 5.0]},
+        "water.jerlov": ["II"],
+    },
+    "urchins": {"seed": 7},
+}
+PRESET_NAMES = ("draft", "default", "high")
+
+
+def scene_spec(name: str) -> DatasetSpec:
+    base = read_spec_file(EXAMPLE)
+    overrides = {"frames": 1, "camera.width": WIDTH, "camera.height": HEIGHT, **SCENES[name]}
+    return DatasetSpec.model_validate(apply_overrides(base, overrides))
+
+
+def psnr_db(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return 100.0 if mse == 0 else min(100.0, 10 * np.log10(255.0**2 / mse))
+
+
+def hazed_mean(J: np.ndarray, R: np.ndarray, water) -> np.ndarray:
+    """Per-sample float64 water, averaged in linear light. J: (k, h, w, 3), R: (k, h, w) -> (h, w, 3) float64."""
+    from worker.formation import haze
+
+    acc = np.zeros(J.shape[1:], np.float64)
+    for Jk, Rk in zip(J, R):
+        Jk = Jk.astype(np.float64)
+        acc += Jk if water is None else haze(Jk, Rk, water.beta_D, water.beta_B, water.B_inf, np.float64)
+    return acc / len(J)
+
+
+def majority_ids(ids_hi: np.ndarray, s: int) -> np.ndarray:
+    """(H*s, W*s) ids -> (H, W): the id covering most of each pixel's s*s samples (ties: the smallest id)."""
+    H, W = ids_hi.shape[0] // s, ids_hi.shape[1] // s
+    blocks = ids_hi.reshape(H, s, W, s).transpose(0, 2, 1, 3).reshape(H, W, s * s)
+    values = np.unique(blocks)
+    counts = np.stack([(blocks == v).sum(axis=2) for v in values], axis=2)
+    return values[np.argmax(counts, axis=2)]
+
+
+def boxes_of(session, view, scene, items, instance) -> dict[int, tuple[int, int, int, int]]:
+    from worker.labels import tight_boxes
+
+    targets = {p.instance_id for p in scene.objects if p.role == "target"}
+    return {i: (b.left, b.top, b.right, b.bottom) for i, b in tight_boxes(instance).items() if i in targets}
+
+
+@dataclass
+class Reference:
+    image: np.ndarray  # (h, w, 3) uint8
+    boxes: dict[int, tuple[int, int, int, int]]
+
+
+def reference(session, spec: DatasetSpec) -> Reference:
+    from worker.formation import encode_srgb8
+    from worker.render import Sampling, View
+
+    scene = session.scene(spec, 0)
+    view = session.view(spec, scene)
+    items = session.draw_items(scene)
+    J, R = session.renderer.samples(view, items, scene.lighting, Sampling(msaa=1, supersample=REFERENCE_GRID))
+    image = encode_srgb8(hazed_mean(J, R, scene.water))
+    s = REFERENCE_GRID
+    K = view.K.copy()
+    K[:2, :2] *= s
+    K[:2, 2] = (K[:2, 2] + 0.5) * s - 0.5  # the same image plane on an s-times finer pixel grid
+    hi = View(K=K, width=view.width * s, height=view.height * s, cam_from_world=view.cam_from_world,
+              near=view.near, far=view.far)
+    ids_hi, _ = session.renderer._ids(hi, items, True, False)
+    return Reference(image=image, boxes=boxes_of(session, view, scene, items, majority_ids(ids_hi, s)))
+
+
+def measure(session, spec: DatasetSpec, preset: str, ref: Reference, repeats: int) -> dict:
+    from PIL import Image
+    import io
+
+    from worker.formation import encode_srgb8
+    from worker.pipeline import PRESETS
+
+    s = spec.model_copy(update={"quality": preset})
+    times, files = [], None
+    session.frame_files(s, 0)  # warm: shader variants, uploads
+    for _ in range(repeats):
+        t = time.perf_counter()
+        files = session.frame_files(s, 0)
+        times.append(time.perf_counter() - t)
+    image = np.asarray(Image.open(io.BytesIO(files["image_2/000000.png"])))
+    scene = session.scene(s, 0)
+    view = session.view(s, scene)
+    items = session.draw_items(scene)
+    J, R = session.renderer.samples(view, items, scene.lighting, PRESETS[preset])
+    exact = encode_srgb8(hazed_mean(J, R, scene.water))
+    from worker.pipeline import Passes
+
+    res = session.renderer.render(view, items, scene.lighting, scene.water, PRESETS[preset], Passes(ids=True))
+    boxes = boxes_of(session, view, scene, items, res.instance)
+    common = boxes.keys() & ref.boxes.keys()
+    label_err = max((max(abs(a - b) for a, b in zip(boxes[i], ref.boxes[i])) for i in common), default=0)
+    diff = np.abs(image.astype(np.int64) - ref.image.astype(np.int64))
+    return {
+        "ms_per_frame": round(statistics.median(times) * 1e3, 2),
+        "psnr_db": round(psnr_db(image, ref.image), 2),
+        "max_abs_err": int(diff.max()),
+        "formation_error": int(np.abs(image.astype(np.int64) - exact.astype(np.int64)).max()),
+        "label_error_px": int(label_err),
+        "label_mismatches": len(boxes.keys() ^ ref.boxes.keys()),
+        "labelled_targets": len(boxes),
+    }
+
+
+def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platform: str) -> dict:
+    from bench.throughput import machine_description
+    from worker.pipeline import RenderSession
+
+    scenes = scenes or list(SCENES)
+    presets = presets or list(PRESET_NAMES)
+    for name in scenes:
+        if name not in SCENES:
+            raise SystemExit(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
+    for p in presets:
+        if p not in PRESET_NAMES:
+            raise SystemExit(f"unknown preset {p!r}; known: {', '.join(PRESET_NAMES)}")
+    rows = []
+    with RenderSession(platform=platform) as session:
+        renderer_name = session.renderer_name
+        for name in scenes:
+            spec = scene_spec(name)
+            ref = reference(session, spec)
+            for preset in presets:
+                row = {"scene": name, "preset": preset, **measure(session, spec, preset, ref, repeats)}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    result = {"machine": machine or machine_description(), "gl_renderer": renderer_name, "resolution": [WIDTH, HEIGHT],
+              "reference": f"{REFERENCE_GRID}x{REFERENCE_GRID} samples, float64 water per sample", "rows": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "accuracy.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / "accuracy.md").write_text(format_table(result) + "\n")
+    plot(result, out / "accuracy.png")
+    print(format_table(result))
+    return result
+
+
+def format_table(result: dict) -> str:
+    keys = ("ms_per_frame", "psnr_db", "max_abs_err", "formation_error", "label_error_px", "label_mismatches")
+    lines = [
+        f"# Accuracy against time ({result['resolution'][0]}x{result['resolution'][1]})",
+        "",
+        f"machine: {result['machine']}  ",
+        f"GL renderer: {result['gl_renderer']}  ",
+        f"reference: {result['reference']}",
+        "",
+        "| scene | preset | " + " | ".join(keys) + " |",
+        "|---|---|" + "---|" * len(keys),
+    ]
+    for r in result["rows"]:
+        lines.append(f"| {r['scene']} | {r['preset']} | " + " | ".join(str(r[k]) for k in keys) + " |")
+    return "\n".join(lines)
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
+    markers = {"draft": "o", "default": "s", "high": "^"}
+    scenes = sorted({r["scene"] for r in result["rows"]})
+    colours = dict(zip(scenes, plt.cm.tab10.colors))
+    for r in result["rows"]:
+        ax.scatter(r["ms_per_frame"], r["psnr_db"], marker=markers.get(r["preset"], "x"), color=colours[r["scene"]])
+    for s in scenes:
+        pts = sorted((r["ms_per_frame"], r["psnr_db"]) for r in result["rows"] if r["scene"] == s)
+        ax.plot(*zip(*pts), color=colours[s], lw=0.8, label=s)
+    for p, m in markers.items():
+        ax.scatter([], [], marker=m, color="grey", label=p)
+    ax.axhline(40, color="grey", ls=":", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("ms per frame (median)")
+    ax.set_ylabel("PSNR vs 16-sample float64 reference (dB)")
+    ax.set_title(f"Error against time, {result['gl_renderer'][:40]}", fontsize=9)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
