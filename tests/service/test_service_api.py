@@ -126,3 +126,18 @@ def test_api_keys(keyed_api):
     assert httpx.get(f"{url}/datasets", headers={"X-API-Key": "beta"}).status_code == 200
     assert httpx.get(f"{url}/datasets", headers={"Authorization": "Bearer alpha"}).status_code == 200
     assert httpx.get(f"{url}/datasets/" + "0" * 32, headers={"X-API-Key": "alpha"}).status_code == 404
+
+
+def test_other_versions_shards_are_left_alone_and_frames_time_out(stack: Stack, services):
+    """An API pinned to a version no worker runs: its dataset waits untouched and a frame request gets 503."""
+    proc, url = stack.start_api({"SEASYNTH_WORKER_VERSION": "0.0.0-nobody", "SEASYNTH_FRAME_TIMEOUT_S": "1",
+                                 "SEASYNTH_RETRY_AFTER_S": "7"})
+    try:
+        created = httpx.post(f"{url}/datasets", json=tiny_spec(frames=2, shard_size=1)).json()
+        assert created["code_version"] == "0.0.0-nobody"
+        r = httpx.get(f"{url}/datasets/{created['id']}/frames/0", timeout=30)
+        assert r.status_code == 503 and r.headers["retry-after"] == "7", r.text
+        rec = services.records.get(created["id"])
+        assert (rec.state, rec.attempts, rec.renderer) == ("queued", 0, None)
+    finally:
+        proc.stop()
