@@ -35,7 +35,12 @@ class FetchReport:
 
 
 def get_manifest(client, api_url: str, dataset_id: str) -> dict[str, Any]:
-    r = client.get(f"{api_url.rstrip('/')}/datasets/{urllib.parse.quote(dataset_id, safe='')}/manifest")
+    import httpx
+
+    try:
+        r = client.get(f"{api_url.rstrip('/')}/datasets/{urllib.parse.quote(dataset_id, safe='')}/manifest")
+    except httpx.HTTPError as err:
+        raise Unavailable(f"{api_url}: cannot reach the API ({err})") from err
     if r.status_code == 404:
         raise NotFound(f"no dataset {dataset_id} at {api_url} ({_detail(r)})")
     if r.status_code == 401:
@@ -110,6 +115,8 @@ def extract(tar_path: Path, out: Path) -> int:
 
 def fetch_shard(client, shard: dict[str, Any], out: Path, on_bytes: Callable[[int], None]) -> tuple[bool, int]:
     """Fetch, verify and extract one shard unless its .done marker says so; return (fetched, files)."""
+    import httpx
+
     state = out / STATE_DIR
     name = Path(shard["key"]).name
     done = state / f"{name}.done"
@@ -127,7 +134,7 @@ def fetch_shard(client, shard: dict[str, Any], out: Path, on_bytes: Callable[[in
                     f"{shard['bytes']} bytes with sha256 {shard['sha256']}"
                 )
             break
-        except (IntegrityError, Unavailable, OSError) as err:
+        except (IntegrityError, Unavailable, OSError, httpx.HTTPError) as err:
             on_bytes(-(part.stat().st_size if part.exists() else 0))
             part.unlink(missing_ok=True)  # a bad or stale part never gets resumed
             if attempt == ATTEMPTS:

@@ -122,6 +122,11 @@ def test_fetch_resumes_a_partial_download_and_rejects_a_corrupt_one(stack: Stack
     report = fetch_dataset(stack.api_url, dataset_id, out, progress=False)
     assert report.shards_fetched == 2 and len(tree(out)) == 16
     assert not list((out / STATE_DIR).glob("*.part"))
+    # The command does the same, with the API address from the environment.
+    r = subprocess.run([sys.executable, "-m", "service.cli", "fetch", dataset_id, "--out", str(tmp_path / "cli")],
+                       capture_output=True, text=True, timeout=120, env={**stack.env, "SEASYNTH_API_URL": stack.api_url})
+    assert r.returncode == 0, r.stderr
+    assert tree(tmp_path / "cli") == tree(out)
 
 
 def test_single_frame_equals_the_file_in_its_shard(stack: Stack, client, services):
