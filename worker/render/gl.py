@@ -91,6 +91,7 @@ class GLRenderer:
                 from pyrender.platforms.egl import EGLPlatform as _Platform
             else:
                 from pyrender.platforms.osmesa import OSMesaPlatform as _Platform
+            self._platform_name = platform
             self._platform = _Platform(8, 8)
             self._platform.init_context()
             self._platform.make_current()
@@ -128,7 +129,16 @@ class GLRenderer:
         GL.glDeleteVertexArrays(1, [self._empty_vao])
         self._meshes.clear()
         self._programs.clear()
-        self._platform.delete_context()
+        if self._platform_name == "egl":
+            # Destroy only our context: pyrender's delete_context() also terminates the EGL display, which
+            # every context of the process shares, and would kill other renderers that are still open.
+            from OpenGL import EGL
+
+            p = self._platform
+            EGL.eglMakeCurrent(p._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+            EGL.eglDestroyContext(p._egl_display, p._egl_context)
+        else:
+            self._platform.delete_context()
         self._platform = None
 
     def __enter__(self) -> GLRenderer:
@@ -280,9 +290,13 @@ class GLRenderer:
             cam_from_obj = cam_from_world @ item.world_from_obj
             centre = cam_from_obj[:3, :3] @ item.mesh.centre + cam_from_obj[:3, 3]
             scale = float(np.abs(np.linalg.svd(item.world_from_obj[:3, :3], compute_uv=False)).max())
-            if not sphere_in_view(view, centre, item.mesh.radius * scale):
+            radius = item.mesh.radius * scale
+            if not sphere_in_view(view, centre, radius):
                 continue
             gpu = self._mesh(item.mesh)
+            if "u_range_bounds" in locs:
+                dist = float(np.linalg.norm(centre))
+                GL.glUniform2f(locs["u_range_bounds"], max(dist - radius, 0.0), dist + radius)
             GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, cam_from_obj.astype(np.float32))
             if lit:
                 nrm = np.linalg.inv(cam_from_obj[:3, :3]).T

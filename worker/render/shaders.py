@@ -1,5 +1,8 @@
 """GLSL sources of the renderer's passes: surface (in-air radiance + range), ids (+ range), resolve (per-sample haze)."""
 
+# Range is interpolated at the pixel centre even for multisample coverage (no per-sample shading); a sample that
+# covers a silhouette whose pixel centre lies off the triangle gets an extrapolated value, unbounded on receding
+# surfaces. Clamping to the object's bounding-sphere range bounds that error by the object's size.
 # Every pass shares this vertex stage, so a surface lands on exactly the same pixels and ranges in each pass.
 VERTEX = """
 #version 330 core
@@ -30,6 +33,7 @@ in vec3 v_nrm;
 in vec3 v_col;
 uniform vec3 u_scale;
 uniform vec3 u_bias;
+uniform vec2 u_range_bounds;   // nearest and farthest range of the object's bounding sphere, metres
 uniform vec3 u_sun_cam;        // unit vector towards the sun, camera frame
 uniform float u_sun;
 uniform float u_ambient;
@@ -45,7 +49,7 @@ void main() {
     // J is the in-air image (the paper's J): radiance in the sensor's range [0, 1], so clean/ is J exactly.
     o_J = vec4(clamp(albedo * (u_ambient + u_sun * max(dot(n, u_sun_cam), 0.0)), 0.0, 1.0), 1.0);
 #ifdef WITH_RANGE
-    o_range = length(v_pos);
+    o_range = clamp(length(v_pos), u_range_bounds.x, u_range_bounds.y);
 #endif
 }
 """
@@ -57,6 +61,7 @@ in vec3 v_pos;
 in vec3 v_nrm;
 in vec3 v_col;
 uniform uint u_id;
+uniform vec2 u_range_bounds;
 layout(location = 0) out uint o_id;
 #ifdef WITH_RANGE
 layout(location = 1) out float o_range;
@@ -64,7 +69,7 @@ layout(location = 1) out float o_range;
 void main() {
     o_id = u_id;
 #ifdef WITH_RANGE
-    o_range = length(v_pos);
+    o_range = clamp(length(v_pos), u_range_bounds.x, u_range_bounds.y);
 #endif
 }
 """
