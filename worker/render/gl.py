@@ -186,12 +186,8 @@ class GLRenderer:
             )
         except RuntimeError as err:
             raise RenderError(f"shader compilation failed on {self.name}: {err}") from err
-        n = GL.glGetProgramiv(prog, GL.GL_ACTIVE_UNIFORMS)
-        locs = {}
-        for i in range(n):
-            name = GL.glGetActiveUniform(prog, i)[0].decode()
-            locs[name] = GL.glGetUniformLocation(prog, name)
-        got = (prog, locs)
+        locs = {name: GL.glGetUniformLocation(prog, name) for name in shaders.UNIFORMS}
+        got = (prog, {name: loc for name, loc in locs.items() if loc >= 0})
         self._programs[key] = got
         return got
 

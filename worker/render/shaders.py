@@ -1,5 +1,11 @@
 """GLSL sources of the renderer's passes: surface (in-air radiance + range), ids (+ range), resolve (per-sample haze)."""
 
+# Every uniform any pass declares; a program's absent ones are simply not set.
+UNIFORMS = (
+    "u_cam_from_obj", "u_nrm_cam", "u_proj", "u_scale", "u_bias", "u_sun_cam", "u_sun", "u_ambient",
+    "u_range_bounds", "u_id", "u_J", "u_R", "u_betaD", "u_betaB", "u_Binf", "u_only_sample",
+)
+
 # Range is interpolated at the pixel centre even for multisample coverage (no per-sample shading); a sample that
 # covers a silhouette whose pixel centre lies off the triangle gets an extrapolated value, unbounded on receding
 # surfaces. Clamping to the object's bounding-sphere range bounds that error by the object's size.
