@@ -159,7 +159,9 @@ def test_killed_pool_process_reruns_its_shard_exactly_once(stack: Stack, client,
     final = wait_state(client, dataset_id, {"succeeded", "failed"}, timeout=120)
     assert final["state"] == "succeeded", final
     tries = services.records.tries(dataset_id)
-    assert tries[shard] == 2, tries  # the killed attempt and its rerun
+    # One shard ran twice: the killed attempt and its rerun (the killed process may have moved on from `shard`
+    # to the dataset's other shard between our read and the kill).
+    assert sorted(tries.values()) == [1, 2], (shard, tries)
     assert final["attempts"] == sum(tries.values()) == 3
     assert final["frames_done"] == 6 and final["shards_done"] == 2
     man = client.get(f"/datasets/{dataset_id}/manifest").json()
