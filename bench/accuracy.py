@@ -137,35 +137,43 @@ def reference(session, spec: DatasetSpec) -> Reference:
     return Reference(image=image, boxes=boxes_of(session, view, scene, items, majority_ids(ids_hi, s)))
 
 
-def measure(session, spec: DatasetSpec, preset: str, ref: Reference, repeats: int) -> dict:
-    from PIL import Image
+def time_presets(session, spec: DatasetSpec, presets: list[str], repeats: int) -> dict[str, float]:
+    """Median seconds of `frame_files` per preset; presets take turns in every round so drift hits all alike."""
+    specs = {p: spec.model_copy(update={"quality": p}) for p in presets}
+    for s in specs.values():
+        session.frame_files(s, 0)  # warm: shader variants, uploads
+    times: dict[str, list[float]] = {p: [] for p in presets}
+    for _ in range(repeats):
+        for p, s in specs.items():
+            t = time.perf_counter()
+            session.frame_files(s, 0)
+            times[p].append(time.perf_counter() - t)
+    return {p: statistics.median(v) for p, v in times.items()}
+
+
+def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
+    """The preset's image and labels against the reference, and its water against float64 on its own samples."""
     import io
 
+    from PIL import Image
+
     from worker.formation import encode_srgb8
-    from worker.pipeline import PRESETS
+    from worker.pipeline import PRESETS, Passes
 
     s = spec.model_copy(update={"quality": preset})
-    times, files = [], None
-    session.frame_files(s, 0)  # warm: shader variants, uploads
-    for _ in range(repeats):
-        t = time.perf_counter()
-        files = session.frame_files(s, 0)
-        times.append(time.perf_counter() - t)
+    files = session.frame_files(s, 0)
     image = np.asarray(Image.open(io.BytesIO(files["image_2/000000.png"])))
     scene = session.scene(s, 0)
     view = session.view(s, scene)
     items = session.draw_items(scene)
     J, R = session.renderer.samples(view, items, scene.lighting, PRESETS[preset])
     exact = encode_srgb8(hazed_mean(J, R, scene.water))
-    from worker.pipeline import Passes
-
     res = session.renderer.render(view, items, scene.lighting, scene.water, PRESETS[preset], Passes(ids=True))
     boxes = boxes_of(session, view, scene, items, res.instance)
     common = boxes.keys() & ref.boxes.keys()
     label_err = max((max(abs(a - b) for a, b in zip(boxes[i], ref.boxes[i])) for i in common), default=0)
     diff = np.abs(image.astype(np.int64) - ref.image.astype(np.int64))
     return {
-        "ms_per_frame": round(statistics.median(times) * 1e3, 2),
         "psnr_db": round(psnr_db(image, ref.image), 2),
         "max_abs_err": int(diff.max()),
         "formation_error": int(np.abs(image.astype(np.int64) - exact.astype(np.int64)).max()),
@@ -193,8 +201,10 @@ def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platfo
         for name in scenes:
             spec = scene_spec(name)
             ref = reference(session, spec)
+            ms = time_presets(session, spec, presets, repeats)
             for preset in presets:
-                row = {"scene": name, "preset": preset, **measure(session, spec, preset, ref, repeats)}
+                row = {"scene": name, "preset": preset, "ms_per_frame": round(ms[preset] * 1e3, 2),
+                       **errors(session, spec, preset, ref)}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     result = {"machine": machine or machine_description(), "gl_renderer": renderer_name, "resolution": [WIDTH, HEIGHT],
