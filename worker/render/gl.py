@@ -311,6 +311,19 @@ class GLRenderer:
         proj = projection(view.K, view.width, view.height, view.near, view.far)
         GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, proj.astype(np.float32))
 
+    def _bind_and_clear(self, t: _Target, *, ids_first: bool, with_range: bool) -> None:
+        """Bind a geometry target; clear attachment 0 (colour or ids) to 0, range to +inf, depth to far."""
+        GL = self._gl
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][: 2 if with_range else 1])
+        if ids_first:
+            GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
+        else:
+            GL.glClearBufferfv(GL.GL_COLOR, 0, np.zeros(4, np.float32))
+        if with_range:
+            GL.glClearBufferfv(GL.GL_COLOR, 1, np.array([np.inf, 0, 0, 0], np.float32))
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+
     def _read(self, slot: int, w: int, h: int, fmt: int, typ: int, dtype, channels: int, x: int = 0, y: int = 0):
         GL = self._gl
         GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + slot)
@@ -361,12 +374,7 @@ class GLRenderer:
         W, H = view.width * ss, view.height * ss
         with_range = water is not None or sample_range
         surf = self._surface_target(W, H, msaa, with_range)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, surf.fbo)
-        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][: 2 if with_range else 1])
-        GL.glClearBufferfv(GL.GL_COLOR, 0, np.zeros(4, np.float32))
-        if with_range:
-            GL.glClearBufferfv(GL.GL_COLOR, 1, np.array([np.inf, 0, 0, 0], np.float32))
-        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        self._bind_and_clear(surf, ids_first=False, with_range=with_range)
         prog, locs = self._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
         GL.glUseProgram(prog)
         self._set_view(locs, view, W, H)
@@ -423,12 +431,7 @@ class GLRenderer:
         GL = self._gl
         w, h = view.width, view.height
         t = self._ids_target(w, h, want_range)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
-        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][: 2 if want_range else 1])
-        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
-        if want_range:
-            GL.glClearBufferfv(GL.GL_COLOR, 1, np.array([np.inf, 0, 0, 0], np.float32))
-        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        self._bind_and_clear(t, ids_first=True, with_range=want_range)
         prog, locs = self._program(shaders.VERTEX, shaders.IDS, WITH_RANGE=want_range)
         GL.glUseProgram(prog)
         self._set_view(locs, view, w, h)
