@@ -79,9 +79,9 @@ def generate(
     """Generate a dataset locally (no servers): image_2/, label_2/, calib/, meta/ and optional outputs."""
     if resume and overwrite:
         raise SpecError("--resume and --overwrite exclude each other")
+    s = _load(spec, frames, seed, width, height, quality)  # before the renderer's imports: bad specs fail fast
     from worker.generate import open_dataset, render_frames
 
-    s = _load(spec, frames, seed, width, height, quality)
     todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")
     with _progress(len(todo), "frames") as bar:
         task = bar.add_task("render", total=len(todo))
@@ -105,9 +105,9 @@ def reproduce(
     gl: PlatformOpt = "egl",
 ) -> None:
     """Re-render one frame from (spec, seed, frame index): byte-identical to the frame `generate` wrote."""
+    s = _load(spec, frames, seed, width, height, quality)
     from worker.generate import reproduce as run
 
-    s = _load(spec, frames, seed, width, height, quality)
     for rel in run(s, frame, out, platform=gl):
         typer.echo(str(out / rel))
 
