@@ -71,7 +71,7 @@ SCENES: dict[str, dict] = {
     },
     "urchins": {"seed": 7},
 }
-PRESET_NAMES = ("draft", "default", "high")
+PRESET_NAMES = ("draft", "fast", "default", "high")
 
 
 def scene_spec(name: str) -> DatasetSpec:
@@ -241,7 +241,7 @@ def plot(result: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
-    markers = {"draft": "o", "default": "s", "high": "^"}
+    markers = {"draft": "o", "fast": "D", "default": "s", "high": "^"}
     scenes = sorted({r["scene"] for r in result["rows"]})
     colours = dict(zip(scenes, plt.cm.tab10.colors))
     for r in result["rows"]:

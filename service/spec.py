@@ -31,7 +31,7 @@ MAX_OBJECTS = 64  # per role and frame
 MAX_TERRAIN_CELLS = 1024
 MAX_VARIANTS = 1024
 
-Quality = Literal["draft", "default", "high"]
+Quality = Literal["draft", "fast", "default", "high"]
 ProceduralTarget = Literal["urchin", "rock", "coral", "seaweed", "clam"]
 TerrainStyle = Literal["sand", "pebbles", "rock"]
 

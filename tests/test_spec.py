@@ -157,7 +157,7 @@ REFUSED = [
     ({"targets": {"assets": [{"procedural": "urchin", "colour": "red"}]}}, "targets.assets.0.colour", "Extra inputs"),
     # unknown names
     ({"water": {"jerlov": ["II", "9Z"]}}, "water.jerlov", "unknown Jerlov type '9Z'"),
-    ({"quality": "ultra"}, "quality", "'draft', 'default' or 'high'"),
+    ({"quality": "ultra"}, "quality", "'draft', 'fast', 'default' or 'high'"),
     ({"targets": {"assets": [{"procedural": "starfish"}]}}, "targets.assets.0.procedural", "'urchin'"),
     ({"terrain": {"styles": ["mud"]}}, "terrain.styles.0", "'sand', 'pebbles' or 'rock'"),
     # asset refs: exactly one source

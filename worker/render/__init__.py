@@ -66,6 +66,8 @@ class Sampling:
 
     msaa: int = 4
     supersample: int = 1
+    # Shade every sample at its own position (range, J) instead of once per pixel at the pixel centre.
+    per_sample_shading: bool = True
 
     @property
     def per_pixel(self) -> int:

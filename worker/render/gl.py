@@ -382,7 +382,11 @@ class GLRenderer:
         GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
         GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
         GL.glUniform1f(locs["u_ambient"], lighting.ambient)
+        if msaa > 1 and sampling.per_sample_shading:
+            GL.glEnable(GL.GL_SAMPLE_SHADING)
+            GL.glMinSampleShading(1.0)
         self._draw(view, items, locs, lit=True, ids=False)
+        GL.glDisable(GL.GL_SAMPLE_SHADING)
         if done is not None:
             done("render")
 
