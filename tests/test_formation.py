@@ -363,8 +363,9 @@ def _glsl_haze_in_numpy(J, z, beta_D, beta_B, b_inf):
     with np.errstate(all="ignore"):  # GPUs do not trap; np.where evaluates both branches
         xd, xb = depth(beta_D), depth(beta_B)
         t = np.where(xd >= 87, f(0), np.exp(-xd))
-        series = xb * (1 - xb * (f(0.5) - xb * (f(1 / 6) - xb * f(1 / 24))))
-        a = np.where(xb < 0.01, series, np.where(xb >= 87, f(1), 1 - np.exp(-xb)))
+        c = [f(1 / k) for k in (2, 6, 24, 120, 720, 5040)]
+        series = xb * (1 - xb * (c[0] - xb * (c[1] - xb * (c[2] - xb * (c[3] - xb * (c[4] - xb * c[5]))))))
+        a = np.where(xb < 0.125, series, np.where(xb >= 87, f(1), 1 - np.exp(-xb)))
         return (J * t + b_inf.astype(f) * a).astype(f)
 
 

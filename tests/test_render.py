@@ -224,3 +224,25 @@ def test_depth_file_is_the_range_file_as_z_depth(render_session):
     assert not np.any(np.isnan(range_m)) and np.all(range_m > 0)
     # Every object pixel has a surface; the terrain (id 0) fills the lower part of the view.
     assert np.all(np.isfinite(range_m[instance > 0])) and np.any(instance > 0) and np.any(depth > 0)
+
+
+# --- the water as the GL resolve pass applies it -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("beta_b", [1e-4, 0.004, 0.05, 0.3, 2.0])
+def test_gl_backscatter_matches_float64_expm1_on_the_samples_it_used(renderer, beta_b):
+    """With black surfaces (J = 0) the image is B_inf (1 - exp(-beta_B z)) exactly as the shader computed it from
+    each sample's stored range: compare with float64 expm1 on those ranges, 1e-6 relative (small beta*z included)."""
+    K = pinhole(W, H, 90.0)
+    mesh, pose = slab(np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0]), np.array([0.0, 0.0, 3.0]))
+    mesh.visual.vertex_colors = np.tile([0, 0, 0, 255], (len(mesh.vertices), 1))
+    item = draw("test/render/black-slab", mesh, pose=pose)
+    b_inf = np.array([0.9, 0.5, 0.25])
+    water = WaterParams(beta_D=np.full(3, 0.1), beta_B=np.full(3, beta_b), B_inf=b_inf)
+    sampling = Sampling(msaa=4)
+    _, R = renderer.samples(camera_view(K, W, H), [item], LIGHT, sampling)
+    got = renderer.render(camera_view(K, W, H), [item], LIGHT, water, sampling, Passes()).image.astype(np.float64)
+    assert np.isfinite(R).all()
+    x = beta_b * R.astype(np.float64)  # (k, h, w): the float32 ranges the shader read, in float64
+    expected = b_inf * (-np.expm1(-x)).mean(axis=0)[..., None]
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=0)

@@ -71,17 +71,20 @@ def prepare_output(out: Path, spec: DatasetSpec, mode: Mode) -> None:
             )
     elif mode == "resume" and existing:
         raise OutputError(f"{out}: is not a seasynth dataset (no {RECORD}); use --overwrite or another folder")
-    if mode == "overwrite":
-        for name in (*OUTPUT_DIRS, RECORD):
-            target = out / name
-            if target.is_dir():
-                shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
-    for p in out.glob("*/.*.tmp-*"):  # left by an interrupted run
-        p.unlink()
-    for rel in frame_paths(spec, 0):
-        (out / rel).parent.mkdir(exist_ok=True)
+    try:
+        if mode == "overwrite":
+            for name in (*OUTPUT_DIRS, RECORD):
+                target = out / name
+                if target.is_dir():
+                    shutil.rmtree(target)
+                elif target.exists():
+                    target.unlink()
+        for p in out.glob("*/.*.tmp-*"):  # left by an interrupted run
+            p.unlink()
+        for rel in frame_paths(spec, 0):
+            (out / rel).parent.mkdir(exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"{out}: cannot write the output folder ({err.strerror or err})") from None
     write_record(out, spec, complete=False)
 
 
@@ -205,9 +208,12 @@ def _run_pool(spec, out, todo, workers, on_frames, platform) -> str:
             try:
                 kind, value = results.get(timeout=1.0)
             except queue.Empty:
-                dead = [p for p in procs if p.exitcode not in (None, 0)]
-                if dead:
-                    raise SeasynthError(f"a local worker died (exit code {dead[0].exitcode})") from None
+                # Every worker says "done" before it exits, so any exited process (finished is counted only
+                # after the queue drains) whose "done" never came was lost, whatever its exit code.
+                exited = sum(p.exitcode is not None for p in procs)
+                if exited > finished and results.empty():
+                    code = next(p.exitcode for p in procs if p.exitcode is not None)
+                    raise SeasynthError(f"a local worker stopped before finishing its frames (exit code {code})")
                 continue
             if kind == "frames":
                 done += value
@@ -235,8 +241,6 @@ def _pool_main(payload: str, out: str, tasks, results, platform: str) -> None:
                 for i in chunk:
                     write_frame(Path(out), session.frame_files(spec, i))
                 results.put(("frames", len(chunk)))
-    except KeyboardInterrupt:
-        return
     except BaseException as err:  # report every failure to the parent, which decides
         results.put(("error", (type(err).__module__, type(err).__qualname__, str(err))))
         return

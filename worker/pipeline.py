@@ -14,7 +14,7 @@ import numpy as np
 
 import service
 from service.seeds import STREAM_NOISE, frame_rng
-from service.spec import AssetRef, DatasetSpec, FileRef, spec_digest
+from service.spec import AssetRef, DatasetSpec, FileRef
 from worker import kitti, labels
 from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
@@ -304,13 +304,13 @@ class RenderSession:
         return FrameLabels(objects=objects, line_of=line_of, visible=visible, alone=alone)
 
     def meta(self, spec, index, scene: Scene, view: View, fl: FrameLabels | None, noise) -> str:
-        """The frame's audit record: nothing in it depends on time, host, duration or worker count."""
+        """The frame's audit record: nothing in it depends on time, host, duration, worker count, the dataset's
+        frame count, shard size or which optional outputs are on (the dataset record holds the whole spec)."""
         w = scene.water
         record = {
             "dataset_seed": spec.seed,
             "frame_index": index,
             "code_version": service.__version__,
-            "spec_sha256": spec_digest(spec),
             "versions": self.versions,
             "gl_renderer": self.renderer_name,
             "preset": spec.quality,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -104,8 +105,13 @@ class Renderer(Protocol):
         water: WaterParams | None,
         sampling: Sampling,
         passes: Passes,
+        mark: Callable[[str], None] | None = None,
     ) -> RenderResult: ...
 
-    def pixels_alone(self, view: View, item: DrawItem) -> int: ...
+    def pixels_alone(self, view: View, item: DrawItem, region: tuple[int, int, int, int] | None = None) -> int: ...
+
+    def samples(
+        self, view: View, items: list[DrawItem], lighting: Lighting, sampling: Sampling
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
     def close(self) -> None: ...
