@@ -48,7 +48,8 @@ def open_services(settings: Settings) -> Services:
     return Services(
         settings=settings,
         records=Records(redis.Redis.from_url(settings.redis_url, decode_responses=True), settings.key_prefix),
-        raw_redis=redis.Redis.from_url(settings.redis_url),
+        # BLPOP waits up to frame_timeout_s for a frame: the socket must outwait it (redis-py's default is 5 s).
+        raw_redis=redis.Redis.from_url(settings.redis_url, socket_timeout=settings.frame_timeout_s + 10),
         store=open_store(settings),
         producer=producer,
     )

@@ -141,3 +141,44 @@ def test_other_versions_shards_are_left_alone_and_frames_time_out(stack: Stack, 
         assert (rec.state, rec.attempts, rec.renderer) == ("queued", 0, None)
     finally:
         proc.stop()
+
+
+def test_a_frame_may_take_longer_than_five_seconds(stack: Stack):
+    """The API waits frame_timeout_s for a frame worker, beyond redis-py's default 5 s socket timeout.
+
+    The frames queue of an unserved version is answered by this test, playing a slow frame worker.
+    """
+    import base64
+    import json
+    import threading
+    import time
+
+    import redis
+
+    from service.queues import frame_queue
+    from service.records import push_reply
+
+    version = "0.0.0-slowframes"
+    proc, url = stack.start_api({"SEASYNTH_WORKER_VERSION": version, "SEASYNTH_FRAME_TIMEOUT_S": "20"})
+    raw = redis.Redis.from_url(stack.settings().redis_url)
+    try:
+        dataset_id = httpx.post(f"{url}/datasets", json=tiny_spec(frames=2, shard_size=1)).json()["id"]
+        got: dict = {}
+        asked = time.monotonic()
+        getter = threading.Thread(target=lambda: got.update(r=httpx.get(f"{url}/datasets/{dataset_id}/frames/1",
+                                                                        timeout=40)))
+        getter.start()
+        _, message = raw.blpop([frame_queue(version)], timeout=10)
+        body = json.loads(base64.b64decode(json.loads(message)["body"]))
+        ds, index, part, reply_key = body[0]
+        assert (ds, index, part) == (dataset_id, 1, "image")
+        time.sleep(max(0.0, 6.5 - (time.monotonic() - asked)))
+        push_reply(raw, reply_key, {"ok": True, "name": "image_2/000001.png"}, b"\x89PNG slow", ttl_s=60)
+        getter.join(30)
+        r = got["r"]
+        assert r.status_code == 200, r.text
+        assert r.content == b"\x89PNG slow" and time.monotonic() - asked >= 6.5
+        httpx.delete(f"{url}/datasets/{dataset_id}")
+    finally:
+        raw.close()
+        proc.stop()
