@@ -126,6 +126,13 @@ def test_api_keys(keyed_api):
     assert httpx.get(f"{url}/datasets", headers={"X-API-Key": "beta"}).status_code == 200
     assert httpx.get(f"{url}/datasets", headers={"Authorization": "Bearer alpha"}).status_code == 200
     assert httpx.get(f"{url}/datasets/" + "0" * 32, headers={"X-API-Key": "alpha"}).status_code == 404
+    # The API's description is not public either.
+    for path in ("/docs", "/redoc", "/openapi.json"):
+        assert httpx.get(f"{url}{path}").status_code == 401, path
+        assert httpx.get(f"{url}{path}", headers={"X-API-Key": "gamma"}).status_code == 401, path
+        assert httpx.get(f"{url}{path}", headers={"X-API-Key": "alpha"}).status_code == 200, path
+    schema = httpx.get(f"{url}/openapi.json", headers={"Authorization": "Bearer beta"}).json()
+    assert "/datasets" in schema["paths"] and "/openapi.json" not in schema["paths"]
 
 
 def test_other_versions_shards_are_left_alone_and_frames_time_out(stack: Stack, services):
