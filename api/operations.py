@@ -19,7 +19,17 @@ from service.manifest import build_manifest
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
 from service.records import CANCELLED, RUNNING, TERMINAL, DatasetRecord, wait_reply
 from service.settings import Settings
-from service.shards import FRAME_PARTS, asset_info_key, asset_key, dataset_prefix, frame_file, shard_count
+from service.shards import (
+    FRAME_OVERHEAD_S,
+    FRAME_PARTS,
+    SAMPLES_PER_S,
+    asset_info_key,
+    asset_key,
+    dataset_prefix,
+    frame_file,
+    shard_count,
+    shard_seconds,
+)
 from service.spec import DatasetSpec
 
 UPLOAD_SUFFIXES = (".glb", ".obj", ".ply", ".stl", ".png", ".jpg", ".jpeg")
@@ -43,6 +53,18 @@ def check_limits(spec: DatasetSpec, settings: Settings) -> None:
             over.append(
                 f"{role}.count: max {hi} is over the limit of {settings.max_objects} objects (SEASYNTH_MAX_OBJECTS)"
             )
+    # A shard must finish well inside the task time limit on a slow worker (service/shards.py's cost model).
+    size = min(spec.shard_size, spec.frames)
+    need = shard_seconds(size, spec.camera.width, spec.camera.height, spec.quality)
+    budget = settings.task_soft_time_limit_s
+    if need > budget:
+        per_frame = need / size
+        over.append(
+            f"shard_size: {size} frames of {spec.camera.width}x{spec.camera.height} at quality {spec.quality!r} "
+            f"are estimated at {need:.0f} s per shard, over the limit of {budget} s (the soft task time limit, "
+            f"SEASYNTH_TASK_TIME_LIMIT_S); use shard_size <= {max(1, int(budget // per_frame))} (estimate: "
+            f"{FRAME_OVERHEAD_S} s per frame plus {SAMPLES_PER_S:.0e} samples/s)"
+        )
     if over:
         raise LimitExceeded("\n".join(over))
 

@@ -25,7 +25,7 @@ def infra(tmp_path_factory) -> Iterator[Stack]:
         "SEASYNTH_S3_CREATE_BUCKET": "true",
         "SEASYNTH_FRAME_TIMEOUT_S": "30",
         "SEASYNTH_WORKER_SOFT_SHUTDOWN_S": "2",
-        "SEASYNTH_TASK_TIME_LIMIT_S": "120",
+        "SEASYNTH_TASK_TIME_LIMIT_S": "300",  # shard_size 1000 of tiny frames fits its budget
         "AWS_ACCESS_KEY_ID": "testing",
         "AWS_SECRET_ACCESS_KEY": "testing",
         "AWS_DEFAULT_REGION": "us-east-1",

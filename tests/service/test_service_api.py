@@ -88,6 +88,24 @@ def test_limits_are_named(client):
     assert client.delete(f"/datasets/{ok.json()['id']}").json()["state"] == "cancelled"
 
 
+def test_shard_work_is_limited_by_the_task_time_limit(client, stack: Stack):
+    """Within the static cap (600 megapixels per shard) but over what the configured time limit allows."""
+    soft = stack.settings().task_soft_time_limit_s
+    big = {"width": 1024, "height": 768}
+    r = client.post("/datasets", json=tiny_spec(frames=100, shard_size=50, quality="high", camera=big))
+    assert r.status_code == 413, r.text
+    (line,) = r.json()["errors"]
+    assert line.startswith("shard_size: 50 frames of 1024x768 at quality 'high'") and f"limit of {soft} s" in line
+    assert "use shard_size <= 41" in line
+    ok = client.post("/datasets", json=tiny_spec(frames=100, shard_size=41, quality="high", camera=big))
+    assert ok.status_code == 202, ok.text
+    assert client.delete(f"/datasets/{ok.json()['id']}").json()["state"] == "cancelled"
+    # A cheaper preset fits more frames per shard.
+    fast = client.post("/datasets", json=tiny_spec(frames=100, shard_size=50, quality="draft", camera=big))
+    assert fast.status_code == 202, fast.text
+    assert client.delete(f"/datasets/{fast.json()['id']}").json()["state"] == "cancelled"
+
+
 def test_local_paths_and_unknown_assets_are_refused(client):
     r = client.post("/datasets", json=tiny_spec(targets={"assets": [{"path": "/etc/passwd"}]}))
     assert r.status_code == 422 and r.json()["errors"][0].startswith("targets.assets.0.path:")

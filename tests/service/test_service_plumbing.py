@@ -256,3 +256,11 @@ def test_celery_configuration_guards_against_lost_and_duplicated_work(infra):
 
 def test_shard_dataclass_frames():
     assert list(Shard(3, 6, 2).frames) == [6, 7]
+
+
+def test_sample_counts_follow_the_presets():
+    """Admission's cost model (service/shards.py) knows each preset's samples per pixel."""
+    from service.shards import SAMPLES_PER_PIXEL
+    from worker.pipeline import PRESETS
+
+    assert SAMPLES_PER_PIXEL == {name: s.per_pixel for name, s in PRESETS.items()}
