@@ -17,7 +17,7 @@ from api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPu
 from service.errors import AssetError, Conflict, LimitExceeded, NotFound, SpecError, Unavailable
 from service.manifest import build_manifest
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
-from service.records import CANCELLED, RUNNING, TERMINAL, DatasetRecord, wait_reply
+from service.records import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord, wait_reply
 from service.settings import Settings
 from service.shards import (
     FRAME_OVERHEAD_S,
@@ -155,6 +155,7 @@ def public(rec: DatasetRecord, now: float) -> DatasetPublic:
 
 def dataset_status(services: Services, dataset_id: str) -> DatasetPublic:
     rec = services.records.get(dataset_id)
+    now = time.time()
     if (
         rec.state == RUNNING
         and rec.shards_done + rec.shards_failed == rec.shards_total
@@ -162,7 +163,9 @@ def dataset_status(services: Services, dataset_id: str) -> DatasetPublic:
     ):
         # Every shard is in but nobody finalised (the finaliser died): let a worker reconcile.
         services.producer.send_task(TASK_RECONCILE, args=[dataset_id, False], queue=shard_queue(rec.code_version))
-    return public(rec, time.time())
+    else:
+        sweep_if_stalled(services, rec, now)
+    return public(rec, now)
 
 
 def list_datasets(services: Services, offset: int, limit: int) -> tuple[list[DatasetPublic], int]:
@@ -170,10 +173,61 @@ def list_datasets(services: Services, offset: int, limit: int) -> tuple[list[Dat
     now, out = time.time(), []
     for i in ids:
         try:
-            out.append(public(services.records.get(i), now))
+            rec = services.records.get(i)
         except NotFound:  # deleted between the two reads
             continue
+        sweep_if_stalled(services, rec, now)
+        out.append(public(rec, now))
     return out, total
+
+
+# --- the reconciler
+
+
+def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: bool = False) -> bool:
+    """Republish a live dataset's lost shards; True when a reconcile task was sent.
+
+    A shard is pending when it is neither committed, nor failed, nor running within its lease (the hard task time
+    limit). Queued messages cannot be seen cheaply, so the sweep waits until the dataset has stalled: nothing
+    started, committed or failed for SEASYNTH_STALL_TIMEOUT_S and nothing running. Then a worker adopts missed
+    commit markers and republishes the pending shards, marked to defer to a running execution; a copy of a
+    shard that was only waiting in the queue is skipped once its original committed. At most once per stall
+    timeout per dataset (a Redis lock), whoever triggers it: status reads or `seasynth reconcile`.
+    `force` (an explicit reconcile) skips the stall and lock checks.
+    """
+    s = services.settings
+    if rec.state not in (QUEUED, RUNNING):
+        return False
+    if not force:
+        if now - rec.touched_at < s.stall_s:
+            return False
+        if services.records.live_running(rec.id, now, s.running_lease_s):
+            return False
+        if not services.records.claim_sweep(rec.id, s.stall_s):
+            return False
+    services.producer.send_task(TASK_RECONCILE, args=[rec.id, True], queue=shard_queue(rec.code_version))
+    return True
+
+
+def sweep_all(services: Services, dataset_ids: list[str] | None = None) -> list[str]:
+    """`seasynth reconcile`: sweep the given datasets now (force), or every live one that stalled."""
+    now = time.time()
+    if dataset_ids:
+        recs = [services.records.get(i) for i in dataset_ids]
+        return [r.id for r in recs if sweep_if_stalled(services, r, now, force=True)]
+    swept, offset = [], 0
+    while True:
+        ids, total = services.records.list_ids(offset, 500)
+        for i in ids:
+            try:
+                rec = services.records.get(i)
+            except NotFound:
+                continue
+            if sweep_if_stalled(services, rec, now):
+                swept.append(i)
+        offset += len(ids)
+        if not ids or offset >= total:
+            return swept
 
 
 def cancel_dataset(services: Services, dataset_id: str, purge: bool) -> DatasetPublic:

@@ -170,6 +170,28 @@ def worker(
 
 
 @app.command()
+def reconcile(
+    dataset_ids: Annotated[
+        Optional[list[str]], typer.Argument(help="Datasets to sweep now (default: every stalled one).")
+    ] = None,
+) -> None:
+    """Republish lost shards: of the given datasets now, or of every live dataset that has stalled (nothing started,
+    committed or failed for SEASYNTH_STALL_TIMEOUT_S and nothing running). Safe to run at any time, e.g. from cron."""
+    from api.deps import open_services
+    from api.operations import sweep_all
+    from service.settings import Settings
+
+    services = open_services(Settings())
+    try:
+        swept = sweep_all(services, dataset_ids)
+    finally:
+        services.close()
+    for dataset_id in swept:
+        typer.echo(f"{dataset_id}: pending shards sent to a worker to publish again")
+    typer.echo(f"{len(swept)} dataset(s) swept")
+
+
+@app.command()
 def fetch(
     dataset_id: Annotated[str, typer.Argument(help="Dataset id (from POST /datasets).")],
     out: Annotated[Path, typer.Option("--out", help="Folder to assemble the KITTI tree in.")],

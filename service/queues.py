@@ -4,8 +4,8 @@ Queue names carry the code version, so a worker of another version never takes a
 an API configured for version V publishes to V's queues, and a worker of version V consumes only those.
 """
 
-TASK_PLAN = "seasynth.plan_dataset"  # (dataset_id, first_shard): publishes a batch of shard tasks
-TASK_SHARD = "seasynth.render_shard"  # (dataset_id, shard_index)
+TASK_PLAN = "seasynth.plan_dataset"  # (dataset_id, first_shard[, sweep]): publishes a batch of shard tasks
+TASK_SHARD = "seasynth.render_shard"  # (dataset_id, shard_index[, sweep]); sweep: a reconciler's copy
 TASK_FRAME = "seasynth.render_frame"  # (dataset_id, frame_index, part, reply_key)
 TASK_RECONCILE = "seasynth.reconcile_dataset"  # (dataset_id, requeue)
 

@@ -8,8 +8,10 @@ Keys (P = settings.key_prefix):
   P:ds:{id}:shards    HASH  shard index -> commit record JSON (key, sha256, bytes, frames, renderer)
   P:ds:{id}:tries     HASH  shard index -> executions started
   P:ds:{id}:errors    HASH  shard index -> last error
-  P:ds:{id}:running   HASH  shard index -> JSON {pid, host, attempt, since} while a process renders it
+  P:ds:{id}:running   HASH  shard index -> JSON {pid, host, since} while a process renders it; an entry older
+                            than the hard task time limit is stale (that execution is certainly over)
   P:ds:{id}:final     STR   finalise guard (SET NX with a TTL, so a finaliser that died can be replaced)
+  P:ds:{id}:sweep     STR   reconciler guard: at most one sweep of a dataset per stall timeout
   P:reply:{uuid}      LIST  one single-frame answer, pushed by a worker and popped by the API
 """
 
@@ -32,6 +34,7 @@ if tries >= tonumber(ARGV[4]) then return -1 end
 tries = redis.call('HINCRBY', KEYS[2], ARGV[1], 1)
 redis.call('HINCRBY', KEYS[1], 'attempts', 1)
 redis.call('HSETNX', KEYS[1], 'started_at', ARGV[2])
+redis.call('HSET', KEYS[1], 'touched_at', ARGV[2])
 if redis.call('HGET', KEYS[1], 'state') == 'queued' then redis.call('HSET', KEYS[1], 'state', 'running') end
 redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
 return tries
@@ -43,6 +46,7 @@ local added = redis.call('SADD', KEYS[2], ARGV[1])
 if added == 1 then
   redis.call('HINCRBY', KEYS[1], 'frames_done', ARGV[2])
   redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
+  redis.call('HSET', KEYS[1], 'touched_at', ARGV[4])
 end
 return {added, redis.call('SCARD', KEYS[2]), redis.call('SCARD', KEYS[4])}
 """
@@ -51,6 +55,7 @@ _FAIL = """
 redis.call('HSET', KEYS[3], ARGV[1], ARGV[2])
 local added = 0
 if redis.call('SISMEMBER', KEYS[4], ARGV[1]) == 0 then added = redis.call('SADD', KEYS[2], ARGV[1]) end
+if added == 1 then redis.call('HSET', KEYS[1], 'touched_at', ARGV[3]) end
 return {added, redis.call('SCARD', KEYS[4]), redis.call('SCARD', KEYS[2])}
 """
 
@@ -86,6 +91,7 @@ class DatasetRecord:
     attempts: int
     started_at: float | None
     finished_at: float | None
+    touched_at: float  # the last shard started, committed or failed, or the last planning or sweep
     purged: bool
     errors: dict[int, str] = field(default_factory=dict)  # failed shard -> last error
 
@@ -150,6 +156,7 @@ class Records:
             "shards_total": shards,
             "frames_done": 0,
             "attempts": 0,
+            "touched_at": repr(now),
         }
         with self.r.pipeline() as pipe:
             pipe.hset(self._k(dataset_id), mapping=fields)
@@ -185,6 +192,7 @@ class Records:
             attempts=int(h["attempts"]),
             started_at=opt("started_at"),
             finished_at=opt("finished_at"),
+            touched_at=float(h.get("touched_at") or h["created_at"]),
             purged=h.get("purged") == "1",
             errors={int(i): errors.get(i, "") for i in failed_set},
         )
@@ -222,6 +230,14 @@ class Records:
     def mark_purged(self, dataset_id: str) -> None:
         self.r.hset(self._k(dataset_id), "purged", "1")
 
+    def touch(self, dataset_id: str, now: float) -> None:
+        """Note activity (planning, a sweep): the reconciler leaves a dataset alone for a stall timeout after."""
+        self.r.hset(self._k(dataset_id), "touched_at", repr(now))
+
+    def claim_sweep(self, dataset_id: str, ttl_s: int) -> bool:
+        """True for the one caller that may sweep the dataset now; the next sweep waits ttl_s."""
+        return bool(self.r.set(self._k(dataset_id, "sweep"), "1", nx=True, ex=max(1, int(ttl_s))))
+
     # --- shards
     def start_attempt(self, dataset_id: str, index: int, max_attempts: int, running: dict[str, Any]) -> int:
         """Count one execution of a shard and note who runs it; -1 when its attempts are used up."""
@@ -233,6 +249,26 @@ class Records:
 
     def running(self, dataset_id: str) -> dict[int, dict[str, Any]]:
         return {int(i): json.loads(v) for i, v in self.r.hgetall(self._k(dataset_id, "running")).items()}
+
+    def live_running(self, dataset_id: str, now: float, lease_s: float) -> set[int]:
+        """Shards whose current execution started less than lease_s (the hard time limit) ago."""
+        return {i for i, who in self.running(dataset_id).items() if now - float(who.get("since", 0)) < lease_s}
+
+    def pending(self, dataset_id: str, indices: list[int], now: float, lease_s: float) -> list[int]:
+        """Of `indices`, the shards neither committed, nor failed, nor running within their lease."""
+        if not indices:
+            return []
+        with self.r.pipeline(transaction=False) as pipe:
+            pipe.smismember(self._k(dataset_id, "done"), indices)
+            pipe.smismember(self._k(dataset_id, "failed"), indices)
+            pipe.hmget(self._k(dataset_id, "running"), indices)
+            done, failed, running = pipe.execute()
+        out = []
+        for i, d, f, who in zip(indices, done, failed, running):
+            live = who is not None and now - float(json.loads(who).get("since", 0)) < lease_s
+            if not (d or f or live):
+                out.append(i)
+        return out
 
     def tries(self, dataset_id: str) -> dict[int, int]:
         return {int(i): int(v) for i, v in self.r.hgetall(self._k(dataset_id, "tries")).items()}
@@ -246,18 +282,22 @@ class Records:
     def is_committed(self, dataset_id: str, index: int) -> bool:
         return bool(self.r.sismember(self._k(dataset_id, "done"), index))
 
+    def is_failed(self, dataset_id: str, index: int) -> bool:
+        return bool(self.r.sismember(self._k(dataset_id, "failed"), index))
+
     def commit(self, dataset_id: str, commit: ShardCommit) -> tuple[bool, int, int]:
         """Count a committed shard once; return (newly added, shards done, shards failed)."""
         keys = [self._k(dataset_id), self._k(dataset_id, "done"), self._k(dataset_id, "shards"),
                 self._k(dataset_id, "failed")]
-        added, done, failed = self._commit(keys=keys, args=[commit.index, commit.frame_count, commit.to_json()])
+        args = [commit.index, commit.frame_count, commit.to_json(), repr(time.time())]
+        added, done, failed = self._commit(keys=keys, args=args)
         return bool(added), int(done), int(failed)
 
     def fail(self, dataset_id: str, index: int, message: str) -> tuple[int, int]:
         """Give up on a shard (unless it was committed meanwhile); return (shards done, shards failed)."""
         keys = [self._k(dataset_id), self._k(dataset_id, "failed"), self._k(dataset_id, "errors"),
                 self._k(dataset_id, "done")]
-        _, done, failed = self._fail(keys=keys, args=[index, message[:2000]])
+        _, done, failed = self._fail(keys=keys, args=[index, message[:2000], repr(time.time())])
         return int(done), int(failed)
 
     def commits(self, dataset_id: str) -> list[ShardCommit]:

@@ -51,6 +51,9 @@ class Settings(BaseSettings):
     gl_platform: Literal["egl", "osmesa"] = "egl"  # headless GL of the render processes
     asset_cache_dir: Path | None = None  # default: a per-process temporary folder
     shard_compression: Literal["none", "gz"] = "none"  # PNGs do not compress further; gz helps label-heavy sets
+    # A live dataset with nothing started, committed or failed for this long and no shard running gets its
+    # pending shards published again by the reconciler (default: 2x the hard task time limit).
+    stall_timeout_s: int | None = Field(None, ge=60)  # above the longest retry delay (30 s)
 
     # --- client (`seasynth fetch`)
     api_url: str = "http://localhost:8000"
@@ -75,6 +78,15 @@ class Settings(BaseSettings):
     def visibility_timeout_s(self) -> int:
         """Redis redelivers an unacknowledged message after this long: 3x the hard limit, so never mid-task."""
         return 3 * self.task_time_limit_s
+
+    @property
+    def stall_s(self) -> int:
+        return self.stall_timeout_s if self.stall_timeout_s is not None else 2 * self.task_time_limit_s
+
+    @property
+    def running_lease_s(self) -> int:
+        """A shard execution older than the hard limit is over (Celery killed it): its running entry is stale."""
+        return self.task_time_limit_s
 
     @property
     def retry_backoff_max_s(self) -> int:

@@ -3,10 +3,15 @@
 Configuration follows the broker's known traps (see the project's distributed notes): late acks with rejection on
 worker loss plus our own attempt counter, prefetch 1, a visibility timeout of 3x the hard time limit, cancelling
 long-running tasks on connection loss, a soft shutdown for scale-down, and no result backend.
+
+Celery acknowledges a late-acked message on failure and on the hard time limit by default; here a task hitting
+the hard limit goes back to the queue (its attempt was counted when it started) and the shard task lets no
+failure escape uncounted (worker.shard.run_shard), so no message is dropped on the way.
 """
 
 from __future__ import annotations
 
+import sys
 import uuid
 
 from celery import Celery
@@ -20,6 +25,10 @@ QUEUE_KINDS = ("shards", "frames")
 
 def create_app(settings: Settings) -> Celery:
     """A worker app with its tasks registered; per-process resources open in each pool process after fork."""
+    return _build(settings)[0]
+
+
+def _build(settings: Settings):
     from worker import tasks
 
     app = Celery("seasynth", broker=settings.redis_url, set_as_current=False)
@@ -29,6 +38,10 @@ def create_app(settings: Settings) -> Celery:
         task_ignore_result=True,  # status lives in our Redis records
         task_acks_late=True,
         task_reject_on_worker_lost=True,
+        task_acks_on_timeout=False,  # the hard time limit requeues the message (its attempt is already counted)
+        # A failure that escapes a task is rejected unrequeued (on Redis that drops it like an ack would): the shard
+        # task lets none escape, it counts and retries, marks the shard failed, or rejects with requeue.
+        task_acks_on_failure=False,
         worker_prefetch_multiplier=1,
         worker_max_tasks_per_child=settings.worker_max_tasks_per_child,
         worker_cancel_long_running_tasks_on_connection_loss=True,
@@ -41,8 +54,8 @@ def create_app(settings: Settings) -> Celery:
         worker_hijack_root_logger=True,
         worker_redirect_stdouts=False,
     )
-    tasks.register(app, settings)
-    return app
+    resources = tasks.register(app, settings)
+    return app, resources
 
 
 def worker_argv(concurrency: int, queues: list[str], loglevel: str = "INFO") -> list[str]:
@@ -64,9 +77,16 @@ def worker_argv(concurrency: int, queues: list[str], loglevel: str = "INFO") -> 
 
 
 def run_worker(settings: Settings, concurrency: int, queues: list[str] | None = None, loglevel: str = "INFO") -> None:
-    """Run a worker in the foreground until it is stopped (SIGTERM: soft shutdown, then warm shutdown)."""
-    app = create_app(settings)
-    app.worker_main(worker_argv(concurrency, list(queues or QUEUE_KINDS), loglevel))
+    """Run a worker in the foreground until it is stopped (SIGTERM: soft shutdown, then warm shutdown).
+
+    Exits with status 1 when a pool process could not open its renderer (it stopped the worker at once).
+    """
+    app, resources = _build(settings)
+    try:
+        app.worker_main(worker_argv(concurrency, list(queues or QUEUE_KINDS), loglevel))
+    finally:
+        if resources.renderer_failed.value:  # replaces Celery's exit status 0 after the warm shutdown
+            sys.exit("seasynth worker: stopped because a render process could not open its renderer (see the log)")
 
 
 if __name__ == "__main__":  # python -m worker.celery_app [concurrency]

@@ -58,6 +58,7 @@ class FrameSource(Protocol):
 class Outcome(str, Enum):
     COMMITTED = "committed"
     ALREADY_COMMITTED = "already-committed"
+    RUNNING_ELSEWHERE = "running-elsewhere"  # a reconciler's copy found the shard running within its lease
     CANCELLED = "cancelled"
     MISSING = "missing"  # no such dataset (expired or never created)
     FAILED = "failed"
@@ -77,6 +78,14 @@ class WrongVersion(Exception):
     def __init__(self, version: str):
         super().__init__(f"dataset is pinned to code version {version}, this worker runs {__version__}")
         self.version = version
+
+
+class WrongRenderer(Exception):
+    """A shard or frame of a dataset pinned to another GL renderer reached this worker; it must go back untouched."""
+
+    def __init__(self, dataset_id: str, pinned: str, ours: str):
+        super().__init__(f"dataset {dataset_id} is rendered with {pinned!r}; this worker runs {ours!r}")
+        self.pinned = pinned
 
 
 @dataclass
@@ -178,11 +187,46 @@ def shard_files(
 # --- the shard task body
 
 
-def run_shard(ctx: ShardContext, dataset_id: str, index: int) -> Outcome:
+def run_shard(ctx: ShardContext, dataset_id: str, index: int, sweep: bool = False) -> Outcome:
     """Render, pack, upload and commit one shard unless it is committed, cancelled or out of attempts.
 
-    Raises RetryShard when an attempt failed with attempts left, WrongVersion for another version's dataset.
+    Every failure counts as an attempt, also one before the attempt started (Redis or the bucket briefly
+    unreachable): RetryShard while attempts are left, then the shard is marked failed. WrongVersion and
+    WrongRenderer send the shard back without counting. `sweep`: this is a reconciler's copy, which leaves a shard
+    running within its lease to that execution.
     """
+    try:
+        early = _before_attempt(ctx, dataset_id, index, sweep)
+    except (WrongVersion, WrongRenderer):
+        raise
+    except Exception as err:
+        log.exception("shard %s of dataset %s failed before its attempt started", index, dataset_id)
+        return _count_failed_execution(ctx, dataset_id, index, err)
+    if early is not None:
+        return early
+
+    running = {"pid": os.getpid(), "host": ctx.host, "since": time.time()}
+    attempt = ctx.records.start_attempt(dataset_id, index, ctx.settings.max_attempts, running)
+    if attempt < 0:
+        last = ctx.records.last_error(dataset_id, index) or "the worker was lost while rendering it"
+        fail_shard(ctx, dataset_id, index, f"gave up after {ctx.settings.max_attempts} attempts; last: {last}")
+        return Outcome.FAILED
+    try:
+        if _adopt_marker(ctx, dataset_id, index):
+            finalise_or_defer(ctx, dataset_id)
+            return Outcome.ALREADY_COMMITTED
+        return _render_and_commit(ctx, dataset_id, index)
+    except _Cancelled:
+        return Outcome.CANCELLED
+    except Exception as err:
+        log.exception("shard %s of dataset %s failed", index, dataset_id)
+        return _attempt_failed(ctx, dataset_id, index, attempt, err)
+    finally:
+        ctx.records.end_attempt(dataset_id, index)
+
+
+def _before_attempt(ctx: ShardContext, dataset_id: str, index: int, sweep: bool) -> Outcome | None:
+    """Why this execution need not render (an Outcome), or None; pins the dataset's renderer on first use."""
     try:
         rec = ctx.records.get(dataset_id)
     except NotFound:
@@ -192,38 +236,49 @@ def run_shard(ctx: ShardContext, dataset_id: str, index: int) -> Outcome:
         raise WrongVersion(rec.code_version)
     if rec.state == CANCELLED:
         return Outcome.CANCELLED
-    shard = shard_at(rec.frames_total, rec.shard_size, index)
-    if ctx.records.is_committed(dataset_id, index) or _adopt_marker(ctx, dataset_id, index):
-        maybe_finalise(ctx, dataset_id)
+    if ctx.records.is_committed(dataset_id, index):
+        finalise_or_defer(ctx, dataset_id)
         return Outcome.ALREADY_COMMITTED
+    if ctx.records.is_failed(dataset_id, index):
+        finalise_or_defer(ctx, dataset_id)
+        return Outcome.FAILED
+    ours = ctx.session.renderer_name
+    pinned = ctx.records.set_renderer(dataset_id, ours)  # first writer wins, atomically
+    if pinned != ours:
+        raise WrongRenderer(dataset_id, pinned, ours)
+    if sweep and index in ctx.records.live_running(dataset_id, time.time(), ctx.settings.running_lease_s):
+        return Outcome.RUNNING_ELSEWHERE
+    return None
 
+
+def _attempt_failed(ctx: ShardContext, dataset_id: str, index: int, attempt: int, err: Exception) -> Outcome:
+    """Record a counted attempt's error; RetryShard while attempts are left, else mark the shard failed."""
+    msg = f"attempt {attempt}: {type(err).__name__}: {err}"
+    ctx.records.record_error(dataset_id, index, msg)
+    if attempt >= ctx.settings.max_attempts:
+        fail_shard(ctx, dataset_id, index, f"gave up after {attempt} attempts; last: {msg}")
+        return Outcome.FAILED
+    # The delay stays far below the visibility timeout (a longer ETA would be redelivered meanwhile).
+    raise RetryShard(msg, countdown=min(2.0 ** (attempt - 1), ctx.settings.retry_backoff_max_s)) from err
+
+
+def _count_failed_execution(ctx: ShardContext, dataset_id: str, index: int, err: Exception) -> Outcome:
+    """An execution that failed before its attempt was counted: count it now, then retry or give up."""
     running = {"pid": os.getpid(), "host": ctx.host, "since": time.time()}
     attempt = ctx.records.start_attempt(dataset_id, index, ctx.settings.max_attempts, running)
+    ctx.records.end_attempt(dataset_id, index)
     if attempt < 0:
-        last = ctx.records.last_error(dataset_id, index) or "the worker was lost while rendering it"
+        last = f"{type(err).__name__}: {err}"
         fail_shard(ctx, dataset_id, index, f"gave up after {ctx.settings.max_attempts} attempts; last: {last}")
         return Outcome.FAILED
-    try:
-        return _render_and_commit(ctx, dataset_id, shard)
-    except _Cancelled:
-        return Outcome.CANCELLED
-    except Exception as err:
-        msg = f"attempt {attempt}: {type(err).__name__}: {err}"
-        log.exception("shard %s of dataset %s failed", index, dataset_id)
-        ctx.records.record_error(dataset_id, index, msg)
-        if attempt >= ctx.settings.max_attempts:
-            fail_shard(ctx, dataset_id, index, f"gave up after {attempt} attempts; last: {msg}")
-            return Outcome.FAILED
-        raise RetryShard(msg, countdown=min(2.0 ** (attempt - 1), ctx.settings.retry_backoff_max_s)) from err
-    finally:
-        ctx.records.end_attempt(dataset_id, index)
+    return _attempt_failed(ctx, dataset_id, index, attempt, err)
 
 
-def _render_and_commit(ctx: ShardContext, dataset_id: str, shard: Shard) -> Outcome:
+def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int) -> Outcome:
     rec = ctx.records.get(dataset_id)
+    shard = shard_at(rec.frames_total, rec.shard_size, index)
     spec = ctx.spec(dataset_id, rec.spec)
-    renderer = ctx.session.renderer_name
-    ctx.records.set_renderer(dataset_id, renderer)
+    renderer = ctx.session.renderer_name  # pinned for the dataset before the attempt started
     compression = ctx.settings.shard_compression
     key = shard_key(dataset_id, shard.index, compression)
     cancelled = lambda: ctx.records.state(dataset_id) == CANCELLED  # noqa: E731
@@ -249,7 +304,7 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, shard: Shard) -> Outc
     if ctx.records.get(dataset_id).purged:  # purged while we uploaded: take our objects back out
         ctx.store.delete_prefix(f"datasets/{dataset_id}/")
         return Outcome.CANCELLED
-    maybe_finalise(ctx, dataset_id)
+    finalise_or_defer(ctx, dataset_id)
     return Outcome.COMMITTED
 
 
@@ -265,7 +320,16 @@ def _adopt_marker(ctx: ShardContext, dataset_id: str, index: int) -> bool:
 
 def fail_shard(ctx: ShardContext, dataset_id: str, index: int, message: str) -> None:
     ctx.records.fail(dataset_id, index, message)
-    maybe_finalise(ctx, dataset_id)
+    finalise_or_defer(ctx, dataset_id)
+
+
+def finalise_or_defer(ctx: ShardContext, dataset_id: str) -> None:
+    """maybe_finalise after a shard's outcome is recorded. The outcome stands if finalising fails (e.g. the bucket
+    is unreachable): the dataset's next status read or `seasynth reconcile` has a worker finalise it."""
+    try:
+        maybe_finalise(ctx, dataset_id)
+    except Exception:
+        log.exception("dataset %s: finalising failed; left to the reconciler", dataset_id)
 
 
 def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
@@ -290,8 +354,8 @@ def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
 
 
 def reconcile(ctx: ShardContext, dataset_id: str) -> list[int]:
-    """Adopt commit markers Redis missed, finalise if complete; return the shards still pending."""
-    rec = ctx.records.get(dataset_id)
+    """Adopt commit markers Redis missed, finalise if complete; return the shards still pending (neither
+    committed, nor failed, nor running within their lease)."""
     for info in ctx.store.list(commit_prefix(dataset_id)):
         commit = ShardCommit.from_json(ctx.store.get_bytes(info.key))
         ctx.records.commit(dataset_id, commit)
@@ -299,8 +363,7 @@ def reconcile(ctx: ShardContext, dataset_id: str) -> list[int]:
     rec = ctx.records.get(dataset_id)
     if rec.state in TERMINAL:
         return []
-    done = {c.index for c in ctx.records.commits(dataset_id)} | set(rec.errors)
-    return [i for i in range(rec.shards_total) if i not in done]
+    return ctx.records.pending(dataset_id, list(range(rec.shards_total)), time.time(), ctx.settings.running_lease_s)
 
 
 # --- single frames
@@ -311,6 +374,9 @@ def render_frame(ctx: ShardContext, dataset_id: str, index: int, part: str) -> t
     rec = ctx.records.get(dataset_id)
     if rec.code_version != ctx.code_version:
         raise WrongVersion(rec.code_version)
+    ours = ctx.session.renderer_name
+    if rec.renderer is not None and rec.renderer != ours:  # its shards' bytes come from that renderer only
+        raise WrongRenderer(dataset_id, rec.renderer, ours)
     if not 0 <= index < rec.frames_total or part not in FRAME_PARTS:
         raise NotFound(f"dataset {dataset_id} has no frame {index} part {part}")
     files = ctx.session.frame_files(ctx.spec(dataset_id, rec.spec), index)

@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import multiprocessing
+import os
+import signal
 import tempfile
+import time
 from pathlib import Path
 
 from celery import Celery
+from celery.exceptions import Reject, Retry
 from celery.signals import worker_process_init, worker_process_shutdown
 
 from service import __version__
@@ -16,18 +21,44 @@ from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, TASK_SHARD, fr
 from service.records import CANCELLED, Records, push_reply
 from service.settings import Settings
 from service.storage import open_store
-from worker.shard import AssetCache, RetryShard, ShardContext, WrongVersion, reconcile, render_frame, run_shard
+from worker.shard import (
+    AssetCache,
+    RetryShard,
+    ShardContext,
+    WrongRenderer,
+    WrongVersion,
+    reconcile,
+    render_frame,
+    run_shard,
+)
 
 log = logging.getLogger(__name__)
 
+# A shard pinned to another renderer goes back to the queue after this delay, so that workers of the wrong
+# renderer do not pass it around in a tight loop while the right ones are busy.
+OTHER_RENDERER_DELAY_S = 5
+
+
+class RendererUnavailable(Exception):
+    """This process's render session could not be opened; it must take no work."""
+
 
 class ProcessResources:
-    """The pool process's ShardContext: opened on worker_process_init (after the fork), closed on shutdown."""
+    """The pool process's ShardContext: opened on worker_process_init (after the fork), closed on shutdown.
+
+    A pool process whose render session fails to open (no GL) takes no work: it stops the whole worker (SIGTERM to
+    the main process, which then hands back what it holds and exits with status 1), and any task it still gets is
+    rejected back to the queue uncounted. Restart policies (compose, Kubernetes) then show a failing worker instead
+    of one that drains the queue.
+    """
 
     def __init__(self, settings: Settings):
         self.settings = settings
         self._ctx: ShardContext | None = None
         self._stack: contextlib.ExitStack | None = None
+        self.broken: str | None = None
+        # Shared with the pool processes forked later: set when one of them could not open its renderer.
+        self.renderer_failed = multiprocessing.RawValue("b", 0)
 
     def open(self) -> None:
         import redis
@@ -35,15 +66,28 @@ class ProcessResources:
         from worker.pipeline import RenderSession  # GL comes up here, in the pool process, never before fork
 
         s = self.settings
-        stack = contextlib.ExitStack()
-        store = open_store(s)
-        folder = s.asset_cache_dir or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="seasynth-assets-")))
-        session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=s.gl_platform))
-        records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
-        raw = redis.Redis.from_url(s.redis_url)
-        self._ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=store, session=session)
-        self._stack = stack
+        with contextlib.ExitStack() as stack:
+            store = open_store(s)
+            folder = s.asset_cache_dir or Path(
+                stack.enter_context(tempfile.TemporaryDirectory(prefix="seasynth-assets-"))
+            )
+            session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=s.gl_platform))
+            records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
+            raw = redis.Redis.from_url(s.redis_url)
+            self._ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=store, session=session)
+            self._stack = stack.pop_all()
         log.info("render session ready: %s", session.renderer_name)
+
+    def open_in_pool_process(self) -> None:
+        """worker_process_init: open, or stop the worker that this pool process belongs to."""
+        try:
+            self.open()
+        except Exception as err:
+            self.broken = f"{type(err).__name__}: {err}"
+            self.renderer_failed.value = 1
+            log.critical("render session failed to open (%s): stopping this worker so it takes no shards",
+                         self.broken, exc_info=True)
+            os.kill(os.getppid(), signal.SIGTERM)  # the prefork pool's parent is the worker's main process
 
     def close(self) -> None:
         if self._stack is not None:
@@ -53,32 +97,65 @@ class ProcessResources:
     @property
     def ctx(self) -> ShardContext:
         if self._ctx is None:
-            self.open()  # a solo/threads pool or a test never fires worker_process_init
+            if self.broken is not None:
+                raise RendererUnavailable(self.broken)
+            try:
+                self.open()  # a solo/threads pool or a test never fires worker_process_init
+            except Exception as err:
+                self.broken = f"{type(err).__name__}: {err}"
+                raise RendererUnavailable(self.broken) from err
         return self._ctx
 
 
 def register(app: Celery, settings: Settings) -> ProcessResources:
     """Register the tasks on `app`; they share one ProcessResources per pool process."""
     res = ProcessResources(settings)
-    worker_process_init.connect(lambda **_: res.open(), weak=False)
+    worker_process_init.connect(lambda **_: res.open_in_pool_process(), weak=False)
     worker_process_shutdown.connect(lambda **_: res.close(), weak=False)
     bulk = shard_queue(__version__)
 
-    @app.task(name=TASK_SHARD, bind=True, acks_late=True, reject_on_worker_lost=True, max_retries=None)
-    def render_shard(self, dataset_id: str, shard_index: int) -> str:
+    def ctx_or_reject() -> ShardContext:
         try:
-            return run_shard(res.ctx, dataset_id, shard_index).value
+            return res.ctx
+        except RendererUnavailable:
+            raise Reject("no renderer in this process", requeue=True) from None
+
+    @app.task(name=TASK_SHARD, shared=False, bind=True, acks_late=True, reject_on_worker_lost=True, max_retries=None)
+    def render_shard(self, dataset_id: str, shard_index: int, sweep: bool = False) -> str:
+        ctx = ctx_or_reject()
+        try:
+            return run_shard(ctx, dataset_id, shard_index, sweep).value
         except RetryShard as retry:
             # Our attempt counter bounds retries; the delay stays far below the visibility timeout.
             raise self.retry(countdown=retry.countdown, exc=retry) from None
         except WrongVersion as wrong:
-            app.send_task(TASK_SHARD, args=[dataset_id, shard_index], queue=shard_queue(wrong.version))
+            # The flag only when set: workers of older versions take two arguments.
+            args = [dataset_id, shard_index] + ([True] if sweep else [])
+            app.send_task(TASK_SHARD, args=args, queue=shard_queue(wrong.version))
             return "requeued"
+        except WrongRenderer as wrong:
+            log.info("shard %s: %s; handed back", shard_index, wrong)
+            render_shard.apply_async((dataset_id, shard_index, sweep), queue=bulk, countdown=OTHER_RENDERER_DELAY_S)
+            return "requeued"
+        except Exception as err:
+            # run_shard counts every failure it can; this one escaped it (e.g. Redis was unreachable while counting).
+            # Never let Celery drop the message: publish it again, or hand it back if even that fails.
+            log.exception("shard %s of dataset %s: failure not counted; running it again", shard_index, dataset_id)
+            try:
+                raise self.retry(countdown=settings.retry_backoff_max_s, exc=err)
+            except Retry:
+                raise
+            except Exception:
+                time.sleep(1)  # the broker is probably down too: do not spin
+                raise Reject(f"{type(err).__name__}: {err}", requeue=True) from err
 
-    @app.task(name=TASK_PLAN, acks_late=True, reject_on_worker_lost=True)
-    def plan_dataset(dataset_id: str, first_shard: int = 0) -> int:
-        """Publish one batch of shard tasks, then a planner for the next batch; returns messages published."""
-        ctx = res.ctx
+    @app.task(name=TASK_PLAN, shared=False, acks_late=True, reject_on_worker_lost=True)
+    def plan_dataset(dataset_id: str, first_shard: int = 0, sweep: bool = False) -> int:
+        """Publish one batch of shard tasks, then a planner for the next batch; returns messages published.
+
+        `sweep` (the reconciler): only the shards still pending, marked so that they defer to a running execution.
+        """
+        ctx = ctx_or_reject()
         try:
             rec = ctx.records.get(dataset_id)
         except NotFound:
@@ -86,21 +163,32 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
         if rec.state == CANCELLED:
             return 0
         end = min(first_shard + settings.plan_batch, rec.shards_total)
+        batch = list(range(first_shard, end))
+        if sweep:
+            batch = ctx.records.pending(dataset_id, batch, time.time(), settings.running_lease_s)
+        ctx.records.touch(dataset_id, time.time())
         with app.producer_or_acquire() as producer:
-            for i in range(first_shard, end):
-                render_shard.apply_async((dataset_id, i), queue=bulk, producer=producer)
+            for i in batch:
+                render_shard.apply_async((dataset_id, i, sweep), queue=bulk, producer=producer)
             if end < rec.shards_total:
-                plan_dataset.apply_async((dataset_id, end), queue=bulk, producer=producer)
-        return end - first_shard
+                plan_dataset.apply_async((dataset_id, end, sweep), queue=bulk, producer=producer)
+        return len(batch)
 
-    @app.task(name=TASK_FRAME, acks_late=False)
+    @app.task(name=TASK_FRAME, shared=False, acks_late=False)
     def render_frame_task(dataset_id: str, frame_index: int, part: str, reply_key: str) -> None:
-        ctx = res.ctx
+        try:
+            ctx = res.ctx
+        except RendererUnavailable:
+            # Acknowledged already (early ack): publish it again for another frame worker.
+            app.send_task(TASK_FRAME, args=[dataset_id, frame_index, part, reply_key], queue=frame_queue(__version__))
+            return
         try:
             header, body = render_frame(ctx, dataset_id, frame_index, part)
         except WrongVersion as wrong:
             app.send_task(TASK_FRAME, args=[dataset_id, frame_index, part, reply_key], queue=frame_queue(wrong.version))
             return
+        except WrongRenderer as wrong:
+            header, body = {"ok": False, "status": 503, "error": str(wrong)}, b""
         except NotFound as err:
             header, body = {"ok": False, "status": 404, "error": str(err)}, b""
         except Exception as err:
@@ -108,14 +196,13 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
             header, body = {"ok": False, "status": 500, "error": f"{type(err).__name__}: {err}"}, b""
         push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=int(settings.frame_timeout_s) + 60)
 
-    @app.task(name=TASK_RECONCILE, acks_late=True)
+    @app.task(name=TASK_RECONCILE, shared=False, acks_late=True)
     def reconcile_dataset(dataset_id: str, requeue: bool = False) -> int:
-        """Adopt missed commits, finalise if complete; with requeue, publish the pending shards again."""
-        pending = reconcile(res.ctx, dataset_id)
-        if requeue:
-            with app.producer_or_acquire() as producer:
-                for i in pending:
-                    render_shard.apply_async((dataset_id, i), queue=bulk, producer=producer)
+        """Adopt missed commits, finalise if complete; with requeue, publish the pending shards again (through
+        the planner, batch by batch). Returns how many shards were pending."""
+        pending = reconcile(ctx_or_reject(), dataset_id)
+        if requeue and pending:
+            plan_dataset.apply_async((dataset_id, 0, True), queue=bulk)
         return len(pending)
 
     return res

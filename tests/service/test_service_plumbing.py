@@ -258,6 +258,129 @@ def test_shard_dataclass_frames():
     assert list(Shard(3, 6, 2).frames) == [6, 7]
 
 
+# --- every failure is counted; renderers are pinned; the reconciler's view of pending shards
+
+
+class FlakyRecords(Records):
+    """Records whose first `is_committed` fails as if Redis dropped the connection."""
+
+    def __init__(self, r, prefix):
+        super().__init__(r, prefix)
+        self.failures = 1
+
+    def is_committed(self, dataset_id, index):
+        if self.failures:
+            self.failures -= 1
+            import redis
+
+            raise redis.ConnectionError("Connection reset by peer")
+        return super().is_committed(dataset_id, index)
+
+
+class UnreachableStore(LocalStore):
+    """A bucket that answers no read (an S3 outage)."""
+
+    def get_bytes(self, key):
+        from service.errors import Unavailable
+
+        raise Unavailable(f"storage unreachable reading {key}")
+
+
+def test_failures_before_the_render_are_counted_and_bounded(infra, records, tmp_path):
+    """A failure anywhere in the task uses an attempt and ends in a retry or a failed shard, never a lost one."""
+    session = FakeSession()
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ctx.store = UnreachableStore(tmp_path / "store")
+    ds = new_dataset(records, frames=2, shard_size=2)
+    for attempt in (1, 2):
+        with pytest.raises(RetryShard) as retry:
+            run_shard(ctx, ds, 0)  # reading the commit marker fails
+        assert retry.value.countdown == 2 ** (attempt - 1) and "Unavailable" in str(retry.value)
+    assert run_shard(ctx, ds, 0) is Outcome.FAILED
+    rec = records.get(ds)
+    assert (rec.attempts, rec.shards_failed, rec.state) == (3, 1, "failed") and session.calls == []
+    assert "gave up after 3 attempts" in rec.errors[0] and "storage unreachable" in rec.errors[0]
+    assert records.running(ds) == {}
+
+    # Redis failing before the attempt started: counted as well, then the shard renders.
+    flaky = FlakyRecords(records.r, records.p)
+    ctx = make_ctx(infra, flaky, tmp_path, FakeSession())
+    ds = new_dataset(flaky, frames=2, shard_size=2, dataset_id="c" * 32)
+    with pytest.raises(RetryShard) as retry:
+        run_shard(ctx, ds, 0)
+    assert "ConnectionError" in str(retry.value) and flaky.get(ds).attempts == 1
+    assert run_shard(ctx, ds, 0) is Outcome.COMMITTED
+    assert (flaky.get(ds).attempts, flaky.get(ds).state) == (2, "succeeded")
+
+
+class NamedSession(FakeSession):
+    def __init__(self, name):
+        super().__init__()
+        self.renderer_name = name
+
+
+def test_a_dataset_keeps_the_renderer_it_started_with(infra, records, tmp_path):
+    from worker.shard import WrongRenderer, render_frame
+
+    cpu, gpu = NamedSession("llvmpipe (fake)"), NamedSession("NVIDIA H100 (fake)")
+    on_cpu, on_gpu = (make_ctx(infra, records, tmp_path, s) for s in (cpu, gpu))
+    ds = new_dataset(records, frames=4, shard_size=2)
+    assert run_shard(on_cpu, ds, 0) is Outcome.COMMITTED
+    with pytest.raises(WrongRenderer, match="llvmpipe"):
+        run_shard(on_gpu, ds, 1)
+    rec = records.get(ds)
+    assert (rec.renderer, rec.attempts, rec.shards_done) == ("llvmpipe (fake)", 1, 1) and gpu.calls == []
+    with pytest.raises(WrongRenderer):
+        render_frame(on_gpu, ds, 0, "image")
+    header, body = render_frame(on_cpu, ds, 0, "image")
+    assert header["renderer"] == "llvmpipe (fake)" and body == b"png 3 0" * 3
+    assert run_shard(on_cpu, ds, 1) is Outcome.COMMITTED
+    assert {c.renderer for c in records.commits(ds)} == {"llvmpipe (fake)"}
+
+    # Two renderers racing for a fresh dataset: the first to pin it wins, the other leaves it untouched.
+    ds2 = new_dataset(records, frames=2, shard_size=2, dataset_id="d" * 32)
+    assert records.set_renderer(ds2, "NVIDIA H100 (fake)") == "NVIDIA H100 (fake)"
+    with pytest.raises(WrongRenderer):
+        run_shard(on_cpu, ds2, 0)
+    assert records.get(ds2).attempts == 0 and run_shard(on_gpu, ds2, 0) is Outcome.COMMITTED
+
+
+def test_pending_shards_and_running_leases(infra, records, tmp_path):
+    ctx = make_ctx(infra, records, tmp_path, FakeSession(), task_time_limit_s=60)
+    ds = new_dataset(records, frames=10, shard_size=2)
+    run_shard(ctx, ds, 0)
+    records.fail(ds, 1, "broken")
+    now = time.time()
+    records.start_attempt(ds, 2, 3, {"pid": 1, "since": now - 5})  # running within its lease
+    records.start_attempt(ds, 3, 3, {"pid": 2, "since": now - 61})  # older than the hard limit: lost
+    assert records.pending(ds, list(range(5)), now, 60) == [3, 4]
+    assert records.live_running(ds, now, 60) == {2}
+    assert reconcile(ctx, ds) == [3, 4]
+    # A reconciler's copy leaves a shard running within its lease alone; a normal delivery does not.
+    attempts = records.get(ds).attempts
+    assert run_shard(ctx, ds, 2, sweep=True) is Outcome.RUNNING_ELSEWHERE and records.get(ds).attempts == attempts
+    assert run_shard(ctx, ds, 3, sweep=True) is Outcome.COMMITTED
+
+
+def test_hard_time_limit_requeues_the_message(infra):
+    """Celery acks a late-acked message at the hard time limit by default: the shard would be lost."""
+    from celery.contrib.testing.mocks import TaskMessage
+    from celery.worker.request import Request
+
+    from service.queues import TASK_SHARD
+    from worker.celery_app import create_app
+
+    app = create_app(infra.settings())
+    task = app.tasks[TASK_SHARD]
+    assert task.acks_late and task.acks_on_timeout is False and task.acks_on_failure is False
+    message = TaskMessage(TASK_SHARD, args=["a" * 32, 0])
+    request = Request(message, app=app, task=task, on_ack=message.ack_log_error, on_reject=message.reject_log_error)
+    request.on_timeout(soft=False, timeout=300)
+    assert not message.ack_log_error.called
+    (_, _, requeue), _ = message.reject_log_error.call_args  # (logger, connection errors, requeue)
+    assert requeue is True
+
+
 def test_sample_counts_follow_the_presets():
     """Admission's cost model (service/shards.py) knows each preset's samples per pixel."""
     from service.shards import SAMPLES_PER_PIXEL
