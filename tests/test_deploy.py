@@ -67,6 +67,13 @@ IMAGES = {
     },
 }
 
+# Worker services and Deployments: the image each runs and the queue kinds it consumes (`--queues`).
+WORKERS = {
+    "worker": {"image": "worker", "queues": "shards"},
+    "worker-gpu": {"image": "worker-gpu", "queues": "shards"},
+    "worker-frames": {"image": "worker", "queues": "frames"},
+}
+
 SETTINGS_KEYS = {
     "SEASYNTH_REDIS_URL",
     "SEASYNTH_S3_ENDPOINT_URL",
@@ -510,7 +517,7 @@ def compose() -> dict:
 
 
 def test_compose_services(compose):
-    assert set(compose["services"]) == {"redis", "minio", "minio-init", "api", "worker", "worker-gpu"}
+    assert set(compose["services"]) == {"redis", "minio", "minio-init", "api"} | set(WORKERS)
     for name, svc in compose["services"].items():
         if name != "minio-init":
             assert "healthcheck" in svc, f"{name}: no healthcheck"
@@ -543,7 +550,7 @@ def test_compose_minio_bucket_is_created(compose):
     assert (9000, 9000) in published, "presigned URLs name localhost:9000 (SEASYNTH_S3_PUBLIC_ENDPOINT_URL)"
 
 
-@pytest.mark.parametrize("name", ["api", "worker", "worker-gpu"])
+@pytest.mark.parametrize("name", ["api", "worker", "worker-gpu", "worker-frames"])
 def test_compose_app_services_share_settings_and_wait_for_backends(compose, name):
     svc = compose["services"][name]
     env = svc["environment"]
@@ -564,11 +571,12 @@ def test_compose_app_services_share_settings_and_wait_for_backends(compose, name
         "minio": {"condition": "service_healthy"},
         "minio-init": {"condition": "service_completed_successfully"},
     }
-    assert svc["build"]["dockerfile"] == IMAGES[name]["dockerfile"]
+    image = IMAGES[WORKERS[name]["image"] if name in WORKERS else name]
+    assert svc["build"]["dockerfile"] == image["dockerfile"]
     if name == "api":
         assert "command" not in svc, "the api runs its image's CMD"
     else:
-        assert svc["command"][:2] == IMAGES[name]["cmd"], svc["command"]
+        assert svc["command"][:2] == image["cmd"], svc["command"]
 
 
 def test_compose_api(compose):
@@ -584,7 +592,12 @@ def test_compose_api(compose):
     assert "SEASYNTH_API_KEYS" not in resolved["worker"]["environment"]
 
 
-@pytest.mark.parametrize("name", ["worker", "worker-gpu"])
+def _queues(argv: list[str]) -> str:
+    assert "--queues" in argv, f"{argv}: name the queues; the default (both) puts frames behind shards"
+    return argv[argv.index("--queues") + 1]
+
+
+@pytest.mark.parametrize("name", sorted(WORKERS))
 def test_compose_workers_scale_and_stop_gracefully(compose, name):
     svc = compose["services"][name]
     assert "container_name" not in svc and "ports" not in svc, f"{name}: would break --scale {name}=N"
@@ -595,6 +608,13 @@ def test_compose_workers_scale_and_stop_gracefully(compose, name):
     assert "SEASYNTH_WORKER_SOFT_SHUTDOWN_S" not in svc["environment"], "the grace period assumes the default"
     assert svc["healthcheck"]["test"][-1] == "worker"
     assert svc["command"][2] == "--concurrency" and int(svc["command"][3]) >= 1
+    assert _queues(svc["command"]) == WORKERS[name]["queues"]
+
+
+def test_compose_frames_have_a_worker_of_their_own(compose):
+    svc = compose["services"]["worker-frames"]
+    assert int(svc.get("scale", 1)) == 1 and "profiles" not in svc, "one frames worker, always on"
+    assert svc["image"] == compose["services"]["worker"]["image"], "the CPU worker image"
 
 
 def test_compose_gpu_worker_is_an_opt_in_profile_with_an_nvidia_device(compose):
@@ -805,9 +825,9 @@ def test_kustomizations_hold_the_right_objects(rendered):
 
     base = [
         "ConfigMap/seasynth-settings", "Deployment/api", "Deployment/worker", "Namespace/seasynth",
-        "Secret/seasynth-s3", "Service/api", "Service/redis", "StatefulSet/redis",
+        "Secret/seasynth-s3", "Service/api", "Service/redis", "StatefulSet/redis", "Deployment/worker-frames",
     ]  # fmt: skip
-    assert kinds("deploy/base") == base, "the base needs no CRD"
+    assert kinds("deploy/base") == sorted(base), "the base needs no CRD"
     assert kinds("deploy") == sorted(base + ["ScaledObject/worker"])
     assert kinds("deploy/overlays/gpu") == sorted(base + ["ScaledObject/worker", "Deployment/worker-gpu", "ScaledObject/worker-gpu"])
 
@@ -837,20 +857,25 @@ def test_k8s_api_probes_and_service(rendered):
     assert c["readinessProbe"]["httpGet"]["port"] == port["name"] == c["livenessProbe"]["httpGet"]["port"]
 
 
-@pytest.mark.parametrize(("name", "kustomization"), [("worker", "deploy/base"), ("worker-gpu", "deploy/overlays/gpu")])
+@pytest.mark.parametrize(
+    ("name", "kustomization"),
+    [("worker", "deploy/base"), ("worker-gpu", "deploy/overlays/gpu"), ("worker-frames", "deploy/base")],
+)
 def test_k8s_workers(rendered, compose, name, kustomization):
     dep = _by(rendered[kustomization], "Deployment", name)
     pod = dep["spec"]["template"]["spec"]
     c = _container(dep)
-    assert c["args"][:2] == IMAGES[name]["cmd"] and c["args"][2] == "--concurrency"
-    assert c["image"].split(":")[0] == IMAGES[name]["k8s_image"]
+    image = IMAGES[WORKERS[name]["image"]]
+    assert c["args"][:2] == image["cmd"] and c["args"][2] == "--concurrency"
+    assert _queues(c["args"]) == WORKERS[name]["queues"] == _queues(compose["services"][name]["command"])
+    assert c["image"].split(":")[0] == image["k8s_image"]
     assert pod["terminationGracePeriodSeconds"] == _duration_s(compose["services"][name]["stop_grace_period"]), (
         "Kubernetes and compose should give a stopping worker the same time"
     )
     assert pod["terminationGracePeriodSeconds"] >= _min_stop_grace_s()
     assert pod["securityContext"]["runAsNonRoot"] is True
     env = {e["name"]: e["value"] for e in c.get("env", [])}
-    dockerfile_env = _env(parse_dockerfile(ROOT / IMAGES[name]["dockerfile"])[-1])
+    dockerfile_env = _env(parse_dockerfile(ROOT / image["dockerfile"])[-1])
     for key, value in env.items():
         assert dockerfile_env.get(key) == value, f"{name}: env {key}={value} disagrees with the image"
     assert env["PYOPENGL_PLATFORM"] == "egl"
@@ -881,7 +906,11 @@ def test_keda_scales_on_this_versions_shard_queue(rendered):
     lists = {t["metadata"]["listName"] for d in objs for t in d["spec"]["triggers"]}
     assert lists == {_shard_queue()}, f"the workers drain {_shard_queue()} (service/queues.py), KEDA watches {lists}"
     cpu = _by(objs, "ScaledObject", "worker")["spec"]
-    assert cpu["minReplicaCount"] >= 1, "one worker stays up for on-demand frame renders"
+    assert cpu["minReplicaCount"] >= 1, "one shard worker stays warm"
+    targets = {d["spec"]["scaleTargetRef"]["name"] for d in objs}
+    assert "worker-frames" not in targets, "the frames worker is not scaled on the shard queue"
+    frames = _by(rendered["deploy/overlays/gpu"], "Deployment", "worker-frames")
+    assert frames["spec"]["replicas"] == 1
 
 
 @pytest.mark.parametrize("kustomization", KUSTOMIZATIONS)
