@@ -105,3 +105,18 @@ def test_unknown_type_names_it_and_the_known_types(fn, bad):
     message = str(info.value)
     assert repr(bad) in message
     assert all(name in message for name in JERLOV_TYPES)
+
+
+def test_the_recorded_jerlov_type_is_the_one_the_water_used():
+    from service.seeds import frame_rng
+    from service.spec import parse_spec
+    from worker.scene import _sample_water
+
+    rgb = {"min": [0.1, 0.05, 0.02], "max": [0.2, 0.1, 0.05]}
+    explicit = parse_spec({"water": {"jerlov": ["7C"], "beta_D": rgb, "B_inf": rgb}})
+    from_type = parse_spec({"water": {"jerlov": ["7C"], "beta_D": rgb}})  # B_inf comes from 7C's veiling light
+    for i in range(5):
+        water, kind = _sample_water(explicit, frame_rng(1, i))
+        assert kind is None and np.all((water.beta_D >= rgb["min"]) & (water.beta_D <= rgb["max"]))
+        water, kind = _sample_water(from_type, frame_rng(1, i))
+        assert kind == "7C"

@@ -176,7 +176,9 @@ def _sample_water(spec: DatasetSpec, rng: np.random.Generator) -> tuple[WaterPar
         B_inf = uniform3(rng, w.B_inf.min, w.B_inf.max)
     else:
         B_inf = jerlov_veiling_light(kind) * rng.uniform(*w.B_inf_jitter)
-    return WaterParams(beta_D=beta_D, beta_B=beta_B, B_inf=B_inf), kind
+    # The type is drawn whatever the ranges (so the draw order stays fixed) but recorded only when it was used.
+    used = w.beta_D is None or w.B_inf is None
+    return WaterParams(beta_D=beta_D, beta_B=beta_B, B_inf=B_inf), kind if used else None
 
 
 def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSource, terrain_for) -> Scene:
