@@ -305,7 +305,9 @@ class RenderSession:
 
     def meta(self, spec, index, scene: Scene, view: View, fl: FrameLabels | None, noise) -> str:
         """The frame's audit record: nothing in it depends on time, host, duration, worker count, the dataset's
-        frame count, shard size or which optional outputs are on (the dataset record holds the whole spec)."""
+        frame count, shard size or the optional outputs depth/instance/clean/range (the dataset record holds the
+        whole spec). With outputs.labels off there are no labels, so each object's label_line, visible_pixels
+        and pixels_alone are null."""
         w = scene.water
         record = {
             "dataset_seed": spec.seed,
