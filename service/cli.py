@@ -211,10 +211,29 @@ def fetch(
                f"complete), {r.files} files written")
 
 
-def main() -> None:
-    """Entry point: domain errors become one clear line and an exit code (2 for an invalid spec)."""
+def _cli_exceptions() -> tuple[tuple[type, ...], tuple[type, ...], tuple[type, ...]]:
+    """(Exit, Abort, usage/click error) classes, of typer and of the click package where installed.
+
+    typer 0.29 raises its bundled click's exceptions (all `typer.TyperException`s), which the `click`
+    package's classes never match; older typers raise click's own.
+    """
+    exits, aborts, errors = [typer.Exit], [typer.Abort], [typer.TyperException]
     try:
-        app(standalone_mode=False)
+        import click
+    except ImportError:
+        pass
+    else:
+        exits.append(click.exceptions.Exit)
+        aborts.append(click.exceptions.Abort)
+        errors.append(click.ClickException)
+    return tuple(exits), tuple(aborts), tuple(errors)
+
+
+def main() -> None:
+    """Entry point: domain errors become one clear line and an exit code (2 for an invalid spec or usage)."""
+    exits, aborts, usage_errors = _cli_exceptions()
+    try:
+        app(standalone_mode=False, prog_name="seasynth")
     except SpecError as err:
         typer.echo(f"error: {err}", err=True)
         sys.exit(2)
@@ -224,17 +243,26 @@ def main() -> None:
     except KeyboardInterrupt:
         typer.echo("interrupted: written frames are complete; the dataset is not marked complete", err=True)
         sys.exit(130)
-    except Exception as err:
-        import click
+    except exits as err:
+        sys.exit(err.exit_code)
+    except aborts:
+        sys.exit(130)
+    except usage_errors as err:
+        _show_usage_error(err)
+        sys.exit(err.exit_code)
 
-        if isinstance(err, click.exceptions.Exit):
-            sys.exit(err.exit_code)
-        if isinstance(err, click.ClickException):
-            err.show()
-            sys.exit(2 if isinstance(err, click.UsageError) else 1)
-        if isinstance(err, click.exceptions.Abort):
-            sys.exit(130)
-        raise
+
+def _show_usage_error(err: Exception) -> None:
+    """Print a usage error as click does: the usage line, a hint and `Error: ...`, on stderr."""
+    ctx = getattr(err, "ctx", None)
+    if type(err).__name__ == "NoArgsIsHelpError" and ctx is not None and not err.format_message():
+        # typer's rich help has already gone to stdout; say on stderr what was wrong.
+        typer.echo(f"{ctx.get_usage()}\nTry '{ctx.command_path} --help' for help.\n\nError: Missing command.",
+                   err=True)
+    elif hasattr(err, "show"):
+        err.show()
+    else:  # a bare TyperException has no `show` of its own
+        typer.echo(f"Error: {err}", err=True)
 
 
 if __name__ == "__main__":
