@@ -2,7 +2,7 @@
 
 Reference: the same scene at 4x4 samples per pixel (a regular grid), range per sample, the water applied per sample
 in float64, averaged in linear light and encoded to 8-bit sRGB once. Reference labels come from the majority id of
-each pixel's 16 samples.
+each pixel's 16 samples (see majority_ids and errors for exactly what the label columns compare).
 """
 
 from __future__ import annotations
@@ -97,7 +97,15 @@ def hazed_mean(J: np.ndarray, R: np.ndarray, water) -> np.ndarray:
 
 
 def majority_ids(ids_hi: np.ndarray, s: int) -> np.ndarray:
-    """(H*s, W*s) ids -> (H, W): the id covering most of each pixel's s*s samples (ties: the smallest id)."""
+    """(H*s, W*s) uint32 ids -> (H, W) uint32: the id covering most of each pixel's s*s samples (ties: the smallest id).
+
+    This is what the reference boxes are made of: each reference box is the tight box of a target's pixels in this
+    majority image (ids_hi from the ids pass on an s-times finer grid, one sample at each sub-pixel centre). Terrain
+    and open water are both id 0, so they count together as one background id: a pixel whose samples are 7 target,
+    5 terrain and 4 water is background (9 against 7), and a 8-8 tie between a target and background goes to the
+    background (0 is the smallest id). The frames' own labels sample one id at each pixel centre instead, so the
+    label columns measure centre sampling against majority coverage, not a bug in either.
+    """
     H, W = ids_hi.shape[0] // s, ids_hi.shape[1] // s
     blocks = ids_hi.reshape(H, s, W, s).transpose(0, 2, 1, 3).reshape(H, W, s * s)
     values = np.unique(blocks)
@@ -170,6 +178,9 @@ def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
     exact = encode_srgb8(hazed_mean(J, R, scene.water))
     res = session.renderer.render(view, items, scene.lighting, scene.water, PRESETS[preset], Passes(ids=True))
     boxes = boxes_of(session, view, scene, items, res.instance)
+    # label_error_px: the largest difference of any box edge (pixels) over the targets labelled both here (tight
+    # boxes of the pixel-centre ids) and in the reference (tight boxes of majority_ids); label_mismatches: targets
+    # labelled in only one of the two (e.g. a target that covers some pixel centre but no pixel's majority).
     common = boxes.keys() & ref.boxes.keys()
     label_err = max((max(abs(a - b) for a, b in zip(boxes[i], ref.boxes[i])) for i in common), default=0)
     diff = np.abs(image.astype(np.int64) - ref.image.astype(np.int64))
