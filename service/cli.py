@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, NoReturn, Optional
 
 import typer
 
@@ -14,6 +14,11 @@ from service.errors import SeasynthError, SpecError
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Labelled synthetic underwater images.")
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: throughput and accuracy tables.")
 app.add_typer(bench_app, name="bench")
+
+
+class Interrupted(Exception):
+    """Ctrl-C stopped a command; the message says what it leaves behind. `main` prints it and exits 130."""
+
 
 FramesOpt = Annotated[Optional[int], typer.Option("--frames", help="Override the spec's frame count.")]
 SeedOpt = Annotated[Optional[int], typer.Option("--seed", help="Override the spec's dataset seed.")]
@@ -83,9 +88,14 @@ def generate(
     from worker.generate import open_dataset, render_frames
 
     todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")
-    with _progress(len(todo), "frames") as bar:
-        task = bar.add_task("render", total=len(todo))
-        report = render_frames(s, out, todo, workers=workers, on_frames=lambda n: bar.advance(task, n), platform=gl)
+    try:
+        with _progress(len(todo), "frames") as bar:
+            task = bar.add_task("render", total=len(todo))
+            report = render_frames(s, out, todo, workers=workers, on_frames=lambda n: bar.advance(task, n),
+                                   platform=gl)
+    except KeyboardInterrupt:
+        raise Interrupted(f"{out}: the frames written so far are complete; the same command with --resume "
+                          "renders the rest") from None
     typer.echo(
         f"{out}: {report.frames_total} frames ({report.frames_rendered} rendered, "
         f"{report.frames_skipped} already complete) on {report.renderer or 'no renderer needed'}"
@@ -233,7 +243,9 @@ def main() -> None:
     """Entry point: domain errors become one clear line and an exit code (2 for an invalid spec or usage)."""
     exits, aborts, usage_errors = _cli_exceptions()
     try:
-        app(standalone_mode=False, prog_name="seasynth")
+        code = app(standalone_mode=False, prog_name="seasynth")
+    except Interrupted as err:
+        _interrupted(str(err))
     except SpecError as err:
         typer.echo(f"error: {err}", err=True)
         sys.exit(2)
@@ -241,15 +253,25 @@ def main() -> None:
         typer.echo(f"error: {err}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
-        typer.echo("interrupted: written frames are complete; the dataset is not marked complete", err=True)
-        sys.exit(130)
+        _interrupted()
     except exits as err:
         sys.exit(err.exit_code)
-    except aborts:
-        sys.exit(130)
+    except aborts:  # what click (older typers) raises for Ctrl-C, and for end of input at a prompt
+        _interrupted()
     except usage_errors as err:
         _show_usage_error(err)
         sys.exit(err.exit_code)
+    # Outside standalone mode typer returns an Exit's code, and it turns Ctrl-C into Exit(130).
+    if code == 130:
+        _interrupted()
+    if isinstance(code, int) and code:
+        sys.exit(code)
+
+
+def _interrupted(detail: str | None = None) -> NoReturn:
+    """One line on stderr, exit 130 (128 + SIGINT) as shells expect of Ctrl-C."""
+    typer.echo(f"interrupted: {detail}" if detail else "interrupted", err=True)
+    sys.exit(130)
 
 
 def _show_usage_error(err: Exception) -> None:

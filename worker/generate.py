@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import os
 import queue
 import shutil
-from collections.abc import Callable, Iterable
+import signal
+import threading
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -42,6 +45,9 @@ def write_atomic(path: Path, data: bytes) -> None:
     except OSError as err:
         tmp.unlink(missing_ok=True)
         raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
+    except BaseException:  # Ctrl-C mid-write leaves no temporary file behind
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def write_frame(out: Path, files: dict[str, bytes]) -> None:
@@ -199,11 +205,14 @@ def _run_pool(spec, out, todo, workers, on_frames, platform) -> str:
     for _ in range(workers):
         tasks.put(None)
     payload = spec.model_dump_json()
-    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform)) for _ in range(workers)]
-    for p in procs:
-        p.start()
+    # Daemonic: should this process exit on an unforeseen path, its workers are stopped, not waited for.
+    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform), daemon=True)
+             for _ in range(workers)]
     renderer, done, finished = "", 0, 0
     try:
+        with _sigint_ignored_by_children():
+            for p in procs:
+                p.start()
         while finished < workers:
             try:
                 kind, value = results.get(timeout=1.0)
@@ -225,11 +234,39 @@ def _run_pool(spec, out, todo, workers, on_frames, platform) -> str:
             elif kind == "error":
                 raise _rebuild_error(value)
     finally:
-        for p in procs:
-            if p.is_alive() and finished < workers:
-                p.terminate()
+        started = [p for p in procs if p.pid is not None]
+        if finished < workers:  # stopped early: an error, a lost worker, or Ctrl-C
+            tasks.cancel_join_thread()  # chunks nobody will read must not hold up this process's exit
+            for p in started:
+                if p.is_alive():
+                    p.terminate()
+        for p in started:
             p.join()
+        if finished < workers:
+            for p in started:  # a worker stopped mid-write leaves its temporary file
+                for tmp in Path(out).glob(f"*/.*.tmp-{p.pid}"):
+                    tmp.unlink(missing_ok=True)
     return renderer
+
+
+@contextlib.contextmanager
+def _sigint_ignored_by_children() -> Iterator[None]:
+    """Processes started inside ignore SIGINT from their first instruction, imports included.
+
+    Ctrl-C reaches the whole process group; only this process acts on it, and it stops the workers. An ignored
+    disposition survives exec (Python then installs no handler of its own); SIGINT is blocked meanwhile, so one
+    meant for this process is delivered on leaving, not lost.
+    """
+    if threading.current_thread() is not threading.main_thread():  # signals are the main thread's business
+        yield
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 def _pool_main(payload: str, out: str, tasks, results, platform: str) -> None:

@@ -1,0 +1,123 @@
+"""Ctrl-C during `seasynth generate`, sent as a real SIGINT to a real process (or its whole process group)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from service.spec import load_spec
+from worker.generate import RECORD, generate
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
+FRAMES = 100  # seconds of work at 48 x 36: still going when the signal comes
+SIZE = ("--width", "48", "--height", "36")
+
+
+def tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def start(out: Path, workers: int, *extra: str) -> subprocess.Popen:
+    """`seasynth generate` in a session (process group) of its own, with SIGINT's default disposition."""
+    cmd = [sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out), "--frames", str(FRAMES),
+           *SIZE, "--workers", str(workers), *extra]
+    # The test runner may itself run with SIGINT ignored (a background job), which children would inherit.
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def wait_for(predicate, proc: subprocess.Popen, what: str, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert proc.poll() is None, f"exited ({proc.returncode}) before {what}: {proc.stderr.read()}"
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
+
+
+def children(pid: int) -> list[int]:
+    """Live child process ids of `pid` (from /proc)."""
+    kids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(entry.name))
+    return kids
+
+
+def group_gone(pgid: int, timeout: float = 20.0) -> bool:
+    """Whether every process of group `pgid` exits within `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def interrupt(proc: subprocess.Popen, to_group: bool) -> tuple[str, str]:
+    if to_group:
+        os.killpg(proc.pid, signal.SIGINT)
+    else:
+        os.kill(proc.pid, signal.SIGINT)
+    return proc.communicate(timeout=120)
+
+
+def assert_interrupted(proc: subprocess.Popen, out: Path, stdout: str, stderr: str) -> None:
+    assert proc.returncode == 130, (stdout, stderr)
+    lines = stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("interrupted: ") and "--resume" in lines[0], stderr
+    assert group_gone(proc.pid), "a process of the interrupted run is still alive"
+    assert sorted(p.name for p in out.rglob(".*")) == []  # no temporary files
+    assert json.loads((out / RECORD).read_text())["state"] == "incomplete"
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> dict[str, bytes]:
+    """The files of an uninterrupted run."""
+    spec = load_spec(EXAMPLE, {"frames": FRAMES, "camera.width": 48, "camera.height": 36})
+    out = tmp_path_factory.mktemp("reference")
+    generate(spec, out, workers=1)
+    return tree(out)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("to_group", [False, True], ids=["process", "group"])
+def test_sigint_exits_130_and_resume_completes_identically(tmp_path, reference, workers, to_group):
+    out = tmp_path / "ds"
+    proc = start(out, workers)
+    wait_for(lambda: len(list((out / "image_2").glob("*.png"))) >= 3, proc, "three frames")
+    stdout, stderr = interrupt(proc, to_group)
+    assert_interrupted(proc, out, stdout, stderr)
+    written = len(list((out / "image_2").glob("*.png")))
+    assert 3 <= written < FRAMES
+    resumed = subprocess.run([sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out),
+                              "--frames", str(FRAMES), *SIZE, "--resume"], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert json.loads((out / RECORD).read_text())["state"] == "complete"
+    record = tree(out).pop(RECORD)
+    assert {k: v for k, v in tree(out).items() if k != RECORD} == {k: v for k, v in reference.items() if k != RECORD}
+    assert record == reference[RECORD]
+
+
+def test_sigint_to_group_while_pool_children_start(tmp_path):
+    """Ctrl-C while spawned workers are still importing: no traceback from them, the parent stops them."""
+    out = tmp_path / "ds"
+    proc = start(out, 2)
+    # The resource tracker and two workers are children; the workers' imports take well over a second.
+    wait_for(lambda: len(children(proc.pid)) >= 3, proc, "the pool's processes")
+    assert not (out / "image_2").exists() or not list((out / "image_2").iterdir())
+    stdout, stderr = interrupt(proc, to_group=True)
+    assert_interrupted(proc, out, stdout, stderr)
