@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from scipy.ndimage import gaussian_filter
 
 from worker.assets import AssetError
 from worker.assets.terrain import STYLES, Terrain, apply_texture, grid_faces, heightfield, procedural_terrain
-from worker.assets.user import load_user_terrain
+from worker.assets.user import load_user_terrain, load_user_texture
 
 SIZE, CELLS, RELIEF = 4.0, 64, 0.3
 
@@ -130,7 +131,11 @@ def test_apply_texture_tiles_the_image(tmp_path: Path) -> None:
     Image.fromarray(image).save(path)
     t = procedural_terrain("sand", 0, 2.0, 8, RELIEF)
     tile = 1.0
-    textured = apply_texture(t, path, tile)
+    texture = load_user_texture(path)
+    assert texture.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+    np.testing.assert_array_equal(texture.pixels, image)
+    assert load_user_texture(path) is texture  # cached by path, mtime and size
+    textured = apply_texture(t, texture, tile)
     v = textured.mesh.vertices
     np.testing.assert_array_equal(v, t.mesh.vertices)
     colours = textured.mesh.visual.vertex_colors
@@ -141,18 +146,18 @@ def test_apply_texture_tiles_the_image(tmp_path: Path) -> None:
     assert at[(0.25, 0.25)] == (0, 0, 255) and at[(-0.75, -0.75)] == (0, 0, 255)  # periodic
     assert at[(0.5, 0.75)] == (128, 128, 0)  # bilinear between red and green
     assert textured.key != t.key and t.key in textured.key
-    assert apply_texture(t, path, tile) is textured
+    assert textured.key == f"{t.key}+texture/{texture.sha256}/tile=1.0"
+    assert apply_texture(t, texture, tile) is textured
     np.testing.assert_array_equal(textured.height_at(v[:, :2]), t.height_at(v[:, :2]))
 
 
-def test_apply_texture_bad_image(tmp_path: Path) -> None:
-    t = procedural_terrain("sand", 0, 2.0, 8, RELIEF)
+def test_load_user_texture_bad_image(tmp_path: Path) -> None:
     bad = tmp_path / "noise.png"
     bad.write_bytes(b"not an image")
-    with pytest.raises(AssetError, match="noise.png"):
-        apply_texture(t, bad, 1.0)
-    with pytest.raises(AssetError, match="nothing.png"):
-        apply_texture(t, tmp_path / "nothing.png", 1.0)
+    with pytest.raises(AssetError, match=r"noise\.png: cannot decode image"):
+        load_user_texture(bad)
+    with pytest.raises(AssetError, match=r"nothing\.png: file not found"):
+        load_user_texture(tmp_path / "nothing.png")
 
 
 # ------------------------------------------------------------------ user terrain
@@ -182,3 +187,43 @@ def test_user_terrain_bad_file(tmp_path: Path) -> None:
     path.write_bytes(b"")
     with pytest.raises(AssetError, match="seabed.stl"):
         load_user_terrain(path)
+
+
+# ------------------------------------------------------------------ textures in frames
+
+
+def test_texture_is_read_once_per_process_and_frames_are_unchanged(tmp_path: Path, monkeypatch,
+                                                                   render_session) -> None:
+    import subprocess
+    import sys
+
+    from service.spec import load_spec
+
+    image = np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8)
+    texture = tmp_path / "seabed.png"
+    Image.fromarray(image).save(texture)
+    example = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
+    overrides = {"frames": 2, "camera.width": 48, "camera.height": 36, "terrain.texture.path": str(texture)}
+    spec = load_spec(example, overrides)
+
+    reads: list[Path] = []
+    read_bytes = Path.read_bytes
+
+    def counting(self: Path) -> bytes:
+        if self.resolve() == texture.resolve():
+            reads.append(self)
+        return read_bytes(self)
+
+    monkeypatch.setattr(Path, "read_bytes", counting)
+    first = render_session.frame_files(spec, 0)
+    second = render_session.frame_files(spec, 1)
+    assert len(reads) == 1  # the first frame read it; the second used the decoded image
+    monkeypatch.undo()
+    # The same frame from a fresh process (which reads and decodes the file itself) is byte-identical.
+    spec_file, out = tmp_path / "spec.json", tmp_path / "fresh"
+    spec_file.write_text(spec.model_dump_json())
+    r = subprocess.run([sys.executable, "-m", "service.cli", "reproduce", str(spec_file), "--frame", "1", "--out",
+                        str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert {rel: (out / rel).read_bytes() for rel in second} == second
+    assert first != second

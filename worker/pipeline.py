@@ -183,7 +183,9 @@ class RenderSession:
             variant = int(rng.integers(t.variants))
             terrain = procedural_terrain(style, variant, t.size_m, t.cells, t.relief_m)
         if t.texture is not None:
-            terrain = apply_texture(terrain, self._file(t.texture), t.texture_tile_m)
+            from worker.assets.user import load_user_texture
+
+            terrain = apply_texture(terrain, load_user_texture(self._file(t.texture)), t.texture_tile_m)
         return terrain
 
     def _render_mesh(self, key: str, mesh) -> Mesh:

@@ -7,12 +7,11 @@ import hashlib
 import io
 import operator
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from worker.assets import AssetError, freeze, read_source
+from worker.assets import AssetError, freeze
 from worker.assets.procedural import srgb_u8, stable_seed
 
 STYLES = ("sand", "pebbles", "rock")
@@ -240,46 +239,48 @@ def tile_lookup(image: np.ndarray, xy: np.ndarray, tile_m: float) -> np.ndarray:
     return upper * (1 - tv) + lower * tv
 
 
-class _Carried:
-    """Wraps a value passed through `lru_cache` without being part of the cache key."""
+@dataclass(frozen=True, eq=False)
+class Texture:
+    """A decoded image texture. Equality and hashing go by `sha256`, which names the content."""
 
-    def __init__(self, value: object) -> None:
-        self.value = value
+    sha256: str  # hex digest of the image file's bytes
+    pixels: np.ndarray  # (h, w, 3) uint8 sRGB, read-only; h, w >= 1
+    source: str  # the file it came from, for messages
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, _Carried)
+        return isinstance(other, Texture) and other.sha256 == self.sha256
 
     def __hash__(self) -> int:
-        return 0
+        return hash(self.sha256)
 
 
-def apply_texture(terrain: Terrain, image_path: Path, tile_m: float) -> Terrain:
-    """`terrain` with vertex colours baked from an image tiled every `tile_m` metres (bilinear, in sRGB).
-
-    Cached per process by (terrain key, image sha256, tile_m); `AssetError` names an unusable image.
-    """
-    if not tile_m > 0:
-        raise ValueError(f"texture tile_m must be > 0, got {tile_m}")
-    path = Path(image_path)
-    data = read_source(path)
-    return _textured(terrain, hashlib.sha256(data).hexdigest(), float(tile_m), _Carried((path, data)))
-
-
-@functools.lru_cache(maxsize=16)
-def _textured(terrain: Terrain, sha256: str, tile_m: float, carried: _Carried) -> Terrain:
-    path, data = carried.value
+def decode_texture(data: bytes, source: str) -> Texture:
+    """Decode image file bytes (any format Pillow reads) to RGB; `AssetError` naming `source` if unusable."""
     from PIL import Image, UnidentifiedImageError  # the worker extra; only needed for textures
 
     try:
         with Image.open(io.BytesIO(data)) as image:
             pixels = np.asarray(image.convert("RGB"))
     except (UnidentifiedImageError, OSError, ValueError) as exc:
-        raise AssetError(f"{path}: cannot decode image ({exc})") from exc
+        raise AssetError(f"{source}: cannot decode image ({exc})") from exc
     if pixels.size == 0:
-        raise AssetError(f"{path}: image is empty")
+        raise AssetError(f"{source}: image is empty")
+    pixels.flags.writeable = False
+    return Texture(sha256=hashlib.sha256(data).hexdigest(), pixels=pixels, source=source)
+
+
+@functools.lru_cache(maxsize=16)
+def apply_texture(terrain: Terrain, texture: Texture, tile_m: float) -> Terrain:
+    """`terrain` with vertex colours baked from `texture` tiled every `tile_m` metres (bilinear, in sRGB).
+
+    Cached per process by (terrain key, texture sha256, tile_m).
+    """
+    if not tile_m > 0:
+        raise ValueError(f"texture tile_m must be > 0, got {tile_m}")
+    tile_m = float(tile_m)
     vertices = np.asarray(terrain.mesh.vertices)
-    rgb = tile_lookup(pixels, vertices[:, :2], tile_m) / 255.0
+    rgb = tile_lookup(texture.pixels, vertices[:, :2], tile_m) / 255.0
     mesh = trimesh.Trimesh(vertices=vertices, faces=np.asarray(terrain.mesh.faces), vertex_colors=srgb_u8(rgb),
                            process=False)
-    return Terrain(key=f"{terrain.key}+texture/{sha256}/tile={tile_m!r}", mesh=freeze(mesh),
+    return Terrain(key=f"{terrain.key}+texture/{texture.sha256}/tile={tile_m!r}", mesh=freeze(mesh),
                    heights=terrain.heights, extent=terrain.extent, lookup=terrain.lookup)

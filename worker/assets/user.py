@@ -1,4 +1,4 @@
-"""User-supplied meshes (glTF/GLB, OBJ, PLY, STL) as placeable assets or as seabed terrains."""
+"""User-supplied files: meshes (glTF/GLB, OBJ, PLY, STL) as assets or seabed terrains, and terrain textures."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 
 from worker.assets import Asset, AssetError, freeze, read_source
-from worker.assets.terrain import Terrain
+from worker.assets.terrain import Terrain, Texture, decode_texture
 
 FORMATS = {".glb": "glb", ".gltf": "gltf", ".obj": "obj", ".ply": "ply", ".stl": "stl"}
 Y_UP_FORMATS = frozenset({"glb", "gltf"})  # glTF is +y up by specification; everything else is kept as is
@@ -35,6 +35,15 @@ def load_user_terrain(path: Path) -> Terrain:
     """
     resolved, mtime_ns, size = file_identity(path)
     return _user_terrain(resolved, mtime_ns, size)
+
+
+def load_user_texture(path: Path) -> Texture:
+    """An image file decoded as a terrain `Texture`; cached like `load_user_asset`, so each process reads it once.
+
+    `AssetError` names the file if it is missing, unreadable or not an image.
+    """
+    resolved, mtime_ns, size = file_identity(path)
+    return _user_texture(resolved, mtime_ns, size)
 
 
 def file_identity(path: Path) -> tuple[Path, int, int]:
@@ -69,6 +78,11 @@ def _user_terrain(path: Path, mtime_ns: int, size: int) -> Terrain:
     lookup = top_surface(vertices, np.asarray(mesh.faces), extent, shape)
     lookup.flags.writeable = False
     return Terrain(key=f"terrain/file/{sha256}", mesh=freeze(mesh), heights=None, extent=extent, lookup=lookup)
+
+
+@functools.lru_cache(maxsize=8)
+def _user_texture(path: Path, mtime_ns: int, size: int) -> Texture:
+    return decode_texture(read_source(path), str(path))
 
 
 def read_mesh(path: Path) -> tuple[trimesh.Trimesh, str]:
