@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -38,3 +39,29 @@ def test_usage_errors_exit_2_with_usage_and_no_traceback(tmp_path, args, usage, 
     # With no arguments typer's help goes to stdout as well; every other usage error writes nothing there.
     assert ("generate" in r.stdout and "reproduce" in r.stdout) if not args else r.stdout == ""
     assert list(tmp_path.iterdir()) == []  # nothing created (OUT is relative to tmp_path)
+
+
+# ------------------------------------------------------------------ unusable user files
+
+
+def spec_file(tmp_path: Path, edit) -> Path:
+    """The example spec, tiny, changed by `edit(data)`, written next to the files it names."""
+    import yaml
+
+    data = yaml.safe_load(EXAMPLE.read_text())
+    data.update(frames=2, camera={**data["camera"], "width": 48, "height": 36})
+    edit(data)
+    path = tmp_path / "spec.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_undecodable_texture_is_refused_before_the_output_folder_is_made(tmp_path):
+    (tmp_path / "seabed.png").write_bytes(b"\x89PNG\r\n\x1a\n but not really")
+    spec = spec_file(tmp_path, lambda d: d["terrain"].update(texture={"path": "seabed.png"}))
+    r = seasynth("generate", spec, "--out", tmp_path / "out")
+    assert r.returncode == 1
+    assert r.stderr.startswith(f"error: {tmp_path / 'seabed.png'}: cannot decode image") and "Traceback" not in r.stderr
+    assert len(r.stderr.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+

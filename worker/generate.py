@@ -113,15 +113,13 @@ def pending_frames(out: Path, spec: DatasetSpec, frames: Iterable[int]) -> list[
 
 def check_assets(spec: DatasetSpec) -> None:
     """Fail before any rendering if a user mesh or texture named by the spec cannot be used."""
-    from worker.assets.user import load_user_asset, load_user_terrain
+    from worker.assets.user import load_user_asset, load_user_terrain, load_user_texture
 
     for field, ref in spec.file_refs():
         if ref.path is None:
             continue
         if field == "terrain.texture":
-            from worker.assets import read_source
-
-            read_source(Path(ref.path))
+            load_user_texture(Path(ref.path))  # decoded, not only read: a bad image fails here, not at a frame
         elif field == "terrain.mesh":
             load_user_terrain(Path(ref.path))
         else:
