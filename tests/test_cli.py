@@ -65,3 +65,12 @@ def test_undecodable_texture_is_refused_before_the_output_folder_is_made(tmp_pat
     assert len(r.stderr.splitlines()) == 1
     assert not (tmp_path / "out").exists()
 
+
+def test_unreadable_mesh_is_refused_before_the_output_folder_is_made(tmp_path):
+    (tmp_path / "urchin.ply").write_bytes(b"ply\nformat garbage\n\x00\x01\x02")
+    spec = spec_file(tmp_path, lambda d: d["targets"].update(assets=[{"path": "urchin.ply"}]))
+    r = seasynth("generate", spec, "--out", tmp_path / "out")
+    assert r.returncode == 1
+    assert r.stderr.startswith(f"error: {tmp_path / 'urchin.ply'}: cannot parse as ply") and "Traceback" not in r.stderr
+    assert len(r.stderr.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
