@@ -90,6 +90,9 @@ class RenderResult:
     clean: np.ndarray | None  # (h, w, 3) float32 linear RGB in air
     instance: np.ndarray | None  # (h, w) uint32, 0 = terrain or open water
     range_m: np.ndarray | None  # (h, w) float32 metres, +inf where no surface
+    # What ran, in order: GL passes drawn ("surface[+range]", "resolve[+haze]", "ids[+range]") and attachments read
+    # back ("read image", "read clean", "read ids", "read range"). For tests and benchmarks; outputs never depend on it.
+    passes: tuple[str, ...] = ()
 
 
 class Renderer(Protocol):

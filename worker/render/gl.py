@@ -11,6 +11,7 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -19,6 +20,12 @@ import numpy as np
 from service.errors import RenderError
 from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
 from worker.render import shaders
+
+# Cache bounds of a long-lived renderer. Uploaded meshes: least recently drawn first out once their vertex and index
+# buffers pass the budget, never one drawn by the call in progress. Framebuffers: a few of each kind (surface,
+# resolve, ids), least recently used first out; one frame uses at most two of a kind.
+MESH_BUDGET_BYTES = 512 * 2**20
+TARGETS_PER_KIND = 4
 
 
 def projection(K: np.ndarray, width: int, height: int, near: float, far: float) -> np.ndarray:
@@ -60,8 +67,10 @@ def sphere_in_view(view: View, centre_cam: np.ndarray, radius: float) -> bool:
 @dataclass
 class _GpuMesh:
     vao: int
-    buffers: tuple[int, int]
-    count: int
+    buffers: tuple[int, int]  # vertex and index buffer
+    count: int  # indices
+    nbytes: int  # both buffers' sizes
+    used: int  # the renderer call (see GLRenderer._call) that last drew it
 
 
 @dataclass
@@ -74,11 +83,27 @@ class _Target:
 
 
 class GLRenderer:
-    """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size."""
+    """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size.
 
-    def __init__(self, platform: str = "egl") -> None:
+    Both caches are bounded (mesh_budget_bytes of vertex and index buffers, targets_per_kind framebuffers of each
+    kind), so a long-lived worker that meets many assets and image sizes does not keep them all; what is evicted is
+    deleted and rebuilt from scratch when needed again, with the same pixels.
+    """
+
+    def __init__(
+        self,
+        platform: str = "egl",
+        mesh_budget_bytes: int = MESH_BUDGET_BYTES,
+        targets_per_kind: int = TARGETS_PER_KIND,
+    ) -> None:
         if platform not in ("egl", "osmesa"):
             raise RenderError(f"unsupported GL platform {platform!r}; use 'egl' or 'osmesa'")
+        if mesh_budget_bytes < 0:
+            raise RenderError(f"mesh_budget_bytes must be >= 0, got {mesh_budget_bytes}")
+        if targets_per_kind < 1:
+            raise RenderError(f"targets_per_kind must be >= 1, got {targets_per_kind}")
+        self.mesh_budget_bytes = mesh_budget_bytes
+        self.targets_per_kind = targets_per_kind
         # PyOpenGL picks its platform once, at first import.
         os.environ.setdefault("PYOPENGL_PLATFORM", platform)
         os.environ.setdefault("PYGLET_HEADLESS", "1")
@@ -103,9 +128,11 @@ class GLRenderer:
         self.name = GL.glGetString(GL.GL_RENDERER).decode()
         self.version = GL.glGetString(GL.GL_VERSION).decode()
         self.max_samples = int(GL.glGetIntegerv(GL.GL_MAX_SAMPLES))
-        self._meshes: dict[str, _GpuMesh] = {}
+        self._meshes: OrderedDict[str, _GpuMesh] = OrderedDict()  # least recently drawn first
+        self._mesh_bytes = 0
+        self._call = 0  # counts render/samples/pixels_alone calls: meshes drawn by the current one stay
         self._programs: dict[tuple, tuple[int, dict[str, int]]] = {}
-        self._targets: dict[tuple, _Target] = {}
+        self._targets: OrderedDict[tuple, _Target] = OrderedDict()  # least recently used first
         self._empty_vao = GL.glGenVertexArrays(1)
         GL.glEnable(GL.GL_DEPTH_TEST)
         GL.glDepthFunc(GL.GL_LESS)
@@ -119,15 +146,13 @@ class GLRenderer:
             return
         GL = self._gl
         self._platform.make_current()
-        for m in self._meshes.values():
-            GL.glDeleteVertexArrays(1, [m.vao])
-            GL.glDeleteBuffers(2, list(m.buffers))
+        for key in list(self._meshes):
+            self._drop_mesh(key)
         for prog, _ in self._programs.values():
             GL.glDeleteProgram(prog)
         for key in list(self._targets):
             self._drop_target(key)
         GL.glDeleteVertexArrays(1, [self._empty_vao])
-        self._meshes.clear()
         self._programs.clear()
         if self._platform_name == "egl":
             # Destroy only our context: pyrender's delete_context() also terminates the EGL display, which
@@ -151,6 +176,8 @@ class GLRenderer:
     def _mesh(self, mesh: Mesh) -> _GpuMesh:
         got = self._meshes.get(mesh.key)
         if got is not None:
+            got.used = self._call
+            self._meshes.move_to_end(mesh.key)
             return got
         GL = self._gl
         interleaved = np.ascontiguousarray(np.hstack([mesh.vertices, mesh.normals, mesh.albedo]), dtype=np.float32)
@@ -166,9 +193,23 @@ class GLRenderer:
         GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
         GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, faces.nbytes, faces, GL.GL_STATIC_DRAW)
         GL.glBindVertexArray(0)
-        got = _GpuMesh(vao=vao, buffers=(vbo, ebo), count=int(faces.size))
+        got = _GpuMesh(vao=vao, buffers=(vbo, ebo), count=int(faces.size),
+                       nbytes=interleaved.nbytes + faces.nbytes, used=self._call)
         self._meshes[mesh.key] = got
+        self._mesh_bytes += got.nbytes
+        while self._mesh_bytes > self.mesh_budget_bytes:
+            key, oldest = next(iter(self._meshes.items()))
+            if oldest.used == self._call:
+                break  # every mesh left is drawn by this call; the budget is met again after it
+            self._drop_mesh(key)
         return got
+
+    def _drop_mesh(self, key: str) -> None:
+        GL = self._gl
+        m = self._meshes.pop(key)
+        self._mesh_bytes -= m.nbytes
+        GL.glDeleteVertexArrays(1, [m.vao])
+        GL.glDeleteBuffers(2, list(m.buffers))
 
     def _program(self, vertex: str, fragment: str, **defines: object) -> tuple[int, dict[str, int]]:
         key = (vertex, fragment, tuple(sorted(defines.items())))
@@ -192,19 +233,28 @@ class GLRenderer:
         return got
 
     def _target(self, key: tuple, build) -> _Target:
+        """The cached framebuffer `key` (kind, size, ...), built and bound by `build` when absent."""
         got = self._targets.get(key)
-        if got is None:
-            got = build()
-            GL = self._gl
-            status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
-            if status != GL.GL_FRAMEBUFFER_COMPLETE:
-                raise RenderError(f"framebuffer {key} incomplete on {self.name} (status {status:#x})")
-            self._targets[key] = got
+        if got is not None:
+            self._targets.move_to_end(key)
+            return got
+        got = build()
+        GL = self._gl
+        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+        if status != GL.GL_FRAMEBUFFER_COMPLETE:
+            self._delete_target(got)
+            raise RenderError(f"framebuffer {key} incomplete on {self.name} (status {status:#x})")
+        self._targets[key] = got
+        same_kind = [k for k in self._targets if k[0] == key[0]]
+        for old in same_kind[: max(len(same_kind) - self.targets_per_kind, 0)]:
+            self._drop_target(old)
         return got
 
     def _drop_target(self, key: tuple) -> None:
+        self._delete_target(self._targets.pop(key))
+
+    def _delete_target(self, t: _Target) -> None:
         GL = self._gl
-        t = self._targets.pop(key)
         GL.glDeleteFramebuffers(1, [t.fbo])
         if t.textures:
             GL.glDeleteTextures(t.textures)
@@ -346,19 +396,22 @@ class GLRenderer:
         mark: called with a stage name when each stage's GL work has finished (benchmarks only: it waits).
         """
         self._platform.make_current()
+        self._call += 1
         done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
-        image, clean = self._surface(view, items, lighting, water, sampling, passes.clean, -1, done=done)
+        log: list[str] = []
+        image, clean = self._surface(view, items, lighting, water, sampling, passes.clean, -1, done=done, log=log)
         instance = range_m = None
         if passes.ids or passes.range:
-            instance, range_m = self._ids(view, items, passes.ids, passes.range)
+            instance, range_m = self._ids(view, items, passes.ids, passes.range, log=log)
             done("ids")
-        return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m)
+        return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m, passes=tuple(log))
 
     def samples(
         self, view: View, items: list[DrawItem], lighting: Lighting, sampling: Sampling
     ) -> tuple[np.ndarray, np.ndarray]:
         """Every sample of a frame, for audits: J (k, h, w, 3) float32 linear and range (k, h, w) float32."""
         self._platform.make_current()
+        self._call += 1
         Js, Rs = [], []
         for k in range(sampling.per_pixel):
             J, R = self._surface(view, items, lighting, None, sampling, False, k, sample_range=True)
@@ -366,8 +419,12 @@ class GLRenderer:
             Rs.append(R[..., 0])
         return np.stack(Js), np.stack(Rs)
 
-    def _surface(self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, done=None):
+    def _surface(
+        self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, done=None, log=None
+    ):
+        """Draw the surface pass and resolve it; log (if given) gets the passes drawn and attachments read."""
         GL = self._gl
+        log = [] if log is None else log
         if sampling.msaa > self.max_samples:
             raise RenderError(f"{sampling.msaa}x MSAA asked for, {self.name} supports at most {self.max_samples}")
         ss, msaa = sampling.supersample, sampling.msaa
@@ -387,6 +444,7 @@ class GLRenderer:
             GL.glMinSampleShading(1.0)
         self._draw(view, items, locs, lit=True, ids=False)
         GL.glDisable(GL.GL_SAMPLE_SHADING)
+        log.append("surface+range" if len(surf.textures) > 1 else "surface")  # what the target holds
         if done is not None:
             done("render")
 
@@ -424,15 +482,22 @@ class GLRenderer:
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)
+        log.append("resolve+haze" if water is not None else "resolve")
         w, h = view.width, view.height
         image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
-        second = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3) if n_out == 2 else None
+        log.append("read image")
+        second = None
+        if n_out == 2:
+            second = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+            log.append("read sample range" if sample_range else "read clean")
         if done is not None:
             done("formation")
         return image, second
 
-    def _ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool):
+    def _ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool, log: list[str] | None = None):
+        """Draw the ids pass; log (if given) gets the pass drawn and the attachments read."""
         GL = self._gl
+        log = [] if log is None else log
         w, h = view.width, view.height
         t = self._ids_target(w, h, want_range)
         self._bind_and_clear(t, ids_first=True, with_range=want_range)
@@ -440,8 +505,14 @@ class GLRenderer:
         GL.glUseProgram(prog)
         self._set_view(locs, view, w, h)
         self._draw(view, items, locs, lit=False, ids=True)
-        ids = self._read(0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1) if want_ids else None
-        rng = self._read(1, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1) if want_range else None
+        log.append("ids+range" if len(t.renderbuffers) > 2 else "ids")  # what the target holds
+        ids = rng = None
+        if want_ids:
+            ids = self._read(0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1)
+            log.append("read ids")
+        if want_range:
+            rng = self._read(1, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
+            log.append("read range")
         return ids, rng
 
     def pixels_alone(self, view: View, item: DrawItem, region: tuple[int, int, int, int] | None = None) -> int:
@@ -452,6 +523,7 @@ class GLRenderer:
         """
         GL = self._gl
         self._platform.make_current()
+        self._call += 1
         w, h = view.width, view.height
         x0, y0, x1, y1 = (0, 0, w - 1, h - 1) if region is None else region
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
