@@ -1,6 +1,5 @@
 """Tests for worker.formation: haze hard cases, float32 vs float64, exact 8-bit sRGB."""
 
-import shutil
 import subprocess
 import warnings
 

@@ -1,4 +1,4 @@
-"""GLSL sources of the renderer's passes: surface (in-air radiance + range), ids (+ range), resolve (per-sample haze)."""
+"""GLSL sources of the renderer's passes: surface (in-air radiance, range), ids (+ range), resolve (per-sample haze)."""
 
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
