@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+import service
+from worker.generate import RECORD
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 
@@ -74,3 +78,98 @@ def test_unreadable_mesh_is_refused_before_the_output_folder_is_made(tmp_path):
     assert r.stderr.startswith(f"error: {tmp_path / 'urchin.ply'}: cannot parse as ply") and "Traceback" not in r.stderr
     assert len(r.stderr.splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------ --resume refuses another dataset's folder
+
+
+def tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def edit_record(out: Path, **changes) -> dict:
+    """Change the dataset record as a run would have written it (same layout); keys set to None are removed."""
+    record = json.loads((out / RECORD).read_text())
+    record.update(state="incomplete", **changes)
+    record = {k: v for k, v in record.items() if v is not None}
+    (out / RECORD).write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+    return record
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory) -> tuple[Path, Path, str]:
+    """(folder with a user mesh and a spec naming it, a complete 2-frame dataset of it, the renderer it reported)."""
+    import trimesh
+
+    root = tmp_path_factory.mktemp("made")
+    trimesh.creation.box(extents=(0.2, 0.2, 0.1)).export(root / "urchin.ply")
+    spec = spec_file(root, lambda d: d["targets"].update(assets=[{"path": "urchin.ply"}]))
+    out = root / "ds"
+    r = seasynth("generate", spec, "--out", out)
+    assert r.returncode == 0, r.stderr
+    renderer = r.stdout.strip().splitlines()[-1].rsplit(" on ", 1)[1]
+    return spec, out, renderer
+
+
+def copy_of(made, tmp_path) -> Path:
+    import shutil
+
+    return Path(shutil.copytree(made[1], tmp_path / "ds"))
+
+
+def test_record_pins_code_version_renderer_and_user_files(made):
+    spec, out, renderer = made
+    record = json.loads((out / RECORD).read_text())
+    sha = hashlib.sha256((spec.parent / "urchin.ply").read_bytes()).hexdigest()
+    assert record["state"] == "complete" and record["code_version"] == service.__version__
+    assert record["renderer"] == renderer and renderer.strip()
+    assert record["user_files"] == {"targets.assets.0": sha}
+
+
+def test_resume_refuses_another_code_version(made, tmp_path):
+    out = copy_of(made, tmp_path)
+    edit_record(out, code_version="0.0.1")
+    before = tree(out)
+    r = seasynth("generate", made[0], "--out", out, "--resume")
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert "code version 0.0.1" in r.stderr and service.__version__ in r.stderr and "--overwrite" in r.stderr
+    assert tree(out) == before
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_resume_refuses_another_renderer_before_writing_a_frame(made, tmp_path, workers):
+    out = copy_of(made, tmp_path)
+    for rel in ("image_2/000001.png", "label_2/000000.txt"):  # two frames to render
+        (out / rel).unlink()
+    edit_record(out, renderer="OtherGL 1.0")
+    before = tree(out)
+    r = seasynth("generate", made[0], "--out", out, "--resume", "--workers", str(workers))
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert "'OtherGL 1.0'" in r.stderr and repr(made[2]) in r.stderr and "--overwrite" in r.stderr
+    assert tree(out) == before
+
+
+def test_resume_refuses_a_changed_user_file(tmp_path):
+    import trimesh
+
+    mesh = tmp_path / "urchin.ply"
+    trimesh.creation.box(extents=(0.2, 0.2, 0.1)).export(mesh)
+    spec = spec_file(tmp_path, lambda d: d["targets"].update(assets=[{"path": "urchin.ply"}]))
+    out = tmp_path / "ds"
+    assert seasynth("generate", spec, "--out", out).returncode == 0
+    trimesh.creation.box(extents=(0.3, 0.2, 0.1)).export(mesh)  # same path (so the same spec), other content
+    edit_record(out)
+    before = tree(out)
+    r = seasynth("generate", spec, "--out", out, "--resume")
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert f"targets.assets.0 ({mesh})" in r.stderr and "--overwrite" in r.stderr
+    assert tree(out) == before
+
+
+def test_resume_of_a_record_without_renderer_or_files_completes_identically(made, tmp_path):
+    out = copy_of(made, tmp_path)
+    (out / "image_2/000001.png").unlink()
+    edit_record(out, renderer=None, user_files=None)  # as written before the record pinned them
+    r = seasynth("generate", made[0], "--out", out, "--resume")
+    assert r.returncode == 0, r.stderr
+    assert tree(out) == tree(made[1])

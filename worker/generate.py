@@ -55,8 +55,14 @@ def write_frame(out: Path, files: dict[str, bytes]) -> None:
         write_atomic(out / rel, data)
 
 
-def prepare_output(out: Path, spec: DatasetSpec, mode: Mode) -> None:
-    """Check and set up the output folder; leave it marked incomplete until every frame is written."""
+def prepare_output(out: Path, spec: DatasetSpec, mode: Mode, files: dict[str, str] | None = None) -> None:
+    """Check and set up the output folder; leave it marked incomplete until every frame is written.
+
+    `files` maps the spec field naming each local user file to its sha256 (see `check_assets`). Resuming
+    refuses a folder whose record names another spec, code version or user file content.
+    """
+    files = {} if files is None else files
+    renderer = None
     try:
         out.mkdir(parents=True, exist_ok=True)
         existing = [p for p in out.iterdir()]
@@ -66,15 +72,17 @@ def prepare_output(out: Path, spec: DatasetSpec, mode: Mode) -> None:
     if existing and mode == "new":
         raise OutputError(f"{out}: folder is not empty; pass --resume to complete it or --overwrite to replace it")
     if mode == "resume" and record_path.exists():
-        try:
-            old = json.loads(record_path.read_text())
-        except (OSError, ValueError) as err:
-            raise OutputError(f"{record_path}: unreadable dataset record ({err})") from None
+        old = read_record(out)
         if old.get("spec_sha256") != spec_digest(spec):
             raise OutputError(
                 f"{out}: holds a dataset of another spec (spec_sha256 {old.get('spec_sha256')}); "
                 "use --overwrite or another folder"
             )
+        differences = record_differences(old, spec, files)
+        if differences:
+            raise OutputError(f"{out}: cannot resume, its frames would not match: {'; '.join(differences)}; "
+                              "use --overwrite to start again, or another folder")
+        renderer = old.get("renderer")
     elif mode == "resume" and existing:
         raise OutputError(f"{out}: is not a seasynth dataset (no {RECORD}); use --overwrite or another folder")
     try:
@@ -91,15 +99,47 @@ def prepare_output(out: Path, spec: DatasetSpec, mode: Mode) -> None:
             (out / rel).parent.mkdir(exist_ok=True)
     except OSError as err:
         raise OutputError(f"{out}: cannot write the output folder ({err.strerror or err})") from None
-    write_record(out, spec, complete=False)
+    write_record(out, spec, complete=False, renderer=renderer, files=files)
 
 
-def write_record(out: Path, spec: DatasetSpec, complete: bool) -> None:
+def record_differences(old: dict, spec: DatasetSpec, files: dict[str, str]) -> list[str]:
+    """What in a dataset record (of the same spec) differs from this run: code version and user file content.
+
+    Keys an older record lacks are not compared. The renderer is compared once it is known (`render_frames`).
+    """
+    found = []
+    version = old.get("code_version")
+    if version is not None and version != service.__version__:
+        found.append(f"it was started by code version {version}, this is {service.__version__}")
+    recorded = old.get("user_files")
+    if recorded is not None:
+        paths = {field: ref.path for field, ref in spec.file_refs()}
+        for field in sorted(set(recorded) | set(files)):
+            if recorded.get(field) != files.get(field):
+                found.append(f"{field} ({paths.get(field)}) has sha256 {files.get(field)}, "
+                             f"the dataset was started with {recorded.get(field)}")
+    return found
+
+
+def read_record(out: Path) -> dict:
+    """The dataset record in `out`; `OutputError` naming it if it cannot be read."""
+    path = out / RECORD
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise OutputError(f"{path}: unreadable dataset record ({err})") from None
+
+
+def write_record(out: Path, spec: DatasetSpec, complete: bool, renderer: str | None,
+                 files: dict[str, str]) -> None:
+    """The dataset record: what its frames depend on (spec, code version, GL renderer, user files' sha256)."""
     record = {
         "state": "complete" if complete else "incomplete",
         "frames": spec.frames,
         "seed": spec.seed,
         "code_version": service.__version__,
+        "renderer": renderer,  # null until a frame is rendered
+        "user_files": files,  # spec field -> sha256 of each local user file
         "spec_sha256": spec_digest(spec),
         "spec": spec.model_dump(mode="json"),
     }
@@ -111,19 +151,25 @@ def pending_frames(out: Path, spec: DatasetSpec, frames: Iterable[int]) -> list[
     return [i for i in frames if not all((out / rel).exists() for rel in frame_paths(spec, i))]
 
 
-def check_assets(spec: DatasetSpec) -> None:
-    """Fail before any rendering if a user mesh or texture named by the spec cannot be used."""
+def check_assets(spec: DatasetSpec) -> dict[str, str]:
+    """Fail before any rendering if a user mesh or texture named by the spec cannot be used.
+
+    Returns the sha256 of each local user file by the spec field that names it.
+    """
     from worker.assets.user import load_user_asset, load_user_terrain, load_user_texture
 
+    files = {}
     for field, ref in spec.file_refs():
         if ref.path is None:
             continue
         if field == "terrain.texture":
-            load_user_texture(Path(ref.path))  # decoded, not only read: a bad image fails here, not at a frame
+            # Decoded, not only read: a bad image fails here, not at a frame.
+            files[field] = load_user_texture(Path(ref.path)).sha256
         elif field == "terrain.mesh":
-            load_user_terrain(Path(ref.path))
+            files[field] = load_user_terrain(Path(ref.path)).sha256
         else:
-            load_user_asset(Path(ref.path))
+            files[field] = load_user_asset(Path(ref.path)).sha256
+    return files
 
 
 def generate(
@@ -142,8 +188,8 @@ def generate(
 
 def open_dataset(spec: DatasetSpec, out: Path, mode: Mode = "new") -> list[int]:
     """Check the spec's files and the output folder, mark the dataset incomplete; the frames still to render."""
-    check_assets(spec)
-    prepare_output(out, spec, mode)
+    files = check_assets(spec)
+    prepare_output(out, spec, mode, files)
     return pending_frames(out, spec, range(spec.frames))
 
 
@@ -156,13 +202,32 @@ def render_frames(
     on_frames: Callable[[int], None] | None = None,
     platform: str = "egl",
 ) -> GenerateReport:
-    """Render `todo` into an opened dataset folder, then mark the dataset complete."""
+    """Render `todo` into an opened dataset folder, then mark the dataset complete.
+
+    The record pins the GL renderer of the first frame rendered; another renderer is refused before it writes.
+    """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    record = read_record(out)
+    files, pinned = record.get("user_files", {}), record.get("renderer")
+
+    def pin(renderer: str) -> None:
+        nonlocal pinned
+        if pinned is None:
+            write_record(out, spec, complete=False, renderer=renderer, files=files)
+            pinned = renderer
+        elif renderer != pinned:
+            raise OutputError(wrong_renderer(out, pinned, renderer))
+
     skipped = spec.frames - len(todo)
-    renderer = _run(spec, out, todo, workers, on_frames or (lambda n: None), platform)
-    write_record(out, spec, complete=True)
+    renderer = _run(spec, out, todo, workers, on_frames or (lambda n: None), platform, pinned, pin)
+    write_record(out, spec, complete=True, renderer=pinned, files=files)
     return GenerateReport(spec.frames, len(todo), skipped, renderer)
+
+
+def wrong_renderer(out: Path | str, pinned: str, ours: str) -> str:
+    return (f"{out}: cannot resume, its frames would not match: they were rendered with {pinned!r}, this machine "
+            f"renders with {ours!r}; use --overwrite to start again, or resume where that renderer is")
 
 
 def reproduce(spec: DatasetSpec, index: int, out: Path, platform: str = "egl") -> list[str]:
@@ -181,19 +246,20 @@ def reproduce(spec: DatasetSpec, index: int, out: Path, platform: str = "egl") -
     return list(files)
 
 
-def _run(spec, out, todo, workers, on_frames, platform) -> str:
+def _run(spec, out, todo, workers, on_frames, platform, pinned, pin) -> str:
     if not todo:
         return ""
     if workers == 1:
         with RenderSession(platform=platform) as session:
+            pin(session.renderer_name)
             for i in todo:
                 write_frame(out, session.frame_files(spec, i))
                 on_frames(1)
             return session.renderer_name
-    return _run_pool(spec, out, todo, workers, on_frames, platform)
+    return _run_pool(spec, out, todo, workers, on_frames, platform, pinned, pin)
 
 
-def _run_pool(spec, out, todo, workers, on_frames, platform) -> str:
+def _run_pool(spec, out, todo, workers, on_frames, platform, pinned, pin) -> str:
     ctx = mp.get_context("spawn")  # a GL context must never cross a fork
     tasks, results = ctx.Queue(), ctx.Queue()
     chunks = [todo[k : k + CHUNK] for k in range(0, len(todo), CHUNK)]
@@ -204,7 +270,7 @@ def _run_pool(spec, out, todo, workers, on_frames, platform) -> str:
         tasks.put(None)
     payload = spec.model_dump_json()
     # Daemonic: should this process exit on an unforeseen path, its workers are stopped, not waited for.
-    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform), daemon=True)
+    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform, pinned), daemon=True)
              for _ in range(workers)]
     renderer, done, finished = "", 0, 0
     try:
@@ -226,6 +292,7 @@ def _run_pool(spec, out, todo, workers, on_frames, platform) -> str:
                 done += value
                 on_frames(value)
             elif kind == "renderer":
+                pin(value)
                 renderer = value
             elif kind == "done":
                 finished += 1
@@ -267,10 +334,12 @@ def _sigint_ignored_by_children() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
-def _pool_main(payload: str, out: str, tasks, results, platform: str) -> None:
+def _pool_main(payload: str, out: str, tasks, results, platform: str, pinned: str | None) -> None:
     spec = DatasetSpec.model_validate_json(payload)
     try:
         with RenderSession(platform=platform) as session:
+            if pinned is not None and session.renderer_name != pinned:  # checked here: workers write frames
+                raise OutputError(wrong_renderer(out, pinned, session.renderer_name))
             results.put(("renderer", session.renderer_name))
             while (chunk := tasks.get()) is not None:
                 for i in chunk:

@@ -31,6 +31,7 @@ class Terrain:
     heights: np.ndarray | None  # (cells + 1, cells + 1) float32 metres, heights[iy, ix]; None for user meshes
     extent: tuple[float, float, float, float]  # (xmin, xmax, ymin, ymax) metres
     lookup: np.ndarray  # (ny, nx) float64 metres on a regular grid spanning `extent`; what height_at reads
+    sha256: str | None = None  # hex digest of the source mesh file; None for procedural terrains
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Surface height (..., ) float64 metres at `xy: (..., 2)` metres; see `bilinear`."""
@@ -283,4 +284,4 @@ def apply_texture(terrain: Terrain, texture: Texture, tile_m: float) -> Terrain:
     mesh = trimesh.Trimesh(vertices=vertices, faces=np.asarray(terrain.mesh.faces), vertex_colors=srgb_u8(rgb),
                            process=False)
     return Terrain(key=f"{terrain.key}+texture/{texture.sha256}/tile={tile_m!r}", mesh=freeze(mesh),
-                   heights=terrain.heights, extent=terrain.extent, lookup=terrain.lookup)
+                   heights=terrain.heights, extent=terrain.extent, lookup=terrain.lookup, sha256=terrain.sha256)

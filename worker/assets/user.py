@@ -77,7 +77,8 @@ def _user_terrain(path: Path, mtime_ns: int, size: int) -> Terrain:
     shape = (max(2, round((hi[1] - lo[1]) * scale) + 1), max(2, round((hi[0] - lo[0]) * scale) + 1))
     lookup = top_surface(vertices, np.asarray(mesh.faces), extent, shape)
     lookup.flags.writeable = False
-    return Terrain(key=f"terrain/file/{sha256}", mesh=freeze(mesh), heights=None, extent=extent, lookup=lookup)
+    return Terrain(key=f"terrain/file/{sha256}", mesh=freeze(mesh), heights=None, extent=extent, lookup=lookup,
+                   sha256=sha256)
 
 
 @functools.lru_cache(maxsize=8)
