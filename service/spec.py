@@ -13,6 +13,8 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    StrictBool,
+    StrictInt,
     ValidationError,
     field_validator,
     model_validator,
@@ -30,6 +32,9 @@ MAX_SHARD_MEGAPIXELS = 600.0  # shard_size * width * height / 1e6
 MAX_OBJECTS = 64  # per role and frame
 MAX_TERRAIN_CELLS = 1024
 MAX_VARIANTS = 1024
+MAX_ASSETS = 256  # entries in targets.assets and in distractors.assets
+MAX_CHOICES = 64  # entries in water.jerlov and terrain.styles (repeats weight the draw)
+MAX_PATH_CHARS = 4096
 
 Quality = Literal["draft", "fast", "default", "high"]
 ProceduralTarget = Literal["urchin", "rock", "coral", "seaweed", "clam"]
@@ -70,12 +75,14 @@ def _count_range(v: tuple[int, int]) -> tuple[int, int]:
 Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
 NonNegInterval = Annotated[tuple[float, float], AfterValidator(_ordered), AfterValidator(_nonneg)]
 PositiveInterval = Annotated[tuple[float, float], AfterValidator(_ordered), AfterValidator(_positive)]
-CountInterval = Annotated[tuple[int, int], AfterValidator(_count_range)]
+CountInterval = Annotated[tuple[StrictInt, StrictInt], AfterValidator(_count_range)]
 Vec3 = tuple[float, float, float]
 
 
 class _Model(BaseModel):
     # NaN and inf would slip past every bound check (NaN compares false), so no float field takes them.
+    # Integer and boolean fields are StrictInt / StrictBool: true, "7" and 2.0 are not integers, 1 and "yes"
+    # are not booleans (YAML's own true/false and JSON's true/false are).
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
@@ -103,8 +110,8 @@ class Intrinsics(_Model):
 
 
 class Camera(_Model):
-    width: int = Field(640, ge=MIN_SIDE, le=MAX_SIDE)
-    height: int = Field(480, ge=MIN_SIDE, le=MAX_SIDE)
+    width: StrictInt = Field(640, ge=MIN_SIDE, le=MAX_SIDE)
+    height: StrictInt = Field(480, ge=MIN_SIDE, le=MAX_SIDE)
     # Horizontal field of view; the vertical one follows from the aspect ratio (square pixels).
     hfov_deg: float | None = Field(None, gt=1.0, lt=170.0)
     intrinsics: Intrinsics | None = None
@@ -137,7 +144,7 @@ class Camera(_Model):
 class FileRef(_Model):
     """A user file: a local path (spec files, CLI) or the sha256 id of an asset uploaded to the service."""
 
-    path: str | None = None
+    path: str | None = Field(None, min_length=1, max_length=MAX_PATH_CHARS)
     asset_id: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
 
     def _sources(self) -> list[str]:
@@ -155,7 +162,7 @@ class AssetRef(FileRef):
 
     procedural: ProceduralTarget | None = None
     # Procedural kinds are built in this many deterministic variants, cached per process.
-    variants: int = Field(8, ge=1, le=MAX_VARIANTS)
+    variants: StrictInt = Field(8, ge=1, le=MAX_VARIANTS)
 
     def _sources(self) -> list[str]:
         return [n for n in ("procedural", "path", "asset_id") if getattr(self, n) is not None]
@@ -169,7 +176,9 @@ class AssetRef(FileRef):
 
 class Targets(_Model):
     class_name: str = Field("Urchin", pattern=r"^\S+$", max_length=64)
-    assets: list[AssetRef] = Field(default_factory=lambda: [AssetRef(procedural="urchin")], min_length=1)
+    assets: list[AssetRef] = Field(
+        default_factory=lambda: [AssetRef(procedural="urchin")], min_length=1, max_length=MAX_ASSETS
+    )
     count: CountInterval = (3, 8)
     scale: PositiveInterval = (0.8, 1.25)
 
@@ -178,16 +187,19 @@ class Distractors(_Model):
     assets: list[AssetRef] = Field(
         default_factory=lambda: [AssetRef(procedural=k) for k in ("rock", "coral", "seaweed", "clam")],
         min_length=1,
+        max_length=MAX_ASSETS,
     )
     count: CountInterval = (4, 12)
     scale: PositiveInterval = (0.7, 1.4)
 
 
 class Terrain(_Model):
-    styles: list[TerrainStyle] = Field(default_factory=lambda: ["sand", "pebbles", "rock"], min_length=1)
-    variants: int = Field(8, ge=1, le=MAX_VARIANTS)
+    styles: list[TerrainStyle] = Field(
+        default_factory=lambda: ["sand", "pebbles", "rock"], min_length=1, max_length=MAX_CHOICES
+    )
+    variants: StrictInt = Field(8, ge=1, le=MAX_VARIANTS)
     size_m: float = Field(12.0, gt=0, le=1000)
-    cells: int = Field(192, ge=2, le=MAX_TERRAIN_CELLS)
+    cells: StrictInt = Field(192, ge=2, le=MAX_TERRAIN_CELLS)
     relief_m: float = Field(0.25, ge=0, le=100)
     # User terrain: a mesh file (replaces the procedural heightfield) and/or a colour texture.
     mesh: FileRef | None = None
@@ -238,8 +250,8 @@ class RGBInterval(_Model):
 class Water(_Model):
     """Water: Jerlov types (beta from the table, jittered) and/or explicit per-channel ranges."""
 
-    enabled: bool = True
-    jerlov: list[str] = Field(default_factory=lambda: ["II", "III", "3C", "5C"])
+    enabled: StrictBool = True
+    jerlov: list[str] = Field(default_factory=lambda: ["II", "III", "3C", "5C"], max_length=MAX_CHOICES)
     beta_jitter: PositiveInterval = (0.85, 1.15)
     # beta_B = ratio * beta_D per channel when beta_B is not given explicitly.
     backscatter_ratio: PositiveInterval = (0.8, 1.0)
@@ -278,20 +290,20 @@ class Noise(_Model):
 
 
 class Outputs(_Model):
-    labels: bool = True
-    meta: bool = True
-    depth: bool = False
-    instance: bool = False
-    clean: bool = False
-    range: bool = False
+    labels: StrictBool = True
+    meta: StrictBool = True
+    depth: StrictBool = False
+    instance: StrictBool = False
+    clean: StrictBool = False
+    range: StrictBool = False
 
 
 class DatasetSpec(_Model):
     """A whole dataset. Every field has a default; unknown fields are refused."""
 
-    seed: int = Field(0, ge=0, lt=2**63)
-    frames: int = Field(100, ge=1, le=MAX_FRAMES)
-    shard_size: int = Field(50, ge=1, le=MAX_SHARD_SIZE)
+    seed: StrictInt = Field(0, ge=0, lt=2**63)
+    frames: StrictInt = Field(100, ge=1, le=MAX_FRAMES)
+    shard_size: StrictInt = Field(50, ge=1, le=MAX_SHARD_SIZE)
     quality: Quality = "default"
     camera: Camera = Camera()
     workspaces: Workspaces = Workspaces()

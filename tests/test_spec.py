@@ -15,6 +15,8 @@ from hypothesis import strategies as st
 
 from service.errors import SpecError
 from service.spec import (
+    MAX_ASSETS,
+    MAX_CHOICES,
     MAX_FRAMES,
     MAX_OBJECTS,
     MAX_SIDE,
@@ -216,6 +218,68 @@ def test_limits_themselves_are_valid():
     assert (spec.frames, spec.camera.width, spec.camera.height) == (MAX_FRAMES, MAX_SIDE, MAX_SIDE)
     counts = parse_spec({"targets": {"count": [0, MAX_OBJECTS]}, "distractors": {"count": [0, 0]}})
     assert (counts.targets.count, counts.distractors.count) == ((0, MAX_OBJECTS), (0, 0))
+
+
+# Integer fields take integers only, boolean fields booleans only: a lax parse would read these as 1, 7, 2, True.
+NOT_STRICT = [
+    ("seed", True), ("seed", "7"), ("seed", 2.0), ("frames", 2.0), ("frames", "10"), ("shard_size", False),
+    ("camera.width", 64.0), ("camera.height", "48"), ("targets.count", [1.0, 2]), ("terrain.cells", 16.0),
+    ("targets.assets", [{"procedural": "urchin", "variants": 2.0}]), ("outputs.depth", 1), ("outputs.labels", "true"),
+    ("outputs.range", 0.0), ("water.enabled", "no"),
+]
+
+
+@pytest.mark.parametrize(("dotted", "value"), NOT_STRICT, ids=[f"{d}={v!r}" for d, v in NOT_STRICT])
+def test_ints_and_bools_are_strict_naming_the_field(dotted, value):
+    (line,) = refusal(apply_overrides({}, {dotted: value}))
+    name = {"targets.count": "targets.count.0", "targets.assets": "targets.assets.0.variants"}.get(dotted, dotted)
+    assert line.startswith(f"{name}: Input should be a valid "), line
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "field"),
+    [
+        ("s.yaml", 'seed: "7"\n', "seed"),
+        ("s.yaml", "frames: 2.0\n", "frames"),
+        ("s.yaml", "outputs: {depth: 1}\n", "outputs.depth"),
+        ("s.json", '{"camera": {"width": 64.0}}', "camera.width"),
+        ("s.json", '{"shard_size": true}', "shard_size"),
+    ],
+)
+def test_files_get_the_same_strict_types(tmp_path, name, text, field):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(SpecError) as info:
+        load_spec(path)
+    header, line = str(info.value).splitlines()
+    assert header == f"{path}: invalid spec" and line.startswith(f"{field}: Input should be a valid "), line
+
+
+def test_strict_fields_still_take_yaml_and_json_natives(tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text("seed: 7\nframes: 10\ncamera: {width: 64, height: 48}\noutputs: {depth: yes, meta: false}\n")
+    spec = load_spec(path)
+    got = (spec.seed, spec.frames, spec.camera.width, spec.outputs.depth, spec.outputs.meta)
+    assert got == (7, 10, 64, True, False)
+    # Float fields still take integers.
+    assert parse_spec({"terrain": {"size_m": 3}}).terrain.size_m == 3.0
+
+
+@pytest.mark.parametrize(
+    ("dotted", "item", "limit"),
+    [
+        ("targets.assets", {"procedural": "urchin"}, MAX_ASSETS),
+        ("distractors.assets", {"procedural": "rock"}, MAX_ASSETS),
+        ("water.jerlov", "II", MAX_CHOICES),
+        ("terrain.styles", "sand", MAX_CHOICES),
+    ],
+)
+def test_lists_are_limited_naming_field_and_limit(dotted, item, limit):
+    at_limit = parse_spec(apply_overrides({}, {dotted: [item] * limit}))
+    section, field = dotted.split(".")
+    assert len(getattr(getattr(at_limit, section), field)) == limit
+    (line,) = refusal(apply_overrides({}, {dotted: [item] * (limit + 1)}))
+    assert line == f"{dotted}: List should have at most {limit} items after validation, not {limit + 1}"
 
 
 def test_non_mapping_spec_is_refused():
