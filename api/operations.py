@@ -10,10 +10,11 @@ import time
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from api.deps import Services
 from api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPublic
+from api.uploads import ARTICLED, FORMATS, FileFormat, field_kind, format_of, validate
 from service.errors import AssetError, Conflict, LimitExceeded, NotFound, SpecError, Unavailable
 from service.manifest import build_manifest
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
@@ -32,7 +33,7 @@ from service.shards import (
 )
 from service.spec import DatasetSpec
 
-UPLOAD_SUFFIXES = (".glb", ".obj", ".ply", ".stl", ".png", ".jpg", ".jpeg")
+UPLOAD_SUFFIXES = tuple(FORMATS)
 
 
 # --- admission
@@ -70,14 +71,19 @@ def check_limits(spec: DatasetSpec, settings: Settings) -> None:
 
 
 def check_files(spec: DatasetSpec, services: Services) -> None:
-    """A POSTed spec names uploaded assets only: SpecError naming every path and every unknown asset id."""
+    """A POSTed spec names uploaded assets only, each of the kind its field needs (a mesh, or an image for
+    terrain.texture): SpecError naming every path, every unknown asset id and every asset of the wrong kind."""
     bad = []
     for where, ref in spec.file_refs():
         if ref.path is not None:
             bad.append(f"{where}.path: local paths and URLs are not accepted here; upload the file to POST /assets "
                        "and reference it by asset_id")
-        elif services.store.head(asset_key(ref.asset_id)) is None:
+            continue
+        fmt = stored_format(services, ref.asset_id)
+        if fmt is None or services.store.head(asset_key(ref.asset_id)) is None:
             bad.append(f"{where}.asset_id: no uploaded asset {ref.asset_id}")
+        elif fmt.kind != (need := field_kind(where)):
+            bad.append(f"{where}.asset_id: asset {ref.asset_id} is {fmt}; this field needs {ARTICLED[need]}")
     if bad:
         raise SpecError("\n".join(bad))
 
@@ -283,10 +289,31 @@ def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[s
 # --- assets
 
 
-def store_asset(services: Services, filename: str, stream: BinaryIO) -> tuple[str, int]:
-    """Stream an upload to a temporary file while hashing it, then store it as assets/{sha256}."""
-    suffix = Path(filename or "").suffix.lower()
-    if suffix not in UPLOAD_SUFFIXES:
+def stored_format(services: Services, asset_id: str) -> FileFormat | None:
+    """The format an uploaded asset was stored as (its sidecar's file name), or None for no such asset."""
+    info = _sidecar(services, asset_id)
+    return None if info is None else format_of(info.get("filename", ""))
+
+
+def _sidecar(services: Services, asset_id: str) -> dict[str, Any] | None:
+    try:
+        return json.loads(services.store.get_bytes(asset_info_key(asset_id)))
+    except NotFound:
+        return None
+
+
+def store_asset(services: Services, filename: str, stream: BinaryIO) -> tuple[dict[str, Any], bool]:
+    """Check and store an upload as assets/{sha256}; return its sidecar (with format and kind) and whether
+    this upload created it.
+
+    The upload is hashed into a temporary file and must load as its suffix says (AssetError, 422). The sidecar
+    assets/{sha256}.json, whose file name tells workers the format, is written once: the first upload of some
+    bytes decides their format for good. The same bytes again under the same format change nothing; under
+    another format they are a Conflict (409) naming the stored one.
+    """
+    fmt = format_of(filename or "")
+    if fmt is None:
+        suffix = Path(filename or "").suffix.lower()
         raise AssetError(f"{filename or '(no name)'}: unsupported file type {suffix!r}; "
                          f"upload one of {', '.join(UPLOAD_SUFFIXES)}")
     limit = services.settings.max_asset_bytes
@@ -302,9 +329,22 @@ def store_asset(services: Services, filename: str, stream: BinaryIO) -> tuple[st
         if size == 0:
             raise AssetError(f"{filename}: the file is empty")
         asset_id = sha.hexdigest()
-        # The sidecar goes first: an asset whose object exists always has its sidecar.
-        info = {"filename": Path(filename).name, "bytes": size, "sha256": asset_id}
-        services.store.put_bytes(asset_info_key(asset_id), json.dumps(info).encode(), "application/json")
+        stored, created = _sidecar(services, asset_id), False
+        if stored is None:
+            validate(Path(tmp.name), fmt, filename)
+            info = {"filename": Path(filename).name, "bytes": size, "sha256": asset_id, "format": fmt.format,
+                    "kind": fmt.kind}
+            # The sidecar goes first (an asset whose object exists always has its sidecar), and only if absent:
+            # of two uploads racing with different formats one wins, and the other reads the winner's sidecar.
+            created = services.store.put_bytes_if_absent(
+                asset_info_key(asset_id), json.dumps(info).encode(), "application/json"
+            )
+            stored = info if created else _sidecar(services, asset_id)
+        have = format_of(stored.get("filename", ""))
+        if have != fmt:
+            raise Conflict(f"{filename}: these bytes are already uploaded as asset {asset_id}, {have}, first as "
+                           f"{stored.get('filename')!r}; they cannot also be {fmt}")
+        # Also after a re-upload: an upload that died between the sidecar and the object left no object.
         if services.store.head(asset_key(asset_id)) is None:
             services.store.put_file(asset_key(asset_id), Path(tmp.name))
-    return asset_id, size
+    return {**stored, "format": have.format, "kind": have.kind}, created

@@ -28,6 +28,9 @@ class ObjectStore(Protocol):
 
     def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None: ...
 
+    # Writes `data` unless `key` exists (first writer wins, also between concurrent callers); True if written.
+    def put_bytes_if_absent(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> bool: ...
+
     def get_bytes(self, key: str) -> bytes: ...  # NotFound naming the key
 
     def download(self, key: str, path: Path) -> None: ...  # NotFound naming the key
@@ -76,6 +79,23 @@ class LocalStore:
 
     def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
         self._write(key, lambda f: f.write(data))
+
+    def put_bytes_if_absent(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> bool:
+        dest = self._path(key)
+        try:
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=".tmp-", suffix=dest.name)
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(data)
+                os.link(tmp, dest)  # atomic, and fails if dest exists (os.replace would overwrite)
+                return True
+            except FileExistsError:
+                return False
+            finally:
+                Path(tmp).unlink(missing_ok=True)
+        except OSError as err:
+            raise OutputError(f"{dest}: cannot write object {key} ({err.strerror or err})") from err
 
     def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
         def copy(f) -> None:
@@ -149,6 +169,28 @@ class S3Store:
             self.client.put_object(Bucket=self.bucket, Key=key, Body=data, ContentType=content_type)
         except Exception as err:
             raise self._fail(err, key) from err
+
+    def put_bytes_if_absent(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> bool:
+        # S3's conditional write (If-None-Match: *; AWS since 2024, MinIO, moto): 412 when the key exists,
+        # 409 while a concurrent conditional write of the key is in flight (then ask again).
+        from botocore.exceptions import ClientError
+
+        _check_key(key)
+        for _ in range(5):
+            try:
+                self.client.put_object(Bucket=self.bucket, Key=key, Body=data, ContentType=content_type,
+                                       IfNoneMatch="*")
+                return True
+            except ClientError as err:
+                code = err.response.get("Error", {}).get("Code", "")
+                status = err.response.get("ResponseMetadata", {}).get("HTTPStatusCode")
+                if code == "PreconditionFailed" or status == 412:
+                    return False
+                if code != "ConditionalRequestConflict" and status != 409:
+                    raise self._fail(err, key) from err
+            except Exception as err:
+                raise self._fail(err, key) from err
+        raise Unavailable(f"s3://{self.bucket}/{key}: conditional write kept conflicting with another writer")
 
     def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
         _check_key(key)

@@ -202,10 +202,15 @@ def test_purge_deletes_the_objects(stack: Stack, client, services):
 
 
 def test_unusable_asset_fails_the_dataset_after_n_attempts(stack: Stack, client, services):
-    up = client.post("/assets", files={"file": ("broken.obj", b"this is not a mesh\n")})
-    assert up.status_code == 201, up.text
-    asset_id = up.json()["asset_id"]
-    assert asset_id == hashlib.sha256(b"this is not a mesh\n").hexdigest()
+    data = b"this is not a mesh\n"
+    up = client.post("/assets", files={"file": ("broken.obj", data)})
+    assert up.status_code == 422, up.text
+    assert up.json()["errors"] == ["broken.obj: the obj mesh has no triangles"]
+    # One stored before uploads were checked (or that only a worker's loader refuses) still fails cleanly.
+    asset_id = hashlib.sha256(data).hexdigest()
+    info = {"filename": "broken.obj", "bytes": len(data), "sha256": asset_id}
+    services.store.put_bytes(f"assets/{asset_id}.json", json.dumps(info).encode())
+    services.store.put_bytes(f"assets/{asset_id}", data)
     spec = tiny_spec(frames=2, shard_size=2, targets={"count": [1, 1], "assets": [{"asset_id": asset_id}]})
     dataset_id = post(client, spec)
     final = wait_state(client, dataset_id, {"succeeded", "failed"}, timeout=60)
