@@ -1,14 +1,15 @@
-"""Dependencies: the per-app Services (Redis, storage, task producer), API keys, dataset ids from paths."""
+"""Dependencies: the per-app Services (Redis, storage, task producer), dataset ids from paths.
+
+API keys are checked before any route runs, by api/gate.py."""
 
 from __future__ import annotations
 
-import hmac
 from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import Depends, Path, Request
 
-from service.errors import NotFound, Unauthorized
+from service.errors import NotFound
 from service.records import Records
 from service.settings import Settings
 from service.shards import DATASET_ID
@@ -60,19 +61,6 @@ def get_services(request: Request) -> Services:
 
 
 ServicesDep = Annotated[Services, Depends(get_services)]
-
-
-def require_api_key(request: Request, services: ServicesDep) -> None:
-    """With SEASYNTH_API_KEYS set, a request needs one of them in X-API-Key or Authorization: Bearer."""
-    keys = services.settings.api_key_set
-    if not keys:
-        return
-    given = request.headers.get("x-api-key")
-    auth = request.headers.get("authorization", "")
-    if given is None and auth[:7].lower() == "bearer ":
-        given = auth[7:].strip()
-    if not given or not any(hmac.compare_digest(given.encode(), k.encode()) for k in keys):
-        raise Unauthorized("a valid API key is required (X-API-Key header or Authorization: Bearer)")
 
 
 def dataset_id(id: Annotated[str, Path(description="Dataset id (32 lowercase hex digits)")]) -> str:

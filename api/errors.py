@@ -7,6 +7,7 @@ import logging
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException
 
 from service.errors import (
     AssetError,
@@ -77,8 +78,13 @@ def install(app: FastAPI, retry_after_s: int) -> None:
             error_body(f"status store unavailable: {err}"), status_code=503, headers={"Retry-After": str(retry_after_s)}
         )
 
+    async def http(request: Request, err: HTTPException) -> JSONResponse:
+        # Starlette's own answers (unknown path, wrong method, unparsable form) in the same body shape.
+        return JSONResponse(error_body(str(err.detail)), status_code=err.status_code, headers=err.headers)
+
     import redis
 
+    app.add_exception_handler(HTTPException, http)
     app.add_exception_handler(SeasynthError, domain)
     app.add_exception_handler(RequestValidationError, invalid)
     app.add_exception_handler(redis.RedisError, redis_down)

@@ -38,7 +38,8 @@ class Settings(BaseSettings):
     max_frames: int = Field(1_000_000, ge=1)
     max_side: int = Field(4096, ge=8)  # camera.width and camera.height
     max_objects: int = Field(64, ge=0)  # per role and frame (upper end of targets.count, distractors.count)
-    max_asset_bytes: int = Field(256 * 2**20, ge=1)
+    max_asset_bytes: int = Field(256 * 2**20, ge=1)  # one uploaded file; a multipart body may add 64 KiB
+    max_spec_bytes: int = Field(2**20, ge=1024)  # the body of POST /datasets (and of any other non-upload request)
     frame_timeout_s: float = Field(60.0, gt=0)  # GET /datasets/{id}/frames/{i} waits this long, then 503
     retry_after_s: int = Field(10, ge=1)
 

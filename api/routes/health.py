@@ -10,13 +10,13 @@ from service import __version__
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", response_model=Health)
+@router.api_route("/healthz", methods=["GET", "HEAD"], response_model=Health)
 def healthz() -> Health:
     """The process is up."""
     return Health(status="ok", version=__version__)
 
 
-@router.get("/readyz", response_model=Health, responses={503: {"model": Health}})
+@router.api_route("/readyz", methods=["GET", "HEAD"], response_model=Health, responses={503: {"model": Health}})
 def readyz(services: ServicesDep):
     """Redis and the bucket are reachable."""
     checks, ok = {}, True

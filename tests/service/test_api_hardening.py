@@ -1,11 +1,12 @@
 """The API under abuse and outages, over real HTTP with real Redis and moto's S3: asset formats fixed by the first
-upload and uploads that must load."""
+upload, uploads that must load, and body limits and the key checked before any body is read."""
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import io
+import json
 import socket
 import struct
 import tarfile
@@ -268,3 +269,74 @@ def test_datasets_need_meshes_for_objects_and_an_image_for_the_texture(api):
     r = api.post("/datasets", json=right)
     assert r.status_code == 202, r.text
     assert api.delete(f"/datasets/{r.json()['id']}").json()["state"] == "cancelled"
+
+
+# --- the gate: the key first, then the body's size, before any body is read
+
+
+def test_an_unauthenticated_request_is_refused_before_its_body_is_read(serve):
+    url = serve()
+    for path in ("/assets", "/datasets"):
+        # 100 MB announced and none sent: a server reading the body first would wait here until the timeout.
+        status, headers, body = raw_http(url, f"POST {path} HTTP/1.1\nHost: x\nContent-Type: application/json\n"
+                                              f"Content-Length: 100000000\n")
+        assert status == 401 and headers["www-authenticate"] == 'Bearer realm="seasynth"', body
+        assert json.loads(body)["errors"] == ["a valid API key is required (X-API-Key header or Authorization: Bearer)"]
+        status, _, _ = raw_http(url, f"POST {path} HTTP/1.1\nHost: x\nTransfer-Encoding: chunked\nX-API-Key: nope\n"
+                                     "Content-Type: multipart/form-data; boundary=b\n", [chunk(b"x" * 1000)])
+        assert status == 401
+
+
+def test_bodies_over_the_limit_are_refused_before_or_while_they_stream(serve, settings):
+    url = serve()
+    spec_limit, upload_limit = settings.max_spec_bytes, settings.max_asset_bytes + 64 * 1024
+    part_head = b'--b\r\nContent-Disposition: form-data; name="file"; filename="x.obj"\r\n\r\n'
+    cases = [("/datasets", "application/json", b"", spec_limit, f"{spec_limit} bytes (SEASYNTH_MAX_SPEC_BYTES)"),
+             ("/assets", "multipart/form-data; boundary=b", part_head, upload_limit,
+              f"{settings.max_asset_bytes} bytes of file (SEASYNTH_MAX_ASSET_BYTES) plus 65536 bytes of multipart "
+              "framing")]
+    for path, content_type, first, limit, named in cases:
+        # By Content-Length, with no body sent at all.
+        status, _, body = raw_http(url, f"POST {path} HTTP/1.1\nHost: x\nX-API-Key: {KEY}\n"
+                                        f"Content-Length: {limit + 1}\n")
+        assert status == 413 and json.loads(body)["errors"] == [
+            f"request body of {limit + 1} bytes is over the limit of {named}"]
+        # Chunked: refused once the limit is passed, although the body never ends.
+        status, _, body = raw_http(url, f"POST {path} HTTP/1.1\nHost: x\nX-API-Key: {KEY}\n"
+                                        f"Content-Type: {content_type}\nTransfer-Encoding: chunked\n",
+                                   [chunk(first + b" " * 1000)] + [chunk(b" " * 1000)] * (limit // 1000))
+        assert status == 413, body
+        (line,) = json.loads(body)["errors"]
+        assert line.startswith(f"request body is over the limit of {named} (stopped after ")
+
+
+def test_a_spec_of_exactly_the_limit_is_read(api, settings):
+    spec = json.dumps(tiny_spec()).encode()
+    exact = spec + b" " * (settings.max_spec_bytes - len(spec))
+    r = api.post("/datasets", content=exact, headers={"content-type": "application/json"})
+    assert r.status_code == 202, r.text
+    assert api.delete(f"/datasets/{r.json()['id']}").json()["state"] == "cancelled"
+    r = api.post("/datasets", content=exact + b" ", headers={"content-type": "application/json"})
+    assert r.status_code == 413 and "SEASYNTH_MAX_SPEC_BYTES" in r.json()["detail"]
+
+
+def test_a_file_over_the_asset_limit_within_the_framing_allowance_is_refused(api, settings):
+    r = api.post("/assets", files={"file": ("big.obj", b"#" * (settings.max_asset_bytes + 1))})
+    assert r.status_code == 413
+    assert r.json()["errors"] == [f"big.obj: over the limit of {settings.max_asset_bytes} bytes "
+                                  "(SEASYNTH_MAX_ASSET_BYTES)"]
+
+
+def test_keys_headers_and_health(serve):
+    url = serve()
+    assert httpx.get(f"{url}/datasets", headers={"X-API-Key": "", "Authorization": f"Bearer {KEY}"}).status_code == 200
+    assert httpx.get(f"{url}/datasets", headers={"Authorization": f"bearer {KEY}"}).status_code == 200
+    assert httpx.get(f"{url}/datasets", headers={"X-API-Key": ""}).status_code == 401
+    assert httpx.get(f"{url}/datasets", headers={"Authorization": "Bearer"}).status_code == 401
+    assert httpx.get(f"{url}/datasets", headers={"X-API-Key": "nope", "Authorization": "Basic x"}).status_code == 401
+    assert httpx.get(f"{url}/nowhere").status_code == 401  # nothing is probed without a key
+    assert httpx.get(f"{url}/nowhere", headers={"X-API-Key": KEY}).json()["errors"] == ["Not Found"]
+    for path in ("/healthz", "/readyz"):  # probes carry no key
+        head = httpx.head(f"{url}{path}")
+        assert head.status_code == 200 and head.content == b"", path
+        assert httpx.get(f"{url}{path}").json()["status"] == "ok"
