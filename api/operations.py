@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import tempfile
 import time
 import uuid
@@ -33,7 +34,23 @@ from service.shards import (
 )
 from service.spec import DatasetSpec
 
+log = logging.getLogger(__name__)
+
 UPLOAD_SUFFIXES = tuple(FORMATS)
+
+
+# --- the broker
+
+
+def publish(services: Services, task: str, args: list, queue: str, **options: Any) -> None:
+    """Publish a task by name; Unavailable (503, Retry-After) when the broker cannot take it."""
+    import redis
+    from kombu.exceptions import KombuError
+
+    try:
+        services.producer.send_task(task, args=args, queue=queue, **options)
+    except (KombuError, redis.RedisError, OSError) as err:
+        raise Unavailable(f"task broker unavailable: could not publish {task} ({type(err).__name__}: {err})") from err
 
 
 # --- admission
@@ -97,7 +114,13 @@ def links(dataset_id: str) -> DatasetLinks:
 
 
 def create_dataset(services: Services, spec: DatasetSpec) -> DatasetCreated:
-    """Record the dataset and publish one planner task: O(1) broker writes whatever the frame count."""
+    """Record the dataset and publish one planner task: O(1) broker writes whatever the frame count.
+
+    The record comes first: a planner task must find its record, or the worker drops it. When the publish
+    fails the record is discarded and the answer is 503, so no client ever sees a dataset that nothing will
+    render. If the API dies between the two writes, the record stays queued, and the reconciler republishes
+    it once it has stalled for SEASYNTH_STALL_TIMEOUT_S (status reads, listings, `seasynth reconcile`).
+    """
     s = services.settings
     check_limits(spec, s)
     check_files(spec, services)
@@ -113,7 +136,11 @@ def create_dataset(services: Services, spec: DatasetSpec) -> DatasetCreated:
         shards=shards,
         now=time.time(),
     )
-    services.producer.send_task(TASK_PLAN, args=[dataset_id, 0], queue=shard_queue(s.worker_version))
+    try:
+        publish(services, TASK_PLAN, [dataset_id, 0], shard_queue(s.worker_version))
+    except Unavailable:
+        services.records.discard(dataset_id)
+        raise
     return DatasetCreated(
         id=dataset_id,
         state="queued",
@@ -160,17 +187,22 @@ def public(rec: DatasetRecord, now: float) -> DatasetPublic:
 
 
 def dataset_status(services: Services, dataset_id: str) -> DatasetPublic:
+    """The record, and on the side a nudge to the reconciler when the dataset needs one. A nudge that cannot be
+    published does not fail the read: the status is still true, and the next read nudges again."""
     rec = services.records.get(dataset_id)
     now = time.time()
-    if (
-        rec.state == RUNNING
-        and rec.shards_done + rec.shards_failed == rec.shards_total
-        and not services.records.is_finalising(dataset_id)
-    ):
-        # Every shard is in but nobody finalised (the finaliser died): let a worker reconcile.
-        services.producer.send_task(TASK_RECONCILE, args=[dataset_id, False], queue=shard_queue(rec.code_version))
-    else:
-        sweep_if_stalled(services, rec, now)
+    try:
+        if (
+            rec.state == RUNNING
+            and rec.shards_done + rec.shards_failed == rec.shards_total
+            and not services.records.is_finalising(dataset_id)
+        ):
+            # Every shard is in but nobody finalised (the finaliser died): let a worker reconcile.
+            publish(services, TASK_RECONCILE, [dataset_id, False], shard_queue(rec.code_version))
+        else:
+            sweep_if_stalled(services, rec, now)
+    except Unavailable as err:
+        log.warning("dataset %s: reconciler not nudged, the next status read retries: %s", dataset_id, err)
     return public(rec, now)
 
 
@@ -182,7 +214,10 @@ def list_datasets(services: Services, offset: int, limit: int) -> tuple[list[Dat
             rec = services.records.get(i)
         except NotFound:  # deleted between the two reads
             continue
-        sweep_if_stalled(services, rec, now)
+        try:
+            sweep_if_stalled(services, rec, now)
+        except Unavailable as err:  # as in dataset_status: the listing is still true
+            log.warning("dataset %s: reconciler not nudged, the next read retries: %s", i, err)
         out.append(public(rec, now))
     return out, total
 
@@ -199,7 +234,8 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
     commit markers and republishes the pending shards, marked to defer to a running execution; a copy of a
     shard that was only waiting in the queue is skipped once its original committed. At most once per stall
     timeout per dataset (a Redis lock), whoever triggers it: status reads or `seasynth reconcile`.
-    `force` (an explicit reconcile) skips the stall and lock checks.
+    `force` (an explicit reconcile) skips the stall and lock checks. Unavailable when the broker cannot take
+    the task; the lock is given back, so the next caller tries again.
     """
     s = services.settings
     if rec.state not in (QUEUED, RUNNING):
@@ -211,7 +247,12 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
             return False
         if not services.records.claim_sweep(rec.id, s.stall_s):
             return False
-    services.producer.send_task(TASK_RECONCILE, args=[rec.id, True], queue=shard_queue(rec.code_version))
+    try:
+        publish(services, TASK_RECONCILE, [rec.id, True], shard_queue(rec.code_version))
+    except Unavailable:
+        if not force:
+            services.records.release_sweep(rec.id)
+        raise
     return True
 
 
@@ -249,7 +290,7 @@ def cancel_dataset(services: Services, dataset_id: str, purge: bool) -> DatasetP
 
 def reconcile_dataset(services: Services, dataset_id: str, requeue: bool) -> DatasetPublic:
     rec = services.records.get(dataset_id)
-    services.producer.send_task(TASK_RECONCILE, args=[dataset_id, requeue], queue=shard_queue(rec.code_version))
+    publish(services, TASK_RECONCILE, [dataset_id, requeue], shard_queue(rec.code_version))
     return public(rec, time.time())
 
 
@@ -272,9 +313,7 @@ def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[s
         raise NotFound(f"no frame part {part!r}")
     timeout = services.settings.frame_timeout_s
     key = services.records.reply_key(uuid.uuid4().hex)
-    services.producer.send_task(
-        TASK_FRAME, args=[dataset_id, index, part, key], queue=frame_queue(rec.code_version), expires=timeout
-    )
+    publish(services, TASK_FRAME, [dataset_id, index, part, key], frame_queue(rec.code_version), expires=timeout)
     got = wait_reply(services.raw_redis, key, timeout)
     if got is None:
         raise Unavailable(f"no frame worker rendered frame {index} of dataset {dataset_id} within {timeout:g} s")

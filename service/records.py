@@ -70,6 +70,16 @@ end
 return s
 """
 
+# Sets fields of an existing record only: a late writer never recreates a discarded dataset's hash.
+_UPDATE = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+redis.call('HSET', KEYS[1], unpack(ARGV))
+return 1
+"""
+
+# Every key of a dataset, for discarding one that was never published.
+PARTS = ("done", "failed", "shards", "tries", "errors", "running", "final", "sweep")
+
 
 @dataclass(frozen=True)
 class DatasetRecord:
@@ -127,6 +137,7 @@ class Records:
         self._commit = redis.register_script(_COMMIT)
         self._fail = redis.register_script(_FAIL)
         self._finish = redis.register_script(_FINISH)
+        self._update = redis.register_script(_UPDATE)
 
     def _k(self, dataset_id: str, part: str = "") -> str:
         return f"{self.p}:ds:{dataset_id}" + (f":{part}" if part else "")
@@ -161,6 +172,14 @@ class Records:
         with self.r.pipeline() as pipe:
             pipe.hset(self._k(dataset_id), mapping=fields)
             pipe.zadd(f"{self.p}:datasets", {dataset_id: int(now * 1000)})
+            pipe.execute()
+
+    def discard(self, dataset_id: str) -> None:
+        """Remove a dataset and every key it has, as if it had never been created (one whose planner task could
+        not be published)."""
+        with self.r.pipeline(transaction=True) as pipe:
+            pipe.zrem(f"{self.p}:datasets", dataset_id)
+            pipe.delete(self._k(dataset_id), *(self._k(dataset_id, part) for part in PARTS))
             pipe.execute()
 
     def get(self, dataset_id: str) -> DatasetRecord:
@@ -232,11 +251,15 @@ class Records:
 
     def touch(self, dataset_id: str, now: float) -> None:
         """Note activity (planning, a sweep): the reconciler leaves a dataset alone for a stall timeout after."""
-        self.r.hset(self._k(dataset_id), "touched_at", repr(now))
+        self._update(keys=[self._k(dataset_id)], args=["touched_at", repr(now)])
 
     def claim_sweep(self, dataset_id: str, ttl_s: int) -> bool:
         """True for the one caller that may sweep the dataset now; the next sweep waits ttl_s."""
         return bool(self.r.set(self._k(dataset_id, "sweep"), "1", nx=True, ex=max(1, int(ttl_s))))
+
+    def release_sweep(self, dataset_id: str) -> None:
+        """Give a claimed sweep back (its task could not be published), so the next caller may sweep."""
+        self.r.delete(self._k(dataset_id, "sweep"))
 
     # --- shards
     def start_attempt(self, dataset_id: str, index: int, max_attempts: int, running: dict[str, Any]) -> int:

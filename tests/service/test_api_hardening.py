@@ -1,5 +1,6 @@
 """The API under abuse and outages, over real HTTP with real Redis and moto's S3: asset formats fixed by the first
-upload, uploads that must load, and body limits and the key checked before any body is read."""
+upload, uploads that must load, body limits and the key checked before any body is read, and a
+broker that is down."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from contextlib import contextmanager
 import httpx
 import pytest
 
-from service.shards import asset_info_key, asset_key
+from service.records import Records, ShardCommit
+from service.shards import asset_info_key, asset_key, shard_count
 from service.storage import LocalStore, S3Store
 from service_stack import Stack, free_port, tiny_spec, wait_for, wait_state
 
@@ -340,3 +342,67 @@ def test_keys_headers_and_health(serve):
         head = httpx.head(f"{url}{path}")
         assert head.status_code == 200 and head.content == b"", path
         assert httpx.get(f"{url}{path}").json()["status"] == "ok"
+
+
+# --- the broker or the bucket down
+
+
+def hardening_keys(services) -> set[str]:
+    return set(services.records.r.scan_iter(match="hardening:ds:*"))
+
+
+def test_a_dataset_the_broker_cannot_take_is_503_and_leaves_no_record(serve, services, settings):
+    url = serve(producer=dead_producer())
+    before_ids, before_keys = services.records.list_ids(0, 10**6), hardening_keys(services)
+    r = httpx.post(f"{url}/datasets", json=tiny_spec(), headers={"X-API-Key": KEY}, timeout=60)
+    assert r.status_code == 503 and r.headers["retry-after"] == str(settings.retry_after_s), r.text
+    assert r.json()["detail"].startswith("task broker unavailable: could not publish seasynth.plan_dataset (")
+    assert services.records.list_ids(0, 10**6) == before_ids
+    assert hardening_keys(services) == before_keys
+
+
+def new_record(records: Records, *, frames: int, shard_size: int = 1, age_s: float = 0.0) -> str:
+    import uuid
+
+    dataset_id = uuid.uuid4().hex
+    records.create(dataset_id, tiny_spec(frames=frames, shard_size=shard_size), seed=7, code_version=VERSION,
+                   frames=frames, shard_size=shard_size, shards=shard_count(frames, shard_size),
+                   now=time.time() - age_s)
+    return dataset_id
+
+
+def commit(records: Records, dataset_id: str, index: int, data: bytes, store=None) -> ShardCommit:
+    key = f"datasets/{dataset_id}/shards/shard-{index:06d}.tar"
+    if store is not None:
+        store.put_bytes(key, data)
+    c = ShardCommit(index=index, key=key, first_frame=index, frame_count=1, sha256=hashlib.sha256(data).hexdigest(),
+                    bytes=len(data), code_version=VERSION, renderer="test")
+    records.commit(dataset_id, c)
+    return c
+
+
+def test_status_reads_survive_a_broker_outage_and_retry_the_nudge(serve, services):
+    url = serve(producer=dead_producer())
+    headers = {"X-API-Key": KEY}
+    records = services.records
+    # Every shard in but not finalised: a status read publishes a reconcile, and cannot.
+    done = new_record(records, frames=2)
+    for i in range(2):
+        records.start_attempt(done, i, 3, {"since": time.time()})
+        commit(records, done, i, b"shard %d" % i)
+        records.end_attempt(done, i)
+    r = httpx.get(f"{url}/datasets/{done}", headers=headers)
+    assert r.status_code == 200, r.text
+    assert (r.json()["state"], r.json()["shards_done"], r.json()["frames_done"]) == ("running", 2, 2)
+    # Stalled: the sweep claims its lock, cannot publish, and gives the lock back for the next read.
+    stalled = new_record(records, frames=3, age_s=10_000)
+    for path in (f"/datasets/{stalled}", "/datasets?limit=100"):
+        r = httpx.get(f"{url}{path}", headers=headers)
+        assert r.status_code == 200, r.text
+    assert records.claim_sweep(stalled, 60)
+    # Asked for explicitly, the reconcile is the answer: 503.
+    r = httpx.post(f"{url}/datasets/{stalled}/reconcile", headers=headers)
+    assert r.status_code == 503 and r.headers["retry-after"] == "9"
+    assert "task broker unavailable" in r.json()["detail"]
+    r = httpx.get(f"{url}/datasets/{done}/frames/0", headers=headers)
+    assert r.status_code == 503 and "seasynth.render_frame" in r.json()["detail"]
