@@ -247,7 +247,8 @@ class Records:
         return self._finish(keys=[self._k(dataset_id)], args=[state, repr(now)])
 
     def mark_purged(self, dataset_id: str) -> None:
-        self.r.hset(self._k(dataset_id), "purged", "1")
+        """Note that the dataset's objects are gone: call it only after they were deleted."""
+        self._update(keys=[self._k(dataset_id)], args=["purged", "1"])
 
     def touch(self, dataset_id: str, now: float) -> None:
         """Note activity (planning, a sweep): the reconciler leaves a dataset alone for a stall timeout after."""

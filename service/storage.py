@@ -233,12 +233,19 @@ class S3Store:
 
     def delete_prefix(self, prefix: str) -> int:
         keys = [o.key for o in self.list(prefix)]
-        try:
-            for i in range(0, len(keys), 1000):
-                batch = [{"Key": k} for k in keys[i : i + 1000]]
-                self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
-        except Exception as err:
-            raise self._fail(err, prefix) from err
+        for i in range(0, len(keys), 1000):
+            batch = [{"Key": k} for k in keys[i : i + 1000]]
+            try:
+                r = self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
+            except Exception as err:
+                raise self._fail(err, prefix) from err
+            # A 200 answer may still list keys it did not delete (Quiet mode reports only those).
+            if failed := r.get("Errors"):
+                first = failed[0]
+                raise Unavailable(
+                    f"s3://{self.bucket}/{prefix}: {len(failed)} objects not deleted, e.g. {first.get('Key')} "
+                    f"({first.get('Code')}: {first.get('Message')})"
+                )
         return len(keys)
 
     def url(self, key: str) -> str:

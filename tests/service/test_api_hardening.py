@@ -1,6 +1,6 @@
 """The API under abuse and outages, over real HTTP with real Redis and moto's S3: asset formats fixed by the first
 upload, uploads that must load, body limits and the key checked before any body is read, and a
-broker that is down."""
+broker or a bucket that is down."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from contextlib import contextmanager
 import httpx
 import pytest
 
+from service.errors import Unavailable
 from service.records import Records, ShardCommit
 from service.shards import asset_info_key, asset_key, shard_count
 from service.storage import LocalStore, S3Store
@@ -406,3 +407,54 @@ def test_status_reads_survive_a_broker_outage_and_retry_the_nudge(serve, service
     assert "task broker unavailable" in r.json()["detail"]
     r = httpx.get(f"{url}/datasets/{done}/frames/0", headers=headers)
     assert r.status_code == 503 and "seasynth.render_frame" in r.json()["detail"]
+
+
+def test_a_purge_the_bucket_fails_is_503_and_can_be_repeated(serve, services, settings):
+    records = services.records
+    dataset_id = new_record(records, frames=3)
+    for i in range(3):
+        commit(records, dataset_id, i, b"tar %d" % i, services.store)
+    prefix = f"datasets/{dataset_id}/"
+    keys = sorted(o.key for o in services.store.list(prefix))
+    assert len(keys) == 3
+    headers = {"X-API-Key": KEY}
+
+    down = serve(store=dead_store(settings.s3_bucket))
+    r = httpx.delete(f"{down}/datasets/{dataset_id}", params={"purge": "true"}, headers=headers, timeout=60)
+    assert r.status_code == 503 and r.headers["retry-after"] == "9", r.text
+    assert f"s3://{settings.s3_bucket}/{prefix}" in r.json()["detail"]
+    rec = records.get(dataset_id)
+    assert (rec.state, rec.purged) == ("cancelled", False)  # cancelled at once; not purged: objects remain
+    assert sorted(o.key for o in services.store.list(prefix)) == keys
+
+    up = serve()
+    r = httpx.delete(f"{up}/datasets/{dataset_id}", params={"purge": "true"}, headers=headers)
+    assert r.status_code == 200 and r.json()["purged"] and r.json()["state"] == "cancelled", r.text
+    assert list(services.store.list(prefix)) == []
+    assert records.get(dataset_id).purged
+
+
+class PartialDeleteClient:
+    """An S3 client whose bulk delete reports one key it could not delete (HTTP 200 with Errors)."""
+
+    def __init__(self, keys: list[str]):
+        self.keys = keys
+
+    def get_paginator(self, name):
+        keys = self.keys
+
+        class Pages:
+            def paginate(self, **kw):
+                return [{"Contents": [{"Key": k, "Size": 1} for k in keys]}]
+
+        return Pages()
+
+    def delete_objects(self, Bucket, Delete):
+        return {"Errors": [{"Key": self.keys[1], "Code": "AccessDenied", "Message": "Access Denied"}]}
+
+
+def test_a_bulk_delete_that_leaves_objects_is_an_error():
+    store = S3Store(PartialDeleteClient(["d/a", "d/b", "d/c"]), "bkt")
+    with pytest.raises(Unavailable) as info:
+        store.delete_prefix("d/")
+    assert str(info.value) == "s3://bkt/d/: 1 objects not deleted, e.g. d/b (AccessDenied: Access Denied)"
