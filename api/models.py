@@ -71,18 +71,24 @@ class ManifestShard(BaseModel):
 
 
 class ManifestPublic(BaseModel):
+    """One page of the manifest: the committed shards with index in [start, start + limit)."""
+
     format: str
     id: str
     state: str
-    complete: bool
+    complete: bool = Field(description="Every shard is committed (all pages together list shards_total shards)")
     frames_total: int
-    frames_done: int
+    frames_done: int = Field(description="Frames in committed shards, over all pages")
     shards_total: int
+    shards_done: int = Field(description="Committed shards, over all pages")
     seed: int
     code_version: str
     renderer: str | None
     spec: dict[str, Any]
-    shards: list[ManifestShard]
+    start: int = Field(description="First shard index this page covers")
+    limit: int = Field(description="Shard indices this page covers")
+    next: str | None = Field(description="The next page (same limit), or null on the last page")
+    shards: list[ManifestShard] = Field(description="The committed shards of this page, in shard order")
 
 
 class AssetPublic(BaseModel):

@@ -37,6 +37,8 @@ from service.spec import DatasetSpec
 log = logging.getLogger(__name__)
 
 UPLOAD_SUFFIXES = tuple(FORMATS)
+MANIFEST_PAGE = 1000  # shard indices per manifest page by default (each committed one is presigned)
+MANIFEST_PAGE_MAX = 10_000
 
 
 # --- the broker
@@ -298,11 +300,26 @@ def reconcile_dataset(services: Services, dataset_id: str, requeue: bool) -> Dat
     return public(rec, time.time())
 
 
-def manifest(services: Services, dataset_id: str) -> dict:
+def manifest_page_link(dataset_id: str, start: int, limit: int) -> str:
+    return f"/datasets/{dataset_id}/manifest?start={start}&limit={limit}"
+
+
+def manifest(services: Services, dataset_id: str, start: int = 0, limit: int = MANIFEST_PAGE) -> dict:
+    """One page of the manifest: the committed shards with index in [start, start + limit), each with a
+    presigned URL. Pages cut by shard index, not by position among committed shards, so a page's contents
+    never shift while shards commit; totals (frames_done, shards_done, complete) are the whole dataset's."""
     rec = services.records.get(dataset_id)
     if rec.purged:
         raise NotFound(f"dataset {dataset_id} was purged; its objects are gone")
-    return build_manifest(rec, services.records.commits(dataset_id), url=services.store.url)
+    stop = min(start + limit, rec.shards_total)
+    page = build_manifest(rec, services.records.commits_between(dataset_id, start, stop), url=services.store.url)
+    # build_manifest counts the shards it is given; this page is part of the whole.
+    page["frames_done"] = rec.frames_done
+    page["shards_done"] = rec.shards_done
+    page["complete"] = rec.shards_done == rec.shards_total
+    page["start"], page["limit"] = start, limit
+    page["next"] = manifest_page_link(dataset_id, stop, limit) if stop < rec.shards_total else None
+    return page
 
 
 # --- single frames

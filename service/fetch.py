@@ -34,11 +34,33 @@ class FetchReport:
     files: int
 
 
+# Fields of one manifest page that say which page it is; the assembled manifest drops them.
+PAGE_FIELDS = ("start", "limit", "next")
+MAX_PAGES = 1_000_000  # a guard against a server whose `next` links never end
+
+
 def get_manifest(client, api_url: str, dataset_id: str) -> dict[str, Any]:
+    """The whole manifest: every page's shards, following `next` links, under the first page's other fields."""
+    base = api_url.rstrip("/")
+    man = get_manifest_page(client, f"{base}/datasets/{urllib.parse.quote(dataset_id, safe='')}/manifest",
+                            api_url, dataset_id)
+    shards, nxt, pages = list(man["shards"]), man.get("next"), 1
+    while nxt:
+        if pages >= MAX_PAGES:
+            raise Unavailable(f"{api_url}: manifest of {dataset_id} has over {MAX_PAGES} pages")
+        page = get_manifest_page(client, urllib.parse.urljoin(base + "/", nxt.lstrip("/")), api_url, dataset_id)
+        shards += page["shards"]
+        nxt, pages = page.get("next"), pages + 1
+    out = {k: v for k, v in man.items() if k not in PAGE_FIELDS}
+    out["shards"] = shards
+    return out
+
+
+def get_manifest_page(client, url: str, api_url: str, dataset_id: str) -> dict[str, Any]:
     import httpx
 
     try:
-        r = client.get(f"{api_url.rstrip('/')}/datasets/{urllib.parse.quote(dataset_id, safe='')}/manifest")
+        r = client.get(url)
     except httpx.HTTPError as err:
         raise Unavailable(f"{api_url}: cannot reach the API ({err})") from err
     if r.status_code == 404:

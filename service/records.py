@@ -329,6 +329,13 @@ class Records:
         raw = self.r.hgetall(self._k(dataset_id, "shards"))
         return sorted((ShardCommit.from_json(v) for v in raw.values()), key=lambda c: c.index)
 
+    def commits_between(self, dataset_id: str, start: int, stop: int) -> list[ShardCommit]:
+        """Committed shards with index in [start, stop), in shard order: O(stop - start), whatever the total."""
+        if stop <= start:
+            return []
+        raw = self.r.hmget(self._k(dataset_id, "shards"), list(range(start, stop)))
+        return [ShardCommit.from_json(v) for v in raw if v is not None]
+
     def claim_finalise(self, dataset_id: str, ttl_s: int) -> bool:
         """True for the one caller that may finalise now; the TTL lets a later caller replace a dead one."""
         return bool(self.r.set(self._k(dataset_id, "final"), "1", nx=True, ex=ttl_s))

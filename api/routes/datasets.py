@@ -42,9 +42,17 @@ def get_dataset(id: DatasetId, services: ServicesDep) -> DatasetPublic:
 
 
 @router.get("/{id}/manifest", response_model=ManifestPublic)
-def get_manifest(id: DatasetId, services: ServicesDep) -> dict:
-    """Committed shards so far (key, frames, sha256, bytes, presigned url), with spec, seed and code version."""
-    return operations.manifest(services, id)
+def get_manifest(
+    id: DatasetId,
+    services: ServicesDep,
+    start: Annotated[int, Query(ge=0, le=10**9, description="First shard index of the page")] = 0,
+    limit: Annotated[
+        int, Query(ge=1, le=operations.MANIFEST_PAGE_MAX, description="Shard indices per page")
+    ] = operations.MANIFEST_PAGE,
+) -> dict:
+    """Committed shards so far (key, frames, sha256, bytes, presigned url), with spec, seed and code version,
+    one page of shard indices at a time: follow `next` until it is null."""
+    return operations.manifest(services, id, start, limit)
 
 
 @router.get(

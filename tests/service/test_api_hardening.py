@@ -1,6 +1,6 @@
 """The API under abuse and outages, over real HTTP with real Redis and moto's S3: asset formats fixed by the first
-upload, uploads that must load, body limits and the key checked before any body is read, and a
-broker or a bucket that is down."""
+upload, uploads that must load, body limits and the key checked before any body is read, a broker
+or a bucket that is down, and manifest pages."""
 
 from __future__ import annotations
 
@@ -458,3 +458,62 @@ def test_a_bulk_delete_that_leaves_objects_is_an_error():
     with pytest.raises(Unavailable) as info:
         store.delete_prefix("d/")
     assert str(info.value) == "s3://bkt/d/: 1 objects not deleted, e.g. d/b (AccessDenied: Access Denied)"
+
+
+# --- manifest pages
+
+
+def test_manifest_pages_by_shard_index_with_totals_of_the_whole(api, services):
+    records = services.records
+    dataset_id = new_record(records, frames=7)
+    commits = {i: commit(records, dataset_id, i, b"shard bytes %d" % i, services.store) for i in (0, 1, 2, 4, 6)}
+    pages, link = [], f"/datasets/{dataset_id}/manifest?limit=3"
+    while link:
+        r = api.get(link)
+        assert r.status_code == 200, r.text
+        pages.append(r.json())
+        link = r.json()["next"]
+    assert [(p["start"], p["limit"], [s["index"] for s in p["shards"]]) for p in pages] == [
+        (0, 3, [0, 1, 2]), (3, 3, [4]), (6, 3, [6])]
+    assert [p["next"] for p in pages] == [f"/datasets/{dataset_id}/manifest?start=3&limit=3",
+                                         f"/datasets/{dataset_id}/manifest?start=6&limit=3", None]
+    for p in pages:
+        assert (p["complete"], p["shards_done"], p["frames_done"], p["shards_total"]) == (False, 5, 5, 7)
+        assert (p["seed"], p["code_version"], p["spec"]) == (7, VERSION, tiny_spec(frames=7, shard_size=1))
+    for s in (s for p in pages for s in p["shards"]):
+        c = commits[s["index"]]
+        assert (s["key"], s["first_frame"], s["frame_count"], s["sha256"], s["bytes"]) == (
+            c.key, c.first_frame, c.frame_count, c.sha256, c.bytes)
+        assert hashlib.sha256(httpx.get(s["url"]).content).hexdigest() == c.sha256
+    whole = api.get(f"/datasets/{dataset_id}/manifest").json()  # the default page covers 1000 shard indices
+    assert (whole["start"], whole["limit"], whole["next"]) == (0, 1000, None)
+    assert [s["index"] for s in whole["shards"]] == [0, 1, 2, 4, 6]
+    for bad in ({"limit": 0}, {"limit": 10_001}, {"start": -1}, {"limit": "many"}):
+        assert api.get(f"/datasets/{dataset_id}/manifest", params=bad).status_code == 422, bad
+
+
+def shard_tar(index: int) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        data = f"label of frame {index}\n".encode()
+        info = tarfile.TarInfo(f"label_2/{index:06d}.txt")
+        info.size = len(data)
+        tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def test_fetch_follows_the_manifest_pages(serve, services, tmp_path):
+    from service.fetch import fetch_dataset
+
+    url = serve()
+    records = services.records
+    dataset_id = new_record(records, frames=2001)  # three default pages, one committed shard on each
+    for i in (0, 1000, 2000):
+        commit(records, dataset_id, i, shard_tar(i), services.store)
+    out = tmp_path / "out"
+    report = fetch_dataset(url, dataset_id, out, api_key=KEY, partial=True, progress=False)
+    assert (report.shards_total, report.shards_fetched, report.files) == (3, 3, 3)
+    assert sorted(p.name for p in (out / "label_2").iterdir()) == ["000000.txt", "001000.txt", "002000.txt"]
+    man = json.loads((out / "manifest.json").read_text())
+    assert [s["index"] for s in man["shards"]] == [0, 1000, 2000]
+    assert not {"start", "limit", "next"} & set(man) and man["shards_done"] == 3 and not man["complete"]
