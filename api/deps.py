@@ -1,9 +1,10 @@
-"""Dependencies: the per-app Services (Redis, storage, task producer), dataset ids from paths.
+"""Dependencies: the per-app Services (Redis, storage, task producer), dataset ids and frame indices from paths.
 
 API keys are checked before any route runs, by api/gate.py."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Annotated, Any
 
@@ -71,3 +72,16 @@ def dataset_id(id: Annotated[str, Path(description="Dataset id (32 lowercase hex
 
 
 DatasetId = Annotated[str, Depends(dataset_id)]
+
+# Decimal digits only: " 1", "+1", "1.0" and "1_0" name no frame (int() and pydantic would read them as 1 or 10).
+FRAME_INDEX = re.compile(r"^[0-9]{1,19}$")
+
+
+def frame_index(index: Annotated[str, Path(description="Frame index: decimal digits, from 0")]) -> int:
+    """A frame index written plainly; any other string names no frame (404)."""
+    if not FRAME_INDEX.fullmatch(index):
+        raise NotFound(f"no frame {index[:40]!r} (a frame index is written in decimal digits)")
+    return int(index)
+
+
+FrameIndex = Annotated[int, Depends(frame_index)]

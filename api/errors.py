@@ -15,6 +15,7 @@ from service.errors import (
     LimitExceeded,
     NotFound,
     OutputError,
+    RenderError,
     SeasynthError,
     SpecError,
     Unauthorized,
@@ -33,6 +34,9 @@ STATUS: list[tuple[type[Exception], int]] = [
     (Unauthorized, 401),
     (Unavailable, 503),
     (OutputError, 503),
+    # In the API a RenderError is a frame worker's report that rendering failed: a fault behind this server,
+    # and not one that waiting cures (so no 503 and no Retry-After).
+    (RenderError, 502),
 ]
 
 
@@ -63,6 +67,13 @@ def install(app: FastAPI, retry_after_s: int) -> None:
         return JSONResponse(error_body(str(err)), status_code=code, headers=headers)
 
     async def invalid(request: Request, err: RequestValidationError) -> JSONResponse:
+        broken = [e for e in err.errors() if e.get("type") == "json_invalid"]
+        if broken:
+            e = broken[0]
+            at = e["loc"][-1] if len(e.get("loc", ())) > 1 else 0
+            reason = (e.get("ctx") or {}).get("error", "invalid JSON")
+            return JSONResponse(error_body(f"malformed JSON in the request body at character {at}: {reason}"),
+                                status_code=400)
         lines = []
         for e in err.errors():
             loc = list(e.get("loc", ()))

@@ -16,7 +16,7 @@ from typing import Any, BinaryIO
 from api.deps import Services
 from api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPublic
 from api.uploads import ARTICLED, FORMATS, FileFormat, field_kind, format_of, validate
-from service.errors import AssetError, Conflict, LimitExceeded, NotFound, SpecError, Unavailable
+from service.errors import AssetError, Conflict, LimitExceeded, NotFound, RenderError, SpecError, Unavailable
 from service.manifest import build_manifest
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
 from service.records import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord, wait_reply
@@ -340,10 +340,22 @@ def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[s
         raise Unavailable(f"no frame worker rendered frame {index} of dataset {dataset_id} within {timeout:g} s")
     header, body = got
     if not header.get("ok"):
-        if header.get("status") == 404:
-            raise NotFound(header.get("error", f"frame {index} part {part} not found"))
-        raise Unavailable(f"frame {index} of dataset {dataset_id} failed on the worker: {header.get('error')}")
+        raise worker_error(header, f"frame {index} of dataset {dataset_id}")
     return header.get("name", frame_file(part, index)), body
+
+
+def worker_error(header: dict[str, Any], what: str) -> Exception:
+    """The error for a frame worker's failure report, by the status it gives: 404 (no such frame or file),
+    503 (no worker can serve it now: retry), 422 (the dataset's inputs cannot render it), anything else
+    (an error while rendering: 502, a fault behind this server that repeating the request does not cure)."""
+    status, error = header.get("status"), header.get("error", "no reason given")
+    if status == 404:
+        return NotFound(error)
+    if status == 503:
+        return Unavailable(f"{what}: {error}")
+    if status == 422:
+        return AssetError(f"{what}: {error}")
+    return RenderError(f"{what} failed on the frame worker: {error}")
 
 
 # --- assets

@@ -5,7 +5,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Response, status
 
 from api import operations
-from api.deps import DatasetId, ServicesDep
+from api.deps import DatasetId, FrameIndex, ServicesDep
 from api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic
 from service.spec import DatasetSpec
 
@@ -59,11 +59,12 @@ def get_manifest(
     "/{id}/frames/{index}",
     response_class=Response,
     responses={200: {"content": {"image/png": {}, "text/plain": {}, "application/json": {}}},
+               502: {"description": "The frame worker failed to render it (retrying does not help)"},
                503: {"description": "No frame worker answered in time; retry after Retry-After seconds"}},
 )
 def get_frame(
     id: DatasetId,
-    index: int,
+    index: FrameIndex,
     services: ServicesDep,
     part: Annotated[
         Literal["image", "label", "calib", "meta", "depth", "instance", "clean", "range"],

@@ -1,9 +1,10 @@
 """The API under abuse and outages, over real HTTP with real Redis and moto's S3: asset formats fixed by the first
-upload, uploads that must load, body limits and the key checked before any body is read, a broker
-or a bucket that is down, and manifest pages."""
+upload, uploads that must load, body limits and the key checked before any body is read, a broker or a bucket
+that is down, manifest pages, strict spec types, plain frame indices and the frame worker's failures."""
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import hashlib
 import io
@@ -22,7 +23,7 @@ import httpx
 import pytest
 
 from service.errors import Unavailable
-from service.records import Records, ShardCommit
+from service.records import Records, ShardCommit, push_reply
 from service.shards import asset_info_key, asset_key, shard_count
 from service.storage import LocalStore, S3Store
 from service_stack import Stack, free_port, tiny_spec, wait_for, wait_state
@@ -517,3 +518,87 @@ def test_fetch_follows_the_manifest_pages(serve, services, tmp_path):
     man = json.loads((out / "manifest.json").read_text())
     assert [s["index"] for s in man["shards"]] == [0, 1000, 2000]
     assert not {"start", "limit", "next"} & set(man) and man["shards_done"] == 3 and not man["complete"]
+
+
+# --- strict types, frame indices, malformed JSON
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [({"seed": True}, "seed"), ({"seed": "7"}, "seed"), ({"frames": 2.0}, "frames"),
+     ({"shard_size": "2"}, "shard_size"), ({"camera": {"width": 32.0, "height": 24}}, "camera.width"), ({"outputs": {"depth": 1}}, "outputs.depth"),
+     ({"outputs": {"meta": "false"}}, "outputs.meta")],
+)
+def test_the_api_takes_ints_and_bools_strictly(api, change, field):
+    r = api.post("/datasets", json=tiny_spec(**change))
+    assert r.status_code == 422, r.text
+    (line,) = r.json()["errors"]
+    assert line.startswith(f"{field}: Input should be a valid "), line
+
+
+def test_lists_over_their_limit_are_refused_naming_field_and_limit(client):
+    spec = tiny_spec(targets={"assets": [{"procedural": "urchin"}] * 257})  # 8 KiB: within the default 1 MiB
+    r = client.post("/datasets", json=spec)
+    assert r.status_code == 422
+    assert r.json()["errors"] == ["targets.assets: List should have at most 256 items after validation, not 257"]
+
+
+@pytest.mark.parametrize("body", [b"{", b'{"seed": 1,}', b"\xff\xfe", b"{'seed': 1}", b"<xml/>"])
+def test_malformed_json_is_400_saying_so(api, body):
+    r = api.post("/datasets", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 400, r.text
+    (line,) = r.json()["errors"]
+    assert line.startswith("malformed JSON in the request body at character "), line
+
+
+def test_frame_indices_are_plain_digits(api, services):
+    dataset_id = new_record(services.records, frames=20)
+    queue = services.raw_redis
+    from service.queues import frame_queue
+
+    before = queue.llen(frame_queue(VERSION))
+    for index in ("%201", "+1", "1.0", "1_0", "-0", "1e1", "%EF%BC%91", "1%0A"):
+        r = api.get(f"/datasets/{dataset_id}/frames/{index}")
+        assert r.status_code == 404, (index, r.status_code, r.text)
+        assert "a frame index is written in decimal digits" in r.json()["detail"], r.text
+    assert api.get(f"/datasets/{dataset_id}/frames/20").status_code == 404  # digits, but past the last frame
+    assert queue.llen(frame_queue(VERSION)) == before  # nothing was sent to a frame worker
+
+
+def answer_frame(raw, header: dict, body: bytes = b"") -> tuple[str, int, str]:
+    """Play a frame worker: take one frame task of VERSION's queue and answer it with `header`."""
+    from service.queues import frame_queue
+
+    _, message = raw.blpop([frame_queue(VERSION)], timeout=15)
+    dataset_id, index, part, reply_key = json.loads(base64.b64decode(json.loads(message)["body"]))[0]
+    push_reply(raw, reply_key, header, body, ttl_s=60)
+    return dataset_id, index, part
+
+
+@pytest.mark.parametrize(
+    ("header", "status", "detail"),
+    [
+        ({"ok": False, "status": 500, "error": "ValueError: boom"}, 502,
+         "frame 3 of dataset {id} failed on the frame worker: ValueError: boom"),
+        ({"ok": False, "status": 503, "error": "renderer X started it"}, 503,
+         "frame 3 of dataset {id}: renderer X started it"),
+        ({"ok": False, "status": 422, "error": "asset a.obj: no triangles"}, 422,
+         "frame 3 of dataset {id}: asset a.obj: no triangles"),
+        ({"ok": False, "status": 404, "error": "frame 3 has no depth"}, 404, "frame 3 has no depth"),
+        ({"ok": True, "name": "image_2/000003.png"}, 200, None),
+    ],
+)
+def test_frame_worker_failures_map_to_honest_statuses(api, services, header, status, detail):
+    dataset_id = new_record(services.records, frames=5)
+    got: dict = {}
+    getter = threading.Thread(target=lambda: got.update(r=api.get(f"/datasets/{dataset_id}/frames/3")))
+    getter.start()
+    assert answer_frame(services.raw_redis, header, b"\x89PNG" if header["ok"] else b"") == (dataset_id, 3, "image")
+    getter.join(30)
+    r = got["r"]
+    assert r.status_code == status, r.text
+    if detail is None:
+        assert r.content == b"\x89PNG"
+    else:
+        assert r.json()["detail"] == detail.format(id=dataset_id)
+        assert ("retry-after" in r.headers) == (status == 503)
