@@ -17,14 +17,14 @@ import tarfile
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 from typing import IO, Any, Protocol
 
 from service import __version__
 from service.errors import AssetError, NotFound
-from service.manifest import build_manifest, manifest_bytes
+from service.manifest import build_manifest, manifest_bytes, pending_manifests_key
 from service.records import CANCELLED, FAILED, SUCCEEDED, TERMINAL, Records, ShardCommit
 from service.settings import Settings
 from service.shards import (
@@ -332,30 +332,69 @@ def finalise_or_defer(ctx: ShardContext, dataset_id: str) -> None:
         log.exception("dataset %s: finalising failed; left to the reconciler", dataset_id)
 
 
+# Decides a complete dataset's final state in one step, unless it is final already (a cancel came first): the
+# state, finished_at, and the dataset's entry in the set of manifests still to write. Returns the state after.
+_DECIDE = """
+local s = redis.call('HGET', KEYS[1], 'state')
+if not s then return nil end
+if s == 'queued' or s == 'running' then
+  redis.call('HSET', KEYS[1], 'state', ARGV[1], 'finished_at', ARGV[2])
+  redis.call('SADD', KEYS[2], ARGV[3])
+  return ARGV[1]
+end
+return s
+"""
+
+
 def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
-    """When every shard is committed or failed, write manifest.json and the final state, exactly once."""
+    """When every shard is committed or failed, decide the final state and write manifest.json, exactly once.
+
+    The state is decided first, atomically against a cancel (records.cancel moves only a live dataset): a cancel
+    that comes first leaves the dataset cancelled and no manifest is written; one that comes after finds the
+    dataset finished (the API answers 409). manifest.json follows the decision; if writing it fails, the dataset
+    stays in the set of pending manifests and the next reconcile (the periodic reconciler nudges one) writes it.
+    Returns True when this call wrote the manifest.
+    """
     rec = ctx.records.get(dataset_id)
-    if rec.state in TERMINAL or rec.shards_done + rec.shards_failed < rec.shards_total:
+    if rec.shards_done + rec.shards_failed < rec.shards_total:
+        return False
+    pending = pending_manifests_key(ctx.records.p)
+    if rec.state in TERMINAL and not ctx.records.r.sismember(pending, dataset_id):
         return False
     if not ctx.records.claim_finalise(dataset_id, FINALISE_LOCK_S):
         return False
     try:
-        state = SUCCEEDED if rec.shards_failed == 0 else FAILED
-        manifest = build_manifest(replace(rec, state=state), ctx.records.commits(dataset_id))
-        if ctx.records.state(dataset_id) == CANCELLED:
+        if rec.state not in TERMINAL:
+            state = SUCCEEDED if rec.shards_failed == 0 else FAILED
+            decided = _script(ctx, _DECIDE)(keys=[ctx.records._k(dataset_id), pending],
+                                             args=[state, repr(time.time()), dataset_id])
+            if decided != state:  # cancelled (or finished by another finaliser) before we decided
+                return False
+        elif not ctx.records.r.sismember(pending, dataset_id):  # another finaliser wrote it meanwhile
             return False
-        ctx.store.put_bytes(manifest_key(dataset_id), manifest_bytes(manifest), "application/json")
-        ctx.records.finish(dataset_id, state, time.time())
+        rec = ctx.records.get(dataset_id)  # as decided: state and finished_at
+        if not rec.purged:
+            key = manifest_key(dataset_id)
+            ctx.store.put_bytes(key, manifest_bytes(build_manifest(rec, ctx.records.commits(dataset_id))),
+                                "application/json")
+            if ctx.records.get(dataset_id).purged:  # purged while we wrote: take it back out
+                ctx.store.delete_prefix(key)
+        ctx.records.r.srem(pending, dataset_id)
     except BaseException:
         ctx.records.release_finalise(dataset_id)
         raise
-    log.info("dataset %s %s", dataset_id, state)
+    log.info("dataset %s %s", dataset_id, rec.state)
     return True
 
 
+def _script(ctx: ShardContext, source: str):
+    """A Lua script on the records' Redis, run by its sha (registering computes it locally; no round trip)."""
+    return ctx.records.r.register_script(source)
+
+
 def reconcile(ctx: ShardContext, dataset_id: str) -> list[int]:
-    """Adopt commit markers Redis missed, finalise if complete; return the shards still pending (neither
-    committed, nor failed, nor running within their lease)."""
+    """Adopt commit markers Redis missed, finalise if complete (or write a manifest whose write failed); return
+    the shards still pending (neither committed, nor failed, nor running within their lease)."""
     for info in ctx.store.list(commit_prefix(dataset_id)):
         commit = ShardCommit.from_json(ctx.store.get_bytes(info.key))
         ctx.records.commit(dataset_id, commit)
