@@ -82,8 +82,10 @@ def run_worker(settings: Settings, concurrency: int, queues: list[str] | None = 
     Exits with status 1 when a pool process could not open its renderer (it stopped the worker at once).
     """
     app, resources = _build(settings)
+    queues = list(queues or QUEUE_KINDS)
+    resources.takes_shards = "shards" in queues  # before the pool forks: its processes inherit it
     try:
-        app.worker_main(worker_argv(concurrency, list(queues or QUEUE_KINDS), loglevel))
+        app.worker_main(worker_argv(concurrency, queues, loglevel))
     finally:
         if resources.renderer_failed.value:  # replaces Celery's exit status 0 after the warm shutdown
             sys.exit("seasynth worker: stopped because a render process could not open its renderer (see the log)")

@@ -8,6 +8,7 @@ import multiprocessing
 import os
 import signal
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -22,14 +23,19 @@ from service.records import CANCELLED, Records, push_reply
 from service.settings import Settings
 from service.storage import open_store
 from worker.shard import (
+    HEARTBEAT_S,
     AssetCache,
+    Outcome,
     RetryShard,
     ShardContext,
     WrongRenderer,
     WrongVersion,
+    defer_to_renderer,
+    note_renderer,
     reconcile,
     render_frame,
     run_shard,
+    sweepable,
 )
 
 log = logging.getLogger(__name__)
@@ -37,6 +43,46 @@ log = logging.getLogger(__name__)
 # A shard pinned to another renderer goes back to the queue after this delay, so that workers of the wrong
 # renderer do not pass it around in a tight loop while the right ones are busy.
 OTHER_RENDERER_DELAY_S = 5
+
+
+def renderer_wait_from_env() -> float | None:
+    """SEASYNTH_RENDERER_WAIT_S, read at the worker's entry until Settings has the field (None: not set)."""
+    text = os.environ.get("SEASYNTH_RENDERER_WAIT_S", "").strip()
+    if not text:
+        return None
+    try:
+        wait = float(text)
+    except ValueError:
+        raise ValueError(f"SEASYNTH_RENDERER_WAIT_S: not a number of seconds: {text!r}") from None
+    if not wait > 0:
+        raise ValueError(f"SEASYNTH_RENDERER_WAIT_S: must be > 0, got {text!r}")
+    return wait
+
+
+class Heartbeat:
+    """A thread that notes this process's renderer in Redis every HEARTBEAT_S, so that workers of other renderers
+    can tell whether a dataset pinned to it still has a live shard worker (worker.shard.defer_to_renderer)."""
+
+    def __init__(self, redis, prefix: str, version: str, renderer: str):
+        self._args = (redis, prefix, version, renderer)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="seasynth-heartbeat", daemon=True)
+
+    def __enter__(self) -> Heartbeat:
+        note_renderer(*self._args, time.time())  # at once: the first shard may arrive before the first beat
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        while not self._stop.wait(HEARTBEAT_S):
+            try:
+                note_renderer(*self._args, time.time())
+            except Exception as err:  # Redis briefly away: the next beat tries again; a long outage shows as gone
+                log.warning("renderer heartbeat not noted: %s: %s", type(err).__name__, err)
 
 
 class RendererUnavailable(Exception):
@@ -52,8 +98,12 @@ class ProcessResources:
     of one that drains the queue.
     """
 
-    def __init__(self, settings: Settings):
+    def __init__(self, settings: Settings, renderer_wait_s: float | None = None):
         self.settings = settings
+        self.renderer_wait_s = renderer_wait_s
+        # Whether this worker consumes the shard queue (run_worker sets it before the pool forks): only shard
+        # workers count as live workers of their renderer.
+        self.takes_shards = True
         self._ctx: ShardContext | None = None
         self._stack: contextlib.ExitStack | None = None
         self.broken: str | None = None
@@ -74,7 +124,11 @@ class ProcessResources:
             session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=s.gl_platform))
             records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
             raw = redis.Redis.from_url(s.redis_url)
-            self._ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=store, session=session)
+            ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=store, session=session,
+                               renderer_wait_s=self.renderer_wait_s)
+            if self.takes_shards:
+                stack.enter_context(Heartbeat(records.r, s.key_prefix, ctx.code_version, session.renderer_name))
+            self._ctx = ctx
             self._stack = stack.pop_all()
         log.info("render session ready: %s", session.renderer_name)
 
@@ -109,7 +163,7 @@ class ProcessResources:
 
 def register(app: Celery, settings: Settings) -> ProcessResources:
     """Register the tasks on `app`; they share one ProcessResources per pool process."""
-    res = ProcessResources(settings)
+    res = ProcessResources(settings, renderer_wait_from_env())
     worker_process_init.connect(lambda **_: res.open_in_pool_process(), weak=False)
     worker_process_shutdown.connect(lambda **_: res.close(), weak=False)
     bulk = shard_queue(__version__)
@@ -134,6 +188,14 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
             app.send_task(TASK_SHARD, args=args, queue=shard_queue(wrong.version))
             return "requeued"
         except WrongRenderer as wrong:
+            try:
+                outcome = defer_to_renderer(ctx, dataset_id, shard_index, wrong)
+            except Exception:  # the bookkeeping failed (Redis away): hand the shard back all the same
+                log.exception("shard %s of dataset %s: hand-back not recorded", shard_index, dataset_id)
+                outcome = Outcome.DEFERRED
+            if outcome is not Outcome.DEFERRED:
+                log.warning("shard %s of dataset %s: %s; %s", shard_index, dataset_id, wrong, outcome.value)
+                return outcome.value
             log.info("shard %s: %s; handed back", shard_index, wrong)
             render_shard.apply_async((dataset_id, shard_index, sweep), queue=bulk, countdown=OTHER_RENDERER_DELAY_S)
             return "requeued"
@@ -153,7 +215,8 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
     def plan_dataset(dataset_id: str, first_shard: int = 0, sweep: bool = False) -> int:
         """Publish one batch of shard tasks, then a planner for the next batch; returns messages published.
 
-        `sweep` (the reconciler): only the shards still pending, marked so that they defer to a running execution.
+        `sweep` (the reconciler): only the shards still pending and not going round between workers of another
+        renderer (worker.shard.sweepable), marked so that they defer to a running execution.
         """
         ctx = ctx_or_reject()
         try:
@@ -165,7 +228,7 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
         end = min(first_shard + settings.plan_batch, rec.shards_total)
         batch = list(range(first_shard, end))
         if sweep:
-            batch = ctx.records.pending(dataset_id, batch, time.time(), settings.running_lease_s)
+            batch = sweepable(ctx, dataset_id, batch, time.time())
         ctx.records.touch(dataset_id, time.time())
         with app.producer_or_acquire() as producer:
             for i in batch:

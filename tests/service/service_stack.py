@@ -87,6 +87,7 @@ class Stack:
     tmp: Path
     env: dict[str, str]
     api_url: str = ""
+    api_proc: Proc | None = None  # the API the `client` fixture talks to (api_url)
     procs: list[Proc] = field(default_factory=list)
 
     def start(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Proc:
@@ -104,6 +105,10 @@ class Stack:
 
     def start_worker(self, concurrency: int = 1) -> Proc:
         return self.seasynth("worker", "worker", "--concurrency", str(concurrency), "--loglevel", "INFO")
+
+    def workers(self) -> list[Proc]:
+        """The running workers started by start_worker."""
+        return [p for p in self.procs if p.name == "worker" and p.popen.poll() is None]
 
     def start_api(self, env: dict[str, str] | None = None) -> tuple[Proc, str]:
         port = free_port()
@@ -128,6 +133,33 @@ def need(binary: str) -> str:
         pytest.fail(f"{binary} is needed for the service tests (apt-get install -y redis-server; pip install "
                     f"'moto[server]')")
     return path
+
+
+def wait_worker_ready(worker: Proc, processes: int, timeout: float = 60) -> None:
+    """Until the worker's Celery consumer is ready and each of its pool processes has opened its renderer (from
+    its log: Celery's `... ready.` line and one `render session ready` per process)."""
+
+    def ready() -> bool:
+        if worker.popen.poll() is not None:
+            raise AssertionError(f"the worker exited with status {worker.popen.returncode}:\n{worker.tail()}")
+        log = worker.log.read_text(errors="replace")
+        return " ready." in log and log.count("render session ready") >= processes
+
+    deadline = time.monotonic() + timeout
+    while not ready():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"worker not ready after {timeout} s:\n{worker.tail()}")
+        time.sleep(0.1)
+
+
+def log_size(proc: Proc) -> int:
+    return proc.log.stat().st_size if proc.log.exists() else 0
+
+
+def log_since(proc: Proc, offset: int) -> str:
+    with open(proc.log, "rb") as f:
+        f.seek(offset)
+        return f.read().decode(errors="replace")
 
 
 def wait_state(client: httpx.Client, dataset_id: str, states: set[str], timeout: float = 90) -> dict[str, Any]:

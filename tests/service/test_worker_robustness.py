@@ -1,19 +1,39 @@
-"""Worker robustness on real Redis: finalising against a cancel."""
+"""Worker robustness on real Redis (and, where said, real workers and API): finalising against a cancel, shards
+of a renderer no live worker has."""
 
 from __future__ import annotations
 
+import base64
+import contextlib
 import json
+import threading
 import time
+import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 
+from service import __version__
 from service.manifest import pending_manifests_key
+from service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, shard_queue
 from service.records import Records
-from service.shards import manifest_key
+from service.shards import manifest_key, shard_count
 from service.storage import LocalStore
+from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
-from worker.shard import Outcome, maybe_finalise, reconcile, run_shard
+from worker.shard import (
+    RENDERER_LIVE_S,
+    Outcome,
+    WrongRenderer,
+    defer_to_renderer,
+    maybe_finalise,
+    note_renderer,
+    reconcile,
+    run_shard,
+    sweepable,
+)
 
 
 @pytest.fixture
@@ -23,6 +43,15 @@ def records(infra):
     r = redis.Redis.from_url(infra.settings().redis_url, decode_responses=True)
     yield Records(r, prefix=f"robust{time.monotonic_ns()}")
     r.close()
+
+
+class Named(FakeSession):
+    def __init__(self, name: str):
+        super().__init__()
+        self.renderer_name = name
+
+
+CPU, GPU = "llvmpipe (fake)", "NVIDIA H100 (fake)"
 
 
 # --- finalising and cancelling decide the state once, between them
@@ -102,3 +131,197 @@ def test_a_manifest_the_bucket_refused_is_written_by_the_next_reconcile(infra, r
     assert manifest["state"] == "succeeded" and [s["index"] for s in manifest["shards"]] == [0]
     assert records.r.smembers(pending_manifests_key(records.p)) == set()
     assert maybe_finalise(ctx, ds) is False
+
+
+# --- a dataset pinned to a renderer that no live worker has
+
+
+def pinned(records: Records, renderer: str, frames: int = 6, shard_size: int = 2, dataset_id: str = "e" * 32) -> str:
+    ds = new_dataset(records, frames=frames, shard_size=shard_size, dataset_id=dataset_id)
+    assert records.set_renderer(ds, renderer) == renderer
+    return ds
+
+
+def hand_back(ctx, ds: str, index: int, now: float | None = None) -> Outcome:
+    with pytest.raises(WrongRenderer) as wrong:
+        run_shard(ctx, ds, index)
+    return defer_to_renderer(ctx, ds, index, wrong.value, now=now)
+
+
+def test_hand_backs_are_counted_shown_and_keep_the_dataset_from_stalling(infra, records, tmp_path):
+    session = Named(CPU)
+    ctx = make_ctx(infra, records, tmp_path, session)  # waits the stall timeout (SEASYNTH_RENDERER_WAIT_S unset)
+    ds = pinned(records, GPU)
+    records.touch(ds, time.time() - 10_000)
+    for _ in range(3):
+        assert hand_back(ctx, ds, 0) is Outcome.DEFERRED
+    rec = records.get(ds)
+    h = records.r.hgetall(records._k(ds))
+    assert (rec.state, rec.attempts, rec.shards_done, session.calls) == ("queued", 0, 0, [])
+    assert h["handbacks"] == "3" and time.time() - rec.touched_at < 5, "a hand-back is activity: no sweep"
+    assert h["notice"].startswith(f"waiting for a shard worker with renderer {GPU!r}: none has run for ")
+    assert h["notice"].endswith(f"; 3 hand-backs by workers running {CPU!r}")
+    assert "fails if none comes within" in h["notice"]
+    # A sweep leaves a shard that is going round alone, for a stall timeout after its last hand-back.
+    now = time.time()
+    assert reconcile(ctx, ds) == [1, 2]
+    assert sweepable(ctx, ds, [0, 1, 2], now + ctx.settings.stall_s + 1) == [0, 1, 2]
+
+
+def test_no_worker_of_the_renderer_for_the_wait_fails_the_dataset_naming_it(infra, records, tmp_path):
+    gpu = make_ctx(infra, records, tmp_path, Named(GPU))
+    cpu = make_ctx(infra, records, tmp_path, Named(CPU))
+    cpu.renderer_wait_s = 30
+    ds = new_dataset(records, frames=7, shard_size=2, dataset_id="f" * 32)
+    assert run_shard(gpu, ds, 0) is Outcome.COMMITTED  # pins the dataset to the GPU, then the GPU workers leave
+    t0 = time.time()
+    assert hand_back(cpu, ds, 1, now=t0) is Outcome.DEFERRED
+    assert hand_back(cpu, ds, 2, now=t0 + 29) is Outcome.DEFERRED
+    attempts = records.get(ds).attempts
+    assert hand_back(cpu, ds, 1, now=t0 + 30.5) is Outcome.FAILED
+    rec = records.get(ds)
+    assert (rec.state, rec.shards_done, rec.shards_failed, rec.attempts) == ("failed", 1, 3, attempts)
+    assert set(rec.errors) == {1, 2, 3}
+    for error in rec.errors.values():
+        assert error.startswith(f"no shard worker with renderer {GPU!r}, which this dataset was started with, ran "
+                                "for 30 s (the wait is 30 s, SEASYNTH_RENDERER_WAIT_S); workers running ")
+        assert f"{CPU!r} handed its shards back 3 times" in error
+    manifest = json.loads(gpu.store.get_bytes(manifest_key(ds)))
+    assert manifest["state"] == "failed" and [s["index"] for s in manifest["shards"]] == [0]
+    # Late copies of its shards change nothing.
+    assert run_shard(cpu, ds, 2) is Outcome.FAILED and records.get(ds).attempts == attempts
+
+
+def test_a_live_worker_of_the_renderer_keeps_the_dataset_waiting(infra, records, tmp_path):
+    cpu = make_ctx(infra, records, tmp_path, Named(CPU))
+    cpu.renderer_wait_s = 30
+    ds = pinned(records, GPU)
+    t0 = time.time()
+    note_renderer(records.r, records.p, __version__, GPU, t0)  # a GPU worker's heartbeat
+    assert hand_back(cpu, ds, 0, now=t0 + 1) is Outcome.DEFERRED
+    h = records.r.hgetall(records._k(ds))
+    assert "waiting_since" not in h and "one is running (all its processes busy)" in h["notice"]
+    assert hand_back(cpu, ds, 0, now=t0 + RENDERER_LIVE_S - 1) is Outcome.DEFERRED
+    # The heartbeats stop: the wait starts at the first hand-back that finds none, and runs out 30 s later.
+    assert hand_back(cpu, ds, 0, now=t0 + RENDERER_LIVE_S) is Outcome.DEFERRED
+    assert hand_back(cpu, ds, 0, now=t0 + RENDERER_LIVE_S + 29) is Outcome.DEFERRED
+    assert hand_back(cpu, ds, 0, now=t0 + RENDERER_LIVE_S + 30) is Outcome.FAILED
+    assert records.get(ds).state == "failed"
+
+
+def test_a_worker_of_the_renderer_clears_the_notice(infra, records, tmp_path):
+    cpu = make_ctx(infra, records, tmp_path, Named(CPU))
+    gpu = make_ctx(infra, records, tmp_path, Named(GPU))
+    ds = pinned(records, GPU, frames=2, shard_size=2)
+    assert hand_back(cpu, ds, 0) is Outcome.DEFERRED
+    assert run_shard(gpu, ds, 0) is Outcome.COMMITTED
+    h = records.r.hgetall(records._k(ds))
+    assert "notice" not in h and "waiting_since" not in h and h["state"] == "succeeded"
+    assert records.r.hgetall(records._k(ds, "deferred")) == {}
+
+
+# --- isolated stacks: a Redis database of their own, so the session's workers take none of their messages
+
+
+def queued_tasks(raw, queue: str) -> list[tuple[str, list]]:
+    """(task name, args) of every message waiting in `queue` or delivered and unacknowledged, oldest first."""
+    out = []
+    payloads = [m for m in raw.lrange(queue, 0, -1)][::-1]
+    payloads += [json.loads(v)[0] for v in raw.hvals("unacked")]
+    for p in payloads:
+        msg = json.loads(p) if isinstance(p, (bytes, str)) else p
+        body = json.loads(base64.b64decode(msg["body"]))
+        out.append((msg["headers"]["task"], body[0]))
+    return out
+
+
+@contextlib.contextmanager
+def isolated(stack: Stack, db: int, **settings) -> Iterator[tuple[dict[str, str], object]]:
+    """(environment, services) on Redis database `db`, emptied before and after."""
+    import redis
+
+    from api.deps import open_services
+
+    url = stack.settings().redis_url.rsplit("/", 1)[0] + f"/{db}"
+    raw = redis.Redis.from_url(url)
+    raw.flushdb()
+    services = open_services(stack.settings(redis_url=url, **settings))
+    env = {"SEASYNTH_REDIS_URL": url, **{f"SEASYNTH_{k.upper()}": str(v) for k, v in settings.items()}}
+    try:
+        yield env, services
+    finally:
+        raw.flushdb()
+        raw.close()
+        services.close()
+
+
+def record_only(services, spec: dict, *, age_s: float = 0, version: str = __version__) -> str:
+    from service.spec import parse_spec
+
+    s = parse_spec(spec)
+    dataset_id = uuid.uuid4().hex
+    services.records.create(dataset_id, s.model_dump(mode="json"), seed=s.seed, code_version=version,
+                            frames=s.frames, shard_size=s.shard_size, shards=shard_count(s.frames, s.shard_size),
+                            now=time.time() - age_s)
+    return dataset_id
+
+
+@contextlib.contextmanager
+def api_on(services) -> Iterator[httpx.Client]:
+    """An API on `services`, served in this process."""
+    import uvicorn
+
+    from api.main import create_app
+    from service_stack import free_port
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(services.settings, services), host="127.0.0.1", port=port,
+                                           log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    wait_for(lambda: server.started, 15, "uvicorn")
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60) as client:
+            yield client
+    finally:
+        server.should_exit = True
+        thread.join(15)
+
+
+def test_a_real_worker_hands_back_an_absent_renderers_shards_then_the_dataset_fails(stack: Stack):
+    with isolated(stack, 11) as (env, services):
+        ds = record_only(services, tiny_spec(frames=6, shard_size=2))
+        services.records.set_renderer(ds, GPU)
+        worker = stack.seasynth("worker-cpu-only", "worker", "--concurrency", "1", "--queues", "shards",
+                                env={**env, "SEASYNTH_RENDERER_WAIT_S": "12"})
+        try:
+            wait_worker_ready(worker, 1)
+            services.producer.send_task(TASK_PLAN, args=[ds, 0], queue=shard_queue(__version__))
+            raw = services.raw_redis
+            queue = shard_queue(__version__)
+
+            def shard_messages() -> int:
+                return sum(1 for task, args in queued_tasks(raw, queue) if task == TASK_SHARD and args[0] == ds)
+
+            wait_for(lambda: int(services.records.r.hget(services.records._k(ds), "handbacks") or 0) >= 3, 30,
+                     "three hand-backs")
+            notice = services.records.r.hget(services.records._k(ds), "notice")
+            assert notice.startswith(f"waiting for a shard worker with renderer {GPU!r}: none has run for "), notice
+            # A forced sweep republishes none of the shards going round: still one message per shard.
+            services.producer.send_task(TASK_RECONCILE, args=[ds, True], queue=queue)
+            wait_for(lambda: not any(t != TASK_SHARD for t, _ in queued_tasks(raw, queue)), 20, "the sweep to run")
+            # One process: at most one hand-back at a time publishes its copy just before its message is acked.
+            counts = []
+            for _ in range(12):
+                counts.append(shard_messages())
+                time.sleep(0.3)
+            assert max(counts) <= 4 and min(counts) <= 3, counts
+            with api_on(services) as client:
+                final = wait_state(client, ds, {"failed", "succeeded"}, timeout=60)
+            got = (final["state"], final["attempts"], final["shards_failed"], final["frames_done"])
+            assert got == ("failed", 0, 3, 0), final
+            assert [e["shard"] for e in final["errors"]] == [0, 1, 2]
+            assert all(f"no shard worker with renderer {GPU!r}" in e["error"] for e in final["errors"])
+            assert "hand-back not recorded" not in worker.tail(400)
+        finally:
+            worker.stop()
