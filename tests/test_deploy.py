@@ -123,12 +123,20 @@ def _project_version() -> str:
 
 def _shard_queue() -> str:
     """The Redis list the shard tasks of this version wait in (service/queues.py)."""
+    return _load_file("service/queues.py").shard_queue(_project_version())
+
+
+def _load_file(path: str):
+    """A module of the project loaded from its file alone (this check needs none of its dependencies)."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("_seasynth_queues", ROOT / "service" / "queues.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.shard_queue(_project_version())
+    name = "_seasynth_" + path.replace("/", "_").removesuffix(".py")
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module  # dataclasses look their module up while the file runs
+        spec.loader.exec_module(module)
+    return sys.modules[name]
 
 
 def _min_stop_grace_s() -> float:

@@ -1,5 +1,5 @@
 """Worker robustness on real Redis (and, where said, real workers and API): finalising against a cancel, shards
-of a renderer no live worker has."""
+of a renderer no live worker has, the periodic reconciler."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import pytest
 
 from service import __version__
 from service.manifest import pending_manifests_key
-from service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, shard_queue
+from service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
 from service.records import Records
 from service.shards import manifest_key, shard_count
 from service.storage import LocalStore
@@ -325,3 +325,69 @@ def test_a_real_worker_hands_back_an_absent_renderers_shards_then_the_dataset_fa
             assert "hand-back not recorded" not in worker.tail(400)
         finally:
             worker.stop()
+
+
+# --- the periodic reconciler
+
+
+def test_concurrent_reconcilers_sweep_each_stalled_dataset_once(stack: Stack, tmp_path):
+    from api.operations import sweep_all
+
+    every = 0.5
+    with isolated(stack, 12) as (env, services):
+        stalled = [record_only(services, tiny_spec(), age_s=10_000) for _ in range(3)]
+        fresh = record_only(services, tiny_spec())
+        finished = record_only(services, tiny_spec())
+        services.records.finish(finished, "succeeded", time.time())
+        services.records.r.sadd(pending_manifests_key(services.records.p), finished)  # its manifest write failed
+        from api.deps import open_services
+
+        peers = [open_services(services.settings) for _ in range(3)]
+        stop, lines = threading.Event(), []
+        threads = [threading.Thread(target=run_reconciler, args=(p, every, (lambda p=p: sweep_all(p))),
+                                    kwargs={"stop": stop, "echo": lines.append, "alive": tmp_path / f"alive{i}"})
+                   for i, p in enumerate(peers)]
+        started = time.monotonic()
+        [t.start() for t in threads]
+        time.sleep(2.2)
+        stop.set()
+        [t.join(10) for t in threads]
+        elapsed = time.monotonic() - started
+        for p in peers:
+            p.close()
+        sent = [(t, args) for t, args in queued_tasks(services.raw_redis, shard_queue(__version__))]
+        assert all(t == TASK_RECONCILE for t, _ in sent)
+        # Each stalled dataset swept once (a per-dataset lock for a stall timeout), whatever the reconcilers.
+        for ds in stalled:
+            assert sent.count((TASK_RECONCILE, [ds, True])) == 1
+        assert not [a for _, a in sent if a[0] == fresh]
+        # One round per period among all three (the round lock): the pending manifest is nudged once a round.
+        rounds = sent.count((TASK_RECONCILE, [finished, False]))
+        assert 2 <= rounds <= int(elapsed / (0.8 * every)) + 1, (rounds, elapsed)
+        assert sum("round failed" in line for line in lines) == 0
+        assert sorted(line.split(":")[0] for line in lines if "publish again" in line) == sorted(stalled)
+        # Each reconciler stays healthy, also the ones whose peers ran the rounds.
+        assert all((tmp_path / f"alive{i}").exists() for i in range(3))
+
+
+def test_a_failing_round_does_not_stop_the_reconciler(stack: Stack, tmp_path):
+    calls = []
+
+    def sweep() -> list[str]:
+        calls.append(time.monotonic())
+        if len(calls) == 1:
+            raise ConnectionError("Redis went away")
+        return []
+
+    with isolated(stack, 13) as (_, services):
+        stop, lines = threading.Event(), []
+        thread = threading.Thread(target=run_reconciler, args=(services, 0.3, sweep),
+                                  kwargs={"stop": stop, "echo": lines.append, "alive": tmp_path / "alive"})
+        thread.start()
+        wait_for(lambda: len(calls) >= 3, 10, "three rounds")
+        stop.set()
+        thread.join(5)
+    assert not thread.is_alive() and lines[-1] == "reconciler: stopped"
+    assert [line for line in lines if "round failed" in line] == [
+        "reconciler: round failed, next in 0.3 s: ConnectionError: Redis went away"]
+    assert (tmp_path / "alive").exists()
