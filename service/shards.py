@@ -22,17 +22,111 @@ class Shard:
         return range(self.first_frame, self.first_frame + self.frame_count)
 
 
-# Admission's render cost model, deliberately pessimistic: a one-worker `generate` on 2-core llvmpipe measured
-# 107 ms for a 640x480 `default` frame (1.2 M samples), which this model puts at 0.86 s. GPUs are faster still.
-FRAME_OVERHEAD_S = 0.25  # scene sampling, labels, PNG encoding: per frame, whatever the resolution
-SAMPLES_PER_S = 2e6  # rendered and water-formed samples per second, per worker process
+# Admission's render cost model: an upper bound, not a forecast, of one worker process's seconds on a slow CPU
+# worker (2 cores, Mesa llvmpipe, as many render processes as cores). Calibrated with RenderSession.frame_files
+# and `seasynth generate --workers 2` on a 2-core llvmpipe machine (bench numbers in the docstrings below); each
+# term stays 2.5-10x above what was measured, so a shard admitted here finishes inside the task time limit there.
+# GPU workers are several times faster still.
+FRAME_OVERHEAD_S = 0.25  # scene sampling, labels, PNG encoding: per frame, whatever the resolution (measured 0.07)
+SAMPLES_PER_S = 2e6  # rendered and water-formed samples per second, per worker process (measured 5e6-2e7)
 # Samples per output pixel of each quality preset (worker/pipeline.py PRESETS: msaa * supersample**2).
 SAMPLES_PER_PIXEL = {"draft": 1, "fast": 4, "default": 4, "high": 16}
+OBJECT_S = 0.004  # per placed object and frame: draw, placement, a target's labels (measured 0.001)
+TERRAIN_CELL_S = 1e-6  # per heightfield cell (cells**2 of them) and frame: drawing it (measured 3e-7)
+TERRAIN_BUILD_CELL_S = 1e-5  # per cell, once per distinct terrain a process draws: build, upload (measured 4.5e-6)
+OUTPUT_SHARE = 0.25  # each of clean, range, depth, instance: this share of the image's sample cost again
+EXTRA_OUTPUTS = ("clean", "range", "depth", "instance")
+# A user terrain mesh is costed as the largest heightfield (service/spec.py MAX_TERRAIN_CELLS): its triangle count is
+# unknown before it is loaded.
+MAX_TERRAIN_CELLS_COSTED = 1024
 
 
-def shard_seconds(shard_size: int, width: int, height: int, quality: str) -> float:
-    """Conservative seconds one worker process needs for a full shard of these frames."""
-    return shard_size * (FRAME_OVERHEAD_S + width * height * SAMPLES_PER_PIXEL[quality] / SAMPLES_PER_S)
+def frame_seconds(
+    width: int,
+    height: int,
+    quality: str,
+    *,
+    objects: int = 0,
+    terrain_cells: int = 0,
+    extra_outputs: int = 0,
+) -> float:
+    """Conservative seconds of one frame on one worker process (terrain builds excluded: see shard_seconds).
+
+    objects: the most objects a frame may place (the upper ends of targets.count and distractors.count);
+    terrain_cells: cells per side of the terrain grid; extra_outputs: how many of clean, range, depth and
+    instance are switched on.
+    """
+    samples = width * height * SAMPLES_PER_PIXEL[quality] / SAMPLES_PER_S
+    return (FRAME_OVERHEAD_S + samples * (1 + OUTPUT_SHARE * extra_outputs) + OBJECT_S * objects
+            + TERRAIN_CELL_S * terrain_cells**2)
+
+
+def shard_seconds(
+    shard_size: int,
+    width: int,
+    height: int,
+    quality: str,
+    *,
+    objects: int = 0,
+    terrain_cells: int = 0,
+    extra_outputs: int = 0,
+    terrain_builds: int = 0,
+) -> float:
+    """Conservative seconds one worker process needs for a full shard of these frames.
+
+    terrain_builds: how many distinct terrains the shard may draw, each built once by a fresh process (at most
+    one per frame). With only the first four arguments, only resolution and quality are costed: admission uses
+    spec_shard_seconds, which fills in the rest from the spec.
+    """
+    frame = frame_seconds(width, height, quality, objects=objects, terrain_cells=terrain_cells,
+                          extra_outputs=extra_outputs)
+    builds = min(terrain_builds, shard_size) * TERRAIN_BUILD_CELL_S * terrain_cells**2
+    return shard_size * frame + builds
+
+
+def spec_cost_terms(spec) -> dict[str, int]:
+    """The keyword arguments of shard_seconds for a DatasetSpec (service.spec), as admission counts them."""
+    t = spec.terrain
+    cells = MAX_TERRAIN_CELLS_COSTED if t.mesh is not None else t.cells
+    return {
+        "objects": spec.targets.count[1] + spec.distractors.count[1],
+        "terrain_cells": cells,
+        "extra_outputs": sum(bool(getattr(spec.outputs, name)) for name in EXTRA_OUTPUTS),
+        # A user mesh is one terrain; procedural ones come in len(styles) x variants (repeats weight the draw).
+        "terrain_builds": 1 if t.mesh is not None else len(set(t.styles)) * t.variants,
+    }
+
+
+def spec_shard_seconds(spec, shard_size: int | None = None) -> float:
+    """Conservative seconds one worker process needs for a full shard of `spec` (default: spec.shard_size, capped
+    at spec.frames).
+
+    Calibration (2 cores, llvmpipe, 2 render processes at once; seconds per frame, model in brackets): 640x480
+    draft, 1+1 objects, 16 cells, labels: 0.07 (0.41); with 64 targets: 0.12 (0.66); with 1024 cells: 0.38
+    (1.45), plus 4.6 for each terrain not drawn before (10.5); 64+64 objects, 1024 cells and every output: 0.65
+    (2.12). `seasynth generate --workers 2`: that last spec (3 styles x 8 variants of terrain), 8 frames in 21.9 s,
+    about 5 s per frame and process (a 4-frame shard: 50 s modelled); the default spec, 8 frames in 4.0 s (an
+    8-frame shard: 10.8 s modelled); 1280x960 high with depth and range, 4 frames in 6.5 s (a 4-frame shard: 62 s
+    modelled).
+    """
+    size = min(spec.shard_size, spec.frames) if shard_size is None else shard_size
+    return shard_seconds(size, spec.camera.width, spec.camera.height, spec.quality, **spec_cost_terms(spec))
+
+
+# Host memory of one render process, an upper bound fitted to peaks measured with llvmpipe (which keeps GL
+# buffers in host memory) for one frame with every output: 2048x2048 high 1.7 GB; 4096x4096 draft 2.2 GB,
+# default 3.0 GB, high 6.1 GB. Caches that outlive a frame (terrains: about 0.5 GB each at 1024 cells) come on top;
+# worker_max_memory_per_child (worker/celery_app.py) bounds what a process carries into its next task.
+PROCESS_BASE_BYTES = 384 * 2**20  # interpreter, numpy, trimesh, Mesa, the caches of a small spec
+FRAME_BYTES_PER_PIXEL = 128  # read-back images, labels, outputs, PNG encoding
+FRAME_BYTES_PER_SAMPLE = 16  # multisampled colour, range and ids before the resolve
+
+
+def frame_memory_bytes(width: int, height: int, quality: str) -> int:
+    """Upper bound of a render process's memory while it renders one frame (caches excluded)."""
+    pixels = width * height
+    samples = pixels * SAMPLES_PER_PIXEL[quality]
+    return PROCESS_BASE_BYTES + FRAME_BYTES_PER_PIXEL * pixels + FRAME_BYTES_PER_SAMPLE * samples
 
 
 def shard_count(frames: int, shard_size: int) -> int:

@@ -2,7 +2,8 @@
 
 Configuration follows the broker's known traps (see the project's distributed notes): late acks with rejection on
 worker loss plus our own attempt counter, prefetch 1, a visibility timeout of 3x the hard time limit, cancelling
-long-running tasks on connection loss, a soft shutdown for scale-down, and no result backend.
+long-running tasks on connection loss, a soft shutdown for scale-down, pool processes recycled after a number of
+tasks or once they have grown past a memory size, and no result backend.
 
 Celery acknowledges a late-acked message on failure and on the hard time limit by default; here a task hitting
 the hard limit goes back to the queue (its attempt was counted when it started) and the shard task lets no
@@ -11,6 +12,7 @@ failure escape uncounted (worker.shard.run_shard), so no message is dropped on t
 
 from __future__ import annotations
 
+import os
 import sys
 import uuid
 
@@ -21,6 +23,31 @@ from service.queues import broker_options, frame_queue, shard_queue
 from service.settings import Settings
 
 QUEUE_KINDS = ("shards", "frames")
+
+# A pool process whose resident memory has passed this is replaced after its current task (Celery's
+# worker_max_memory_per_child; billiard reads the process's peak RSS, or the current one where psutil is
+# installed). Render caches (terrains, meshes, GL buffers) and heap fragmentation grow with what a process has
+# drawn; a fresh process starts at about 0.25 GiB. So a process starts each task at most this big, and a
+# Deployment's memory limit holds, per process, this plus one frame's working set (service/shards.py
+# frame_memory_bytes) plus the caches one task adds (deploy/base/worker.yaml does the arithmetic).
+WORKER_MAX_MEMORY_PER_CHILD_MB = 1536
+
+
+def max_memory_per_child_mb(settings: Settings) -> int:
+    """settings.worker_max_memory_per_child_mb where Settings has it, else SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB,
+    else WORKER_MAX_MEMORY_PER_CHILD_MB."""
+    value = getattr(settings, "worker_max_memory_per_child_mb", None)
+    if value is None:
+        text = os.environ.get("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "").strip()
+        if not text:
+            return WORKER_MAX_MEMORY_PER_CHILD_MB
+        try:
+            value = int(text)
+        except ValueError:
+            raise ValueError(f"SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB: not a whole number of MiB: {text!r}") from None
+    if value < 256:
+        raise ValueError(f"worker_max_memory_per_child_mb: {value} MiB is below a fresh render process (256)")
+    return int(value)
 
 
 def create_app(settings: Settings) -> Celery:
@@ -44,6 +71,7 @@ def _build(settings: Settings):
         task_acks_on_failure=False,
         worker_prefetch_multiplier=1,
         worker_max_tasks_per_child=settings.worker_max_tasks_per_child,
+        worker_max_memory_per_child=max_memory_per_child_mb(settings) * 1024,  # Celery counts KiB
         worker_cancel_long_running_tasks_on_connection_loss=True,
         task_soft_time_limit=settings.task_soft_time_limit_s,
         task_time_limit=settings.task_time_limit_s,
@@ -92,6 +120,4 @@ def run_worker(settings: Settings, concurrency: int, queues: list[str] | None = 
 
 
 if __name__ == "__main__":  # python -m worker.celery_app [concurrency]
-    import sys
-
     run_worker(Settings(), int(sys.argv[1]) if len(sys.argv) > 1 else 1)

@@ -387,3 +387,70 @@ def test_sample_counts_follow_the_presets():
     from worker.pipeline import PRESETS
 
     assert SAMPLES_PER_PIXEL == {name: s.per_pixel for name, s in PRESETS.items()}
+
+
+HEAVY = {"quality": "draft", "camera": {"width": 640, "height": 480}, "targets": {"count": [64, 64]},
+         "distractors": {"count": [64, 64]}, "terrain": {"cells": 1024},
+         "outputs": {"depth": True, "instance": True, "clean": True, "range": True}}
+
+
+def test_admission_costs_objects_terrain_and_outputs():
+    """Each of them adds to the estimate; the heaviest accepted 640x480 draft spec is costed above what a 2-core
+    CPU worker was measured to take (2.2 s per frame in the service, about 5 s per frame and process for
+    `seasynth generate --workers 2` of 8 frames, every frame drawing a terrain not drawn before)."""
+    from service.shards import frame_seconds, shard_seconds, spec_cost_terms, spec_shard_seconds
+    from service.spec import parse_spec
+
+    def cost(**changes):
+        return spec_shard_seconds(parse_spec({**HEAVY, "shard_size": 4, "frames": 8, **changes}))
+
+    heavy = cost()
+    assert heavy / 4 >= 2 * 5.0, "a shard of the heavy spec must be costed at least 2x its measured time"
+    assert spec_cost_terms(parse_spec(HEAVY)) == {"objects": 128, "terrain_cells": 1024, "extra_outputs": 4,
+                                                  "terrain_builds": 24}
+    lighter = [
+        cost(targets={"count": [0, 8]}),
+        cost(distractors={"count": [3, 5]}),
+        cost(terrain={"cells": 256}),
+        cost(terrain={"cells": 1024, "variants": 1, "styles": ["sand"]}),
+        cost(outputs={"depth": False, "instance": True, "clean": True, "range": True}),
+        cost(outputs={}),
+    ]
+    assert all(c < heavy for c in lighter), (heavy, lighter)
+    # The old resolution-and-quality model is what remains with every other term at zero: 0.40 s per frame here.
+    assert shard_seconds(4, 640, 480, "draft") == 4 * frame_seconds(640, 480, "draft") == pytest.approx(4 * 0.4036)
+    assert heavy > 20 * shard_seconds(4, 640, 480, "draft")
+    # The fewest frames that can draw them pay for terrain builds: at most one per frame.
+    one = spec_shard_seconds(parse_spec({**HEAVY, "shard_size": 1, "frames": 1}))
+    assert one == pytest.approx(frame_seconds(640, 480, "draft", objects=128, terrain_cells=1024, extra_outputs=4)
+                                + 1024**2 * 1e-5)
+
+
+def test_admission_costs_a_user_terrain_mesh_as_the_largest_grid():
+    from service.shards import MAX_TERRAIN_CELLS_COSTED, spec_cost_terms
+    from service.spec import MAX_TERRAIN_CELLS, parse_spec
+
+    spec = parse_spec({"terrain": {"cells": 16, "mesh": {"asset_id": "a" * 64}}})
+    assert spec_cost_terms(spec)["terrain_cells"] == MAX_TERRAIN_CELLS_COSTED == MAX_TERRAIN_CELLS
+    assert spec_cost_terms(spec)["terrain_builds"] == 1
+
+
+def test_frame_memory_model_bounds_the_measured_peaks():
+    """Peak RSS of one process rendering one frame with every output (llvmpipe), in GiB."""
+    from service.shards import frame_memory_bytes
+
+    measured = {(2048, 2048, "high"): 1.65, (4096, 4096, "draft"): 2.19, (4096, 4096, "default"): 2.94,
+                (4096, 4096, "high"): 5.95, (640, 480, "default"): 0.32}
+    for (w, h, q), gib in measured.items():
+        assert gib <= frame_memory_bytes(w, h, q) / 2**30 <= 1.5 * gib + 0.1, (w, h, q)
+
+
+def test_pool_processes_are_recycled_by_memory(infra, monkeypatch):
+    from worker.celery_app import WORKER_MAX_MEMORY_PER_CHILD_MB, create_app
+
+    assert create_app(infra.settings()).conf.worker_max_memory_per_child == WORKER_MAX_MEMORY_PER_CHILD_MB * 1024
+    monkeypatch.setenv("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "3000")
+    assert create_app(infra.settings()).conf.worker_max_memory_per_child == 3000 * 1024
+    monkeypatch.setenv("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "lots")
+    with pytest.raises(ValueError, match="SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB"):
+        create_app(infra.settings())
