@@ -67,12 +67,22 @@ IMAGES = {
     },
 }
 
-# Worker services and Deployments: the image each runs and the queue kinds it consumes (`--queues`).
+# Worker services of compose: the image each runs and the queue kinds it consumes (`--queues`).
 WORKERS = {
     "worker": {"image": "worker", "queues": "shards"},
     "worker-gpu": {"image": "worker-gpu", "queues": "shards"},
     "worker-frames": {"image": "worker", "queues": "frames"},
+    "worker-frames-gpu": {"image": "worker-gpu", "queues": "frames"},
 }
+# Worker Deployments: (name, kustomization) -> the compose service it mirrors.
+K8S_WORKERS = {
+    ("worker", "deploy/base"): "worker",
+    ("worker-frames", "deploy/base"): "worker-frames",
+    ("worker-gpu", "deploy/overlays/gpu"): "worker-gpu",
+    ("worker-frames", "deploy/overlays/gpu"): "worker-frames-gpu",
+}
+# The periodic reconciler: `seasynth reconcile --every N` on the api image, alive while it touches this file.
+RECONCILER_ALIVE_FILE = "/tmp/seasynth-reconciler.alive"
 
 SETTINGS_KEYS = {
     "SEASYNTH_REDIS_URL",
@@ -525,7 +535,7 @@ def compose() -> dict:
 
 
 def test_compose_services(compose):
-    assert set(compose["services"]) == {"redis", "minio", "minio-init", "api"} | set(WORKERS)
+    assert set(compose["services"]) == {"redis", "minio", "minio-init", "api", "reconciler"} | set(WORKERS)
     for name, svc in compose["services"].items():
         if name != "minio-init":
             assert "healthcheck" in svc, f"{name}: no healthcheck"
@@ -558,7 +568,7 @@ def test_compose_minio_bucket_is_created(compose):
     assert (9000, 9000) in published, "presigned URLs name localhost:9000 (SEASYNTH_S3_PUBLIC_ENDPOINT_URL)"
 
 
-@pytest.mark.parametrize("name", ["api", "worker", "worker-gpu", "worker-frames"])
+@pytest.mark.parametrize("name", ["api", "reconciler", *sorted(WORKERS)])
 def test_compose_app_services_share_settings_and_wait_for_backends(compose, name):
     svc = compose["services"][name]
     env = svc["environment"]
@@ -579,10 +589,13 @@ def test_compose_app_services_share_settings_and_wait_for_backends(compose, name
         "minio": {"condition": "service_healthy"},
         "minio-init": {"condition": "service_completed_successfully"},
     }
-    image = IMAGES[WORKERS[name]["image"] if name in WORKERS else name]
+    image = IMAGES[WORKERS[name]["image"] if name in WORKERS else "api"]
     assert svc["build"]["dockerfile"] == image["dockerfile"]
     if name == "api":
         assert "command" not in svc, "the api runs its image's CMD"
+    elif name == "reconciler":
+        assert svc["command"][:2] == ["seasynth", "reconcile"]
+        assert svc["image"] == compose["services"]["api"]["image"], "the sweep is the API's code"
     else:
         assert svc["command"][:2] == image["cmd"], svc["command"]
 
@@ -625,13 +638,51 @@ def test_compose_frames_have_a_worker_of_their_own(compose):
     assert svc["image"] == compose["services"]["worker"]["image"], "the CPU worker image"
 
 
-def test_compose_gpu_worker_is_an_opt_in_profile_with_an_nvidia_device(compose):
-    svc = compose["services"]["worker-gpu"]
+@pytest.mark.parametrize("name", ["worker-gpu", "worker-frames-gpu"])
+def test_compose_gpu_workers_are_an_opt_in_profile_with_an_nvidia_device(compose, name):
+    svc = compose["services"][name]
     assert svc["profiles"] == ["gpu"]
     (device,) = svc["deploy"]["resources"]["reservations"]["devices"]
     assert device["driver"] == "nvidia" and device["count"] == 1
     assert {"gpu", "graphics"} <= set(device["capabilities"]), "graphics: EGL needs the driver's GL libraries"
+    assert svc["image"] == compose["services"]["worker-gpu"]["image"]
     assert "profiles" not in compose["services"]["worker"]
+
+
+def test_compose_gpu_profile_replaces_every_cpu_worker():
+    """A dataset keeps the renderer of the first worker that takes it: the documented GPU command line must leave
+    no CPU worker on the queues, and must start a GPU worker for each queue kind the CPU ones served."""
+    text = (ROOT / "docker-compose.yml").read_text()
+    command = re.search(r"docker compose --profile gpu up -d (.*?)(?:#|$)", text, re.M)
+    assert command, "docker-compose.yml should document how to run the GPU workers"
+    scaled_to_zero = set(re.findall(r"--scale ([\w-]+)=0", command.group(1)))
+    cpu_workers = {n for n, w in WORKERS.items() if w["image"] == "worker"}
+    assert scaled_to_zero == cpu_workers, f"the GPU command line must scale {sorted(cpu_workers)} to 0"
+    gpu_queues = {w["queues"] for w in WORKERS.values() if w["image"] == "worker-gpu"}
+    assert gpu_queues == {w["queues"] for w in WORKERS.values() if w["image"] == "worker"}
+
+
+def _alive_check(command: list[str]) -> tuple[str, float]:
+    """(file, seconds) of the reconciler's health check `python -c "...getmtime(FILE) > SECONDS"`."""
+    assert command[:2] == ["python", "-c"], command
+    m = re.fullmatch(r"import os, sys, time; sys\.exit\(time\.time\(\) - os\.path\.getmtime\('([^']+)'\) > (\d+)\)",
+                     command[2])
+    assert m, command[2]
+    return m.group(1), float(m.group(2))
+
+
+def test_compose_reconciler_runs_every_minute_and_is_healthy_while_rounds_complete(compose):
+    svc = compose["services"]["reconciler"]
+    cmd = svc["command"]
+    assert cmd[:3] == ["seasynth", "reconcile", "--every"] and len(cmd) == 4, cmd
+    every = float(cmd[3])
+    test = svc["healthcheck"]["test"]
+    assert test[0] == "CMD"
+    path, stale = _alive_check(test[1:])
+    assert path == RECONCILER_ALIVE_FILE
+    assert stale >= 3 * every, "a slow round or two must not make the reconciler unhealthy"
+    assert "ports" not in svc and svc["restart"] == "unless-stopped"
+    assert _duration_s(svc["healthcheck"]["start_period"]) >= every
 
 
 def test_compose_file_follows_the_compose_specification():
@@ -642,7 +693,7 @@ def test_compose_file_follows_the_compose_specification():
 # --------------------------------------------------------------------------------------------
 # Kubernetes manifests (deploy/)
 
-KUSTOMIZATIONS = ["deploy/base", "deploy", "deploy/overlays/gpu"]
+KUSTOMIZATIONS = ["deploy/core", "deploy/base", "deploy", "deploy/overlays/gpu"]
 CLUSTER_SCOPED = {"Namespace"}
 SUPPORTED_KUSTOMIZE_KEYS = {"apiVersion", "kind", "namespace", "labels", "resources", "components", "images"}
 NAMESPACE = "seasynth"
@@ -723,6 +774,23 @@ def render_kustomization(directory: Path, used: set[Path] | None = None) -> list
 @pytest.fixture(scope="module")
 def rendered() -> dict[str, list[dict]]:
     return {k: render_kustomization(ROOT / k) for k in KUSTOMIZATIONS}
+
+
+@pytest.mark.parametrize("kustomization", KUSTOMIZATIONS)
+def test_offline_render_matches_kubectl_kustomize(rendered, kustomization):
+    """Where kubectl (with kustomize v4 or later: `labels`, components) is installed, its render is ours."""
+    kubectl = shutil.which("kubectl")
+    if kubectl is None:
+        pytest.skip("kubectl is not installed")
+    proc = subprocess.run([kubectl, "kustomize", str(ROOT / kustomization)], capture_output=True, text=True,
+                          timeout=120)
+    if proc.returncode != 0 and "labels" in proc.stderr:
+        pytest.skip(f"this kubectl's kustomize is too old: {proc.stderr.strip()[:200]}")
+    assert proc.returncode == 0, proc.stderr
+    real = {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(proc.stdout) if d}
+    ours = {(d["kind"], d["metadata"]["name"]): d for d in rendered[kustomization]}
+    assert sorted(real) == sorted(ours)
+    assert [k for k in ours if ours[k] != real[k]] == []
 
 
 def _by(docs: list[dict], kind: str, name: str) -> dict:
@@ -831,13 +899,29 @@ def test_kustomizations_hold_the_right_objects(rendered):
     def kinds(k):
         return sorted(f"{d['kind']}/{d['metadata']['name']}" for d in rendered[k])
 
-    base = [
-        "ConfigMap/seasynth-settings", "Deployment/api", "Deployment/worker", "Namespace/seasynth",
-        "Secret/seasynth-s3", "Service/api", "Service/redis", "StatefulSet/redis", "Deployment/worker-frames",
+    core = [
+        "ConfigMap/seasynth-settings", "Deployment/api", "Namespace/seasynth", "Secret/seasynth-s3", "Service/api",
+        "Service/redis", "StatefulSet/redis", "Deployment/reconciler",
     ]  # fmt: skip
+    base = core + ["Deployment/worker", "Deployment/worker-frames"]
+    assert kinds("deploy/core") == sorted(core), "the core has no render workers"
     assert kinds("deploy/base") == sorted(base), "the base needs no CRD"
     assert kinds("deploy") == sorted(base + ["ScaledObject/worker"])
-    assert kinds("deploy/overlays/gpu") == sorted(base + ["ScaledObject/worker", "Deployment/worker-gpu", "ScaledObject/worker-gpu"])
+    # The GPU workers replace the CPU ones: no CPU worker shares their queues.
+    gpu = core + ["Deployment/worker-gpu", "Deployment/worker-frames", "ScaledObject/worker-gpu"]
+    assert kinds("deploy/overlays/gpu") == sorted(gpu)
+
+
+@pytest.mark.parametrize("kustomization", KUSTOMIZATIONS)
+def test_one_renderer_kind_per_installation(rendered, kustomization):
+    """A dataset keeps the renderer of the first worker that takes it: every render worker of an installation
+    runs the same image, so no shard or frame is handed between renderers."""
+    images = {c["image"].split(":")[0] for d in rendered[kustomization] for t in _pod_templates(d)
+              for c in t["spec"]["containers"] if c["args"][:2] == ["seasynth", "worker"]}
+    assert len(images) <= 1, f"{kustomization}: render workers of several images {sorted(images)}"
+    queues = {_queues(c["args"]) for d in rendered[kustomization] for t in _pod_templates(d)
+              for c in t["spec"]["containers"] if c["args"][:2] == ["seasynth", "worker"]}
+    assert queues in (set(), {"shards", "frames"}), f"{kustomization}: workers for {sorted(queues)} only"
 
 
 def test_k8s_redis_never_evicts_and_persists(rendered):
@@ -865,19 +949,19 @@ def test_k8s_api_probes_and_service(rendered):
     assert c["readinessProbe"]["httpGet"]["port"] == port["name"] == c["livenessProbe"]["httpGet"]["port"]
 
 
-@pytest.mark.parametrize(
-    ("name", "kustomization"),
-    [("worker", "deploy/base"), ("worker-gpu", "deploy/overlays/gpu"), ("worker-frames", "deploy/base")],
-)
+@pytest.mark.parametrize(("name", "kustomization"), sorted(K8S_WORKERS))
 def test_k8s_workers(rendered, compose, name, kustomization):
     dep = _by(rendered[kustomization], "Deployment", name)
     pod = dep["spec"]["template"]["spec"]
     c = _container(dep)
-    image = IMAGES[WORKERS[name]["image"]]
+    service = K8S_WORKERS[(name, kustomization)]
+    image = IMAGES[WORKERS[service]["image"]]
     assert c["args"][:2] == image["cmd"] and c["args"][2] == "--concurrency"
-    assert _queues(c["args"]) == WORKERS[name]["queues"] == _queues(compose["services"][name]["command"])
+    assert _queues(c["args"]) == WORKERS[service]["queues"] == _queues(compose["services"][service]["command"])
     assert c["image"].split(":")[0] == image["k8s_image"]
-    assert pod["terminationGracePeriodSeconds"] == _duration_s(compose["services"][name]["stop_grace_period"]), (
+    if WORKERS[service]["queues"] == "frames":
+        assert c["args"][3] == compose["services"][service]["command"][3] == "1", "one frames process"
+    assert pod["terminationGracePeriodSeconds"] == _duration_s(compose["services"][service]["stop_grace_period"]), (
         "Kubernetes and compose should give a stopping worker the same time"
     )
     assert pod["terminationGracePeriodSeconds"] >= _min_stop_grace_s()
@@ -891,7 +975,7 @@ def test_k8s_workers(rendered, compose, name, kustomization):
     req, lim = c["resources"]["requests"], c["resources"]["limits"]
     assert "cpu" in req and "memory" in req and "memory" in lim
     assert int(c["args"][3]) <= int(req["cpu"]), f"{name}: more pool processes than requested CPUs"
-    if name == "worker-gpu":
+    if WORKERS[service]["image"] == "worker-gpu":
         assert lim["nvidia.com/gpu"] == 1
         assert "graphics" in env["NVIDIA_DRIVER_CAPABILITIES"].split(",")
         assert env["__EGL_VENDOR_LIBRARY_FILENAMES"] == NVIDIA_VENDOR_FILE
@@ -909,16 +993,78 @@ def test_k8s_settings_match_compose(rendered, compose):
     assert config["SEASYNTH_REDIS_URL"].startswith("redis://redis:6379/")
 
 
-def test_keda_scales_on_this_versions_shard_queue(rendered):
-    objs = [d for d in rendered["deploy/overlays/gpu"] if d["kind"] == "ScaledObject"]
+@pytest.mark.parametrize(("kustomization", "target"), [("deploy", "worker"), ("deploy/overlays/gpu", "worker-gpu")])
+def test_keda_scales_on_this_versions_shard_queue(rendered, kustomization, target):
+    objs = [d for d in rendered[kustomization] if d["kind"] == "ScaledObject"]
     lists = {t["metadata"]["listName"] for d in objs for t in d["spec"]["triggers"]}
     assert lists == {_shard_queue()}, f"the workers drain {_shard_queue()} (service/queues.py), KEDA watches {lists}"
-    cpu = _by(objs, "ScaledObject", "worker")["spec"]
-    assert cpu["minReplicaCount"] >= 1, "one shard worker stays warm"
-    targets = {d["spec"]["scaleTargetRef"]["name"] for d in objs}
-    assert "worker-frames" not in targets, "the frames worker is not scaled on the shard queue"
-    frames = _by(rendered["deploy/overlays/gpu"], "Deployment", "worker-frames")
-    assert frames["spec"]["replicas"] == 1
+    (scaled,) = objs
+    assert scaled["spec"]["scaleTargetRef"]["name"] == target
+    # KEDA sees waiting shards only, not running ones: at zero replicas it would stop workers mid-shard.
+    assert scaled["spec"]["minReplicaCount"] >= 1, "one shard worker stays warm"
+    frames = _by(rendered[kustomization], "Deployment", "worker-frames")
+    assert frames["spec"]["replicas"] == 1, "the frames worker is not scaled on the shard queue"
+
+
+def test_k8s_reconciler_runs_like_compose(rendered, compose):
+    for kustomization in KUSTOMIZATIONS:
+        dep = _by(rendered[kustomization], "Deployment", "reconciler")
+        c = _container(dep)
+        assert c["args"] == compose["services"]["reconciler"]["command"], "the same rounds as compose"
+        assert c["image"].split(":")[0] == IMAGES["api"]["k8s_image"], "the sweep is the API's code"
+        path, stale = _alive_check(c["livenessProbe"]["exec"]["command"])
+        assert path == RECONCILER_ALIVE_FILE and stale >= 3 * float(c["args"][3])
+        assert c["livenessProbe"]["initialDelaySeconds"] >= float(c["args"][3])
+        assert dep["spec"]["replicas"] >= 1 and dep["spec"]["template"]["spec"]["securityContext"]["runAsNonRoot"]
+        assert {"configMapRef", "secretRef"} == {k for src in c["envFrom"] for k in src}
+
+
+def test_reconciler_alive_file_is_the_one_the_loop_touches():
+    """The health checks read the file service.queues.alive_file() names (the reconciler runs on Linux: /tmp)."""
+    tree = ast.parse((ROOT / "service" / "queues.py").read_text())
+    (fn,) = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "alive_file"]
+    names = [n.value for n in ast.walk(fn) if isinstance(n, ast.Constant) and isinstance(n.value, str)]
+    assert Path(RECONCILER_ALIVE_FILE).name in names and "gettempdir" in ast.unparse(fn)
+
+
+def _module_constant(path: str, name: str):
+    tree = ast.parse((ROOT / path).read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == name for t in node.targets):
+            return ast.literal_eval(node.value)
+    raise AssertionError(f"{path} has no constant {name}")
+
+
+
+
+def _gib(quantity: str) -> float:
+    units = {"Mi": 2**-10, "Gi": 1, "Ti": 2**10}
+    assert quantity[-2:] in units, f"memory quantity {quantity!r}: use Mi or Gi"
+    return float(quantity[:-2]) * units[quantity[-2:]]
+
+
+# Caches one task may add on top of what a process carries into it (one 1024-cell terrain is about 0.5 GiB).
+TASK_CACHE_GIB = 1.0
+
+
+@pytest.mark.parametrize(("name", "kustomization"), sorted(K8S_WORKERS))
+def test_k8s_worker_memory_holds_its_processes_at_the_spec_limits(rendered, name, kustomization):
+    """limit >= concurrency x (what a process may carry into a task + the largest admitted frame + one task's
+    caches). CPU (llvmpipe) processes hold a frame's multisampled buffers in host memory; on a GPU only the
+    read-back images (per pixel) are host memory."""
+    c = _container(_by(rendered[kustomization], "Deployment", name))
+    shards = _load_file("service/shards.py")
+    side = _settings_default("max_side")
+    carried = _module_constant("worker/celery_app.py", "WORKER_MAX_MEMORY_PER_CHILD_MB") / 1024
+    if c["image"].split(":")[0] == IMAGES["worker-gpu"]["k8s_image"]:
+        frame = shards.FRAME_BYTES_PER_PIXEL * side * side / 2**30
+    else:
+        frame = (shards.frame_memory_bytes(side, side, "high") - shards.PROCESS_BASE_BYTES) / 2**30
+    need = int(c["args"][3]) * (carried + frame + TASK_CACHE_GIB)
+    limit = _gib(c["resources"]["limits"]["memory"])
+    assert limit >= need, f"{name} ({kustomization}): memory limit {limit} GiB < {need:.2f} GiB"
+    assert limit <= need + 2, f"{name} ({kustomization}): limit {limit} GiB far above the {need:.2f} GiB it needs"
+    assert _gib(c["resources"]["requests"]["memory"]) <= limit
 
 
 @pytest.mark.parametrize("kustomization", KUSTOMIZATIONS)
