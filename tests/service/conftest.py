@@ -54,7 +54,7 @@ def stack(infra: Stack) -> Stack:
     """The whole service: API plus two single-process workers."""
     infra.start_worker(1)
     infra.start_worker(1)
-    _, infra.api_url = infra.start_api()
+    infra.api_proc, infra.api_url = infra.start_api()
     return infra
 
 

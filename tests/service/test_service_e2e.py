@@ -18,7 +18,8 @@ import httpx
 import pytest
 
 from service.fetch import STATE_DIR, fetch_dataset
-from service_stack import Stack, tiny_spec, wait_for, wait_state
+from service.queues import TASK_SHARD
+from service_stack import Stack, log_since, log_size, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, not frame files
 
@@ -57,16 +58,28 @@ def shard_members(services, manifest: dict) -> list[tuple[int, dict[str, bytes]]
     return out
 
 
+COMMITTED = f"Task {TASK_SHARD}["  # a worker's log line for a shard task, ending in its outcome
+
+
 @pytest.mark.parametrize("shard_size, extra_workers", [(2, 0), (4, 1)])
 def test_dataset_complete_and_identical_to_local_generate(
     stack: Stack, client, services, tmp_path, shard_size, extra_workers
 ):
     extra = [stack.start_worker(2) for _ in range(extra_workers)]  # 2 or 3 workers, 2 or 4 processes
     try:
+        for w in extra:
+            wait_worker_ready(w, 2)
+        workers = stack.workers()
+        assert len(workers) == 2 + extra_workers
+        offsets = {w.log: log_size(w) for w in workers}
         spec = tiny_spec(frames=7, shard_size=shard_size)
         dataset_id = post(client, spec)
         seen = set()
         final = wait_state(client, dataset_id, {"succeeded", "failed"})
+        # Which worker committed which shard: the records name renderers, not nodes, so read each one's log.
+        committed = {w.log: sum(1 for line in log_since(w, offsets[w.log]).splitlines()
+                                if COMMITTED in line and line.rstrip().endswith("'committed'"))
+                     for w in workers}
     finally:
         for w in extra:
             w.stop()
@@ -76,6 +89,8 @@ def test_dataset_complete_and_identical_to_local_generate(
     assert (final["shards_done"], final["shards_failed"], final["shards_total"]) == (n_shards, 0, n_shards)
     assert final["attempts"] == n_shards and final["errors"] == []
     assert final["renderer"] and final["code_version"]
+    assert sum(committed.values()) == n_shards, committed
+    assert sum(1 for n in committed.values() if n) >= 2, f"one worker rendered every shard: {committed}"
 
     man = client.get(f"/datasets/{dataset_id}/manifest").json()
     assert man["complete"] and man["seed"] == 7 and man["code_version"] == final["code_version"]
@@ -177,11 +192,18 @@ def test_cancel_stops_pending_shards_and_keeps_the_record(stack: Stack, client, 
     wait_for(lambda: services.records.get(dataset_id).shards_done >= 1, 60, "a first shard")
     r = client.delete(f"/datasets/{dataset_id}")
     assert r.status_code == 200 and r.json()["state"] == "cancelled"
-    done_then = services.records.get(dataset_id).shards_done
+    then = services.records.get(dataset_id)
+    processes = sum(1 for _ in stack.workers())  # the session's workers run one process each
+    # The shards running at the cancel end (a cancelled shard stops between frames); nothing starts after.
+    wait_for(lambda: services.records.running(dataset_id) == {}, 30, "the shards in flight to end")
+    settled = services.records.get(dataset_id)
+    tries = services.records.tries(dataset_id)
     time.sleep(2)  # the queued shard tasks drain without rendering
     rec = client.get(f"/datasets/{dataset_id}").json()
     assert rec["state"] == "cancelled"
-    assert rec["shards_done"] <= done_then + 2  # at most the shards in flight at the cancel (2 processes)
+    assert rec["attempts"] == settled.attempts <= then.attempts + processes, "attempts went on after the cancel"
+    assert services.records.tries(dataset_id) == tries
+    assert rec["shards_done"] == settled.shards_done <= then.shards_done + processes
     assert rec["shards_done"] < 200
     man = client.get(f"/datasets/{dataset_id}/manifest").json()
     assert not man["complete"] and len(man["shards"]) == rec["shards_done"]
@@ -230,16 +252,24 @@ def test_uploaded_asset_renders(stack: Stack, client, tmp_path):
 
 
 def test_status_survives_an_api_restart(stack: Stack, client):
-    dataset_id = post(client, tiny_spec(frames=2, shard_size=2))
-    wait_state(client, dataset_id, {"succeeded"})
-    proc, url = stack.start_api()
-    try:
-        r = httpx.get(f"{url}/datasets/{dataset_id}")
-        assert r.status_code == 200 and r.json()["state"] == "succeeded"
-        listed = httpx.get(f"{url}/datasets", params={"limit": 100}).json()
+    done = post(client, tiny_spec(frames=2, shard_size=2))
+    before = wait_state(client, done, {"succeeded"})
+    running = post(client, tiny_spec(frames=40, shard_size=1))
+    old_url, old = stack.api_url, stack.api_proc
+    old.stop()  # SIGTERM: uvicorn's graceful shutdown
+    assert old.popen.returncode is not None
+    with pytest.raises(httpx.TransportError):
+        httpx.get(f"{old_url}/healthz", timeout=2)
+    # The session's API from here on is a new process on a new port; the workers never noticed.
+    stack.api_proc, stack.api_url = stack.start_api()
+    assert stack.api_url != old_url and stack.api_proc.popen.pid != old.popen.pid
+    with httpx.Client(base_url=stack.api_url, timeout=60) as new:
+        r = new.get(f"/datasets/{done}")
+        assert r.status_code == 200 and r.json() == before
+        final = wait_state(new, running, {"succeeded", "failed"}, timeout=120)
+        assert final["state"] == "succeeded" and final["frames_done"] == 40, final
+        listed = new.get("/datasets", params={"limit": 100}).json()
         ids = [d["id"] for d in listed["items"]]
-        assert dataset_id in ids
+        assert ids.index(running) < ids.index(done)
         created = [d["created_at"] for d in listed["items"]]
         assert created == sorted(created, reverse=True)
-    finally:
-        proc.stop()

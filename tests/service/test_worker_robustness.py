@@ -1,11 +1,14 @@
-"""Worker robustness on real Redis (and, where said, real workers and API): finalising against a cancel, shards
-of a renderer no live worker has, the periodic reconciler."""
+"""Worker robustness on real Redis (and, where said, real workers, API and S3): finalising against a cancel,
+shards of a renderer no live worker has, the periodic reconciler, workers of another code version, gzip shards."""
 
 from __future__ import annotations
 
 import base64
 import contextlib
+import io
 import json
+import sys
+import tarfile
 import threading
 import time
 import uuid
@@ -19,7 +22,7 @@ from service import __version__
 from service.manifest import pending_manifests_key
 from service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
 from service.records import Records
-from service.shards import manifest_key, shard_count
+from service.shards import manifest_key, shard_count, shard_key
 from service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
@@ -391,3 +394,71 @@ def test_a_failing_round_does_not_stop_the_reconciler(stack: Stack, tmp_path):
     assert [line for line in lines if "round failed" in line] == [
         "reconciler: round failed, next in 0.3 s: ConnectionError: Redis went away"]
     assert (tmp_path / "alive").exists()
+
+
+# --- a worker of another code version, gzip shards
+
+
+OTHER_VERSION = "0.0.0-robustness"
+
+
+def test_a_worker_of_another_version_republishes_a_shard_untouched_to_its_versions_queue(stack: Stack):
+    with isolated(stack, 14) as (env, services):
+        ds = record_only(services, tiny_spec(frames=4, shard_size=2))
+        # A worker whose code says it is another version: it consumes that version's queue only.
+        code = ("import sys, service; service.__version__ = sys.argv[1]; from service.cli import main; "
+                "sys.argv = ['seasynth', 'worker', '--concurrency', '1', '--queues', 'shards']; main()")
+        worker = stack.start("worker-other-version", [sys.executable, "-c", code, OTHER_VERSION], env=env)
+        try:
+            wait_worker_ready(worker, 1)
+            raw = services.raw_redis
+            assert raw.llen(shard_queue(OTHER_VERSION)) == 0
+            services.producer.send_task(TASK_SHARD, args=[ds, 1], queue=shard_queue(OTHER_VERSION))
+            ours = shard_queue(__version__)
+            wait_for(lambda: raw.llen(ours) == 1, 30, "the shard back on its version's queue")
+            assert queued_tasks(raw, ours) == [(TASK_SHARD, [ds, 1])]
+            assert raw.llen(shard_queue(OTHER_VERSION)) == 0
+            rec = services.records.get(ds)
+            assert (rec.state, rec.attempts, rec.renderer, rec.frames_done) == ("queued", 0, None, 0)
+            assert services.records.tries(ds) == {} and services.records.running(ds) == {}
+            assert f"Task {TASK_SHARD}" in worker.tail(200) and "'requeued'" in worker.tail(200)
+        finally:
+            worker.stop()
+
+
+def test_gzip_shards_end_to_end(stack: Stack, tmp_path):
+    from service.fetch import fetch_dataset
+    from test_service_e2e import local_generate, tree
+
+    with isolated(stack, 15, shard_compression="gz") as (env, services):
+        worker = stack.seasynth("worker-gz", "worker", "--concurrency", "1", "--queues", "shards,frames", env=env)
+        try:
+            wait_worker_ready(worker, 1)
+            spec = tiny_spec(frames=5, shard_size=2)
+            with api_on(services) as client:
+                r = client.post("/datasets", json=spec)
+                assert r.status_code == 202, r.text
+                ds = r.json()["id"]
+                final = wait_state(client, ds, {"succeeded", "failed"}, timeout=90)
+                assert final["state"] == "succeeded", final
+                man = client.get(f"/datasets/{ds}/manifest").json()
+                assert [s["key"] for s in man["shards"]] == [shard_key(ds, i, "gz") for i in range(3)]
+                members = []
+                for s in man["shards"]:
+                    data = services.store.get_bytes(s["key"])
+                    assert data[:2] == b"\x1f\x8b" and len(data) == s["bytes"]
+                    with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+                        members += tar.getnames()
+                assert len(members) == len(set(members)) == 5 * 4
+                frame = client.get(f"/datasets/{ds}/frames/3")
+                assert frame.status_code == 200
+                base = str(client.base_url)
+                fetched = tmp_path / "fetched"
+                report = fetch_dataset(base, ds, fetched, progress=False)
+            assert (report.shards_total, report.shards_fetched) == (3, 3)
+            got = tree(fetched)
+            assert set(got) == set(members) and got == local_generate(spec, tmp_path / "local")
+            assert got["image_2/000003.png"] == frame.content
+        finally:
+            worker.stop()
+
