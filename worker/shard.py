@@ -309,6 +309,8 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int) -> Outcom
     if ctx.records.get(dataset_id).purged:  # purged while we uploaded: take our objects back out
         ctx.store.delete_prefix(f"datasets/{dataset_id}/")
         return Outcome.CANCELLED
+    log.info("dataset %s shard %s committed: frames %s..%s", dataset_id, shard.index, shard.first_frame,
+             shard.first_frame + shard.frame_count - 1)
     finalise_or_defer(ctx, dataset_id)
     return Outcome.COMMITTED
 

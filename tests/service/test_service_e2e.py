@@ -7,6 +7,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -18,7 +19,6 @@ import httpx
 import pytest
 
 from service.fetch import STATE_DIR, fetch_dataset
-from service.queues import TASK_SHARD
 from service_stack import Stack, log_since, log_size, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, not frame files
@@ -58,7 +58,10 @@ def shard_members(services, manifest: dict) -> list[tuple[int, dict[str, bytes]]
     return out
 
 
-COMMITTED = f"Task {TASK_SHARD}["  # a worker's log line for a shard task, ending in its outcome
+def commits_in(log: str, dataset_id: str) -> int:
+    """How many shards of `dataset_id` a worker's log says it committed (worker.shard logs one line per commit;
+    other tests' datasets may still be committing in the same workers)."""
+    return len(re.findall(rf"dataset {dataset_id} shard \d+ committed:", log))
 
 
 @pytest.mark.parametrize("shard_size, extra_workers", [(2, 0), (4, 1)])
@@ -77,9 +80,7 @@ def test_dataset_complete_and_identical_to_local_generate(
         seen = set()
         final = wait_state(client, dataset_id, {"succeeded", "failed"})
         # Which worker committed which shard: the records name renderers, not nodes, so read each one's log.
-        committed = {w.log: sum(1 for line in log_since(w, offsets[w.log]).splitlines()
-                                if COMMITTED in line and line.rstrip().endswith("'committed'"))
-                     for w in workers}
+        committed = {w.log: commits_in(log_since(w, offsets[w.log]), dataset_id) for w in workers}
     finally:
         for w in extra:
             w.stop()
