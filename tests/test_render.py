@@ -136,16 +136,20 @@ def test_depth_is_rounded_z_and_zero_where_no_surface_or_beyond_256_m():
     np.testing.assert_array_equal(got, [[0, 2560, 65533, 0], [0, 0, 256, 0]])
 
 
-def test_every_msaa_sample_range_lies_within_the_surface_it_covers(renderer):
-    # The plane x = 0.05 m seen from z = 0.2 to 2 m: its image is u in [cx + 0.19, cx + 1.95], so in the centre
-    # column a sample right of the pixel centre is covered while the centre (where the plane's range is
-    # infinite) is not.
-    K = pinhole(W, H, 60.0)
+def receding_sheet() -> DrawItem:
+    """The plane x = 0.05 m seen from z = 0.2 to 2 m: its image is u in [cx + 0.19, cx + 1.95], so in the centre
+    column a sample right of the pixel centre is covered while the centre (where the plane's range is infinite)
+    is not."""
     c = 0.05
     vertices = np.array([[c, -0.1, 0.2], [c, 0.1, 0.2], [c, 0.1, 2.0], [c, -0.1, 2.0]])
     sheet = trimesh.Trimesh(vertices, [[0, 1, 2], [0, 2, 3]], vertex_colors=np.tile([200, 120, 60, 255], (4, 1)),
                             process=False)
-    item = draw("test/render/receding-sheet", sheet)
+    return draw("test/render/receding-sheet", sheet)
+
+
+def test_every_msaa_sample_range_lies_within_the_surface_it_covers(renderer):
+    K = pinhole(W, H, 60.0)
+    item = receding_sheet()
     _, range_m = renderer.samples(camera_view(K, W, H), [item], LIGHT, Sampling(msaa=4))
     seen = np.isfinite(range_m)
     assert np.any(seen[:, :, W // 2])
@@ -215,7 +219,7 @@ def test_an_empty_scene_is_all_open_water(renderer, preset):
 
 
 def test_range_is_the_same_with_or_without_water_and_at_any_sampling(renderer):
-    """Range always comes from the single-sample ids pass, at pixel centres."""
+    """With edges on pixel boundaries every pixel centre hits the surface its samples hit, or none does."""
     K = pinhole(W, H, 60.0)
     quad = fronto_quad(K, (2.5, 5.5), (1.5, 3.5), 5.0)
     item = draw("test/render/open-water-quad", quad, 7)
@@ -223,6 +227,27 @@ def test_range_is_the_same_with_or_without_water_and_at_any_sampling(renderer):
     dry = renderer.render(view, [item], LIGHT, None, Sampling(msaa=1), Passes(range=True))
     wet = renderer.render(view, [item], LIGHT, WATER, Sampling(msaa=4), Passes(range=True))
     np.testing.assert_array_equal(dry.range_m, wet.range_m)
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_range_is_the_centre_where_it_hits_else_the_nearest_sample_and_inf_only_where_no_sample_hits(
+    renderer, preset
+):
+    K = pinhole(W, H, 60.0)
+    view = camera_view(K, W, H)
+    # A sheet seen edge-on and a quad whose edges cut through pixels: pixels whose centre misses but samples hit.
+    items = [receding_sheet(), draw("test/render/off-grid-quad", fronto_quad(K, (2.2, 5.7), (1.3, 3.9), 5.0), 7)]
+    sampling = PRESETS[preset]
+    result = renderer.render(view, items, LIGHT, WATER, sampling, Passes(range=True))
+    centre = renderer.render(view, items, LIGHT, None, Sampling(msaa=1), Passes(range=True)).range_m
+    _, samples = renderer.samples(view, items, LIGHT, sampling)  # (k, h, w): every sample of every pixel
+    expected = np.where(np.isfinite(centre), centre, samples.min(axis=0))
+    np.testing.assert_array_equal(result.range_m, expected)
+    water = np.isinf(samples).all(axis=0)
+    np.testing.assert_array_equal(np.isinf(result.range_m), water)
+    assert_veiling_light(result.image[water], sampling)  # open water by the range is the veiling light
+    if sampling.per_pixel > 1:  # the case this rule is for occurs here
+        assert np.any(np.isinf(centre) & ~water)
 
 
 # --- determinism ----------------------------------------------------------------------------------------------

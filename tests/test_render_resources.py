@@ -91,20 +91,29 @@ def test_sphere_in_view_is_false_only_beyond_a_radius_outside_a_plane():
         (True, Passes(clean=True), ("surface+range", "resolve+haze", "read image", "read clean")),
         (False, Passes(clean=True), ("surface", "resolve", "read image", "read clean")),
         (True, Passes(ids=True), ("surface+range", "resolve+haze", "read image", "ids", "read ids")),
-        (True, Passes(range=True), ("surface+range", "resolve+haze", "read image", "ids+range", "read range")),
-        (False, Passes(range=True), ("surface", "resolve", "read image", "ids+range", "read range")),
-        (
-            True,
-            Passes(clean=True, ids=True, range=True),
-            ("surface+range", "resolve+haze", "read image", "read clean", "ids+range", "read ids", "read range"),
-        ),
+        # Range: the surface pass's samples give the nearest hit; with several samples per pixel a single-sample
+        # pass adds the pixel centres (with the ids when those are drawn too).
+        (True, Passes(range=True), {
+            "draft": ("surface+range", "resolve+haze", "read image", "read nearest range"),
+            "high": ("surface+range", "resolve+haze", "read image", "read nearest range", "range", "read range"),
+        }),
+        (False, Passes(range=True), {
+            "draft": ("surface+range", "resolve", "read image", "read nearest range"),
+            "high": ("surface+range", "resolve", "read image", "read nearest range", "range", "read range"),
+        }),
+        (True, Passes(clean=True, ids=True, range=True), {
+            "draft": ("surface+range", "resolve+haze", "read image", "read clean", "read nearest range", "ids",
+                      "read ids"),
+            "high": ("surface+range", "resolve+haze", "read image", "read clean", "read nearest range", "ids+range",
+                     "read ids", "read range"),
+        }),
     ],
 )
 @pytest.mark.parametrize("preset", ["draft", "high"])
 def test_only_the_passes_asked_for_are_drawn_and_read(renderer, water, passes, expected, preset):
     item = draw("test/render-resources/inside", fronto_quad(K, (2.5, 5.5), (1.5, 4.5), 5.0), 6)
     result = renderer.render(VIEW, [item], LIGHT, WATER if water else None, PRESETS[preset], passes)
-    assert result.passes == expected
+    assert result.passes == (expected[preset] if isinstance(expected, dict) else expected)
     assert (result.clean is not None) == passes.clean
     assert (result.instance is not None) == passes.ids
     assert (result.range_m is not None) == passes.range
@@ -120,15 +129,17 @@ SURFACE = ("surface+range", "resolve+haze", "read image")
         ((), True, SURFACE, False),
         (("meta",), True, SURFACE, False),
         (("labels",), True, (*SURFACE, "ids", "read ids"), True),
-        (("depth",), True, (*SURFACE, "ids+range", "read range"), False),
+        (("depth",), True, (*SURFACE, "read nearest range", "range", "read range"), False),
         (("instance",), True, (*SURFACE, "ids", "read ids"), False),
         (("clean",), True, (*SURFACE, "read clean"), False),
-        (("range",), True, (*SURFACE, "ids+range", "read range"), False),
-        (("clean", "range"), True, (*SURFACE, "read clean", "ids+range", "read range"), False),
+        (("range",), True, (*SURFACE, "read nearest range", "range", "read range"), False),
+        (("clean", "range"), True, (*SURFACE, "read clean", "read nearest range", "range", "read range"), False),
+        (("labels", "depth"), True, (*SURFACE, "read nearest range", "ids+range", "read ids", "read range"), True),
         (("labels", "meta"), False, ("surface", "resolve", "read image", "ids", "read ids"), True),
         ((), False, ("surface", "resolve", "read image"), False),
     ],
-    ids=["image-only", "meta", "labels", "depth", "instance", "clean", "range", "clean+range", "labels-dry", "dry"],
+    ids=["image-only", "meta", "labels", "depth", "instance", "clean", "range", "clean+range", "labels+depth",
+         "labels-dry", "dry"],
 )
 def test_each_output_configuration_draws_and_reads_back_only_what_its_files_need(
     render_session, monkeypatch, outputs, water, expected, alone
@@ -163,21 +174,22 @@ def test_framebuffers_are_kept_a_few_per_kind_and_evicted_ones_are_deleted(rende
     sizes = [(11 + i, 5) for i in range(n + 2)]
     built = []
     for i, (w, h) in enumerate(sizes):
-        built.append(renderer._ids_target(w, h, False))
+        built.append(renderer._ids_target(w, h, True, False))
         assert all(gl_objects_exist(renderer, built[-1]))
         ids_keys = [k for k in renderer._targets if k[0] == "ids"]
-        assert len(ids_keys) <= n and ("ids", w, h, False) in ids_keys
+        assert len(ids_keys) <= n and ("ids", w, h, True, False) in ids_keys
         if i >= n:
             # The least recently used is gone, with every GL object it held (checked at once: a driver may hand its
             # names out again to the next objects made).
-            assert ("ids", *sizes[i - n], False) not in renderer._targets
+            assert ("ids", *sizes[i - n], True, False) not in renderer._targets
             assert not any(gl_objects_exist(renderer, built[i - n]))
     for t in built[2:]:
         assert all(gl_objects_exist(renderer, t))
     # Using one moves it to the back of the queue.
-    assert renderer._ids_target(*sizes[2], False) is built[2]
-    renderer._ids_target(40, 5, False)
-    assert ("ids", *sizes[2], False) in renderer._targets and ("ids", *sizes[3], False) not in renderer._targets
+    assert renderer._ids_target(*sizes[2], True, False) is built[2]
+    renderer._ids_target(40, 5, True, False)
+    assert ("ids", *sizes[2], True, False) in renderer._targets
+    assert ("ids", *sizes[3], True, False) not in renderer._targets
 
 
 def test_a_frame_after_its_framebuffers_were_evicted_has_the_same_pixels(renderer):

@@ -81,7 +81,9 @@ class Passes:
 
     clean: bool = False  # the in-air image J, resolved like the hazed one
     ids: bool = False  # per-pixel instance ids at pixel centres
-    range: bool = False  # per-pixel range at pixel centres
+    # Per-pixel range: at the pixel centre where it hits a surface, else the nearest of the pixel's samples that
+    # hits one; +inf only where no sample hits (the pixel is pure water).
+    range: bool = False
 
 
 @dataclass(frozen=True)
@@ -89,9 +91,10 @@ class RenderResult:
     image: np.ndarray  # (h, w, 3) float32 linear RGB, hazed when water was given
     clean: np.ndarray | None  # (h, w, 3) float32 linear RGB in air
     instance: np.ndarray | None  # (h, w) uint32, 0 = terrain or open water
-    range_m: np.ndarray | None  # (h, w) float32 metres, +inf where no surface
-    # What ran, in order: GL passes drawn ("surface[+range]", "resolve[+haze]", "ids[+range]") and attachments read
-    # back ("read image", "read clean", "read ids", "read range"). For tests and benchmarks; outputs never depend on it.
+    range_m: np.ndarray | None  # (h, w) float32 metres (see Passes.range), +inf where no sample hits a surface
+    # What ran, in order: GL passes drawn ("surface[+range]", "resolve[+haze]", "ids", "ids+range", "range") and
+    # attachments read back ("read image", "read clean", "read nearest range", "read ids", "read range"). For tests
+    # and benchmarks; outputs never depend on it.
     passes: tuple[str, ...] = ()
 
 

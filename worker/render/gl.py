@@ -306,27 +306,31 @@ class GLRenderer:
 
         return self._target(("surface", w, h, msaa, with_range), build)
 
-    def _resolve_target(self, w: int, h: int, outputs: int) -> _Target:
+    def _resolve_target(self, w: int, h: int, formats: tuple[int, ...]) -> _Target:
+        """One single-sample colour renderbuffer per output, in slot order (GL internal formats)."""
+
         def build() -> _Target:
             GL = self._gl
             t = self._new_fbo()
-            for slot in range(outputs):
-                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0 + slot, GL.GL_RGBA32F, w, h, 1)
+            for slot, fmt in enumerate(formats):
+                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0 + slot, fmt, w, h, 1)
             return t
 
-        return self._target(("resolve", w, h, outputs), build)
+        return self._target(("resolve", w, h, formats), build)
 
-    def _ids_target(self, w: int, h: int, with_range: bool) -> _Target:
+    def _ids_target(self, w: int, h: int, with_ids: bool, with_range: bool) -> _Target:
+        """Single-sample ids (slot 0, when drawn) and/or range (the next slot) at pixel centres, and depth."""
+
         def build() -> _Target:
             GL = self._gl
             t = self._new_fbo()
-            self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0, GL.GL_R32UI, w, h, 1)
-            if with_range:
-                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT1, GL.GL_R32F, w, h, 1)
+            formats = [GL.GL_R32UI] * with_ids + [GL.GL_R32F] * with_range
+            for slot, fmt in enumerate(formats):
+                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0 + slot, fmt, w, h, 1)
             self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, 1)
             return t
 
-        return self._target(("ids", w, h, with_range), build)
+        return self._target(("ids", w, h, with_ids, with_range), build)
 
     # ---- drawing ---------------------------------------------------------------------------------------------
     def _draw(self, view: View, items: list[DrawItem], locs: dict[str, int], *, lit: bool, ids: bool) -> None:
@@ -361,17 +365,18 @@ class GLRenderer:
         proj = projection(view.K, view.width, view.height, view.near, view.far)
         GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, proj.astype(np.float32))
 
-    def _bind_and_clear(self, t: _Target, *, ids_first: bool, with_range: bool) -> None:
-        """Bind a geometry target; clear attachment 0 (colour or ids) to 0, range to +inf, depth to far."""
+    def _bind_and_clear(self, t: _Target, clears: tuple[str, ...]) -> None:
+        """Bind a geometry target and draw into its colour attachments in slot order, each cleared as named:
+        "ids" to 0, "colour" to 0, "range" to +inf; depth to far."""
         GL = self._gl
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
-        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][: 2 if with_range else 1])
-        if ids_first:
-            GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
-        else:
-            GL.glClearBufferfv(GL.GL_COLOR, 0, np.zeros(4, np.float32))
-        if with_range:
-            GL.glClearBufferfv(GL.GL_COLOR, 1, np.array([np.inf, 0, 0, 0], np.float32))
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(clears))])
+        for slot, what in enumerate(clears):
+            if what == "ids":
+                GL.glClearBufferuiv(GL.GL_COLOR, slot, np.zeros(4, np.uint32))
+            else:
+                value = np.inf if what == "range" else 0.0
+                GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([value, 0, 0, 0], np.float32))
         GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
 
     def _read(self, slot: int, w: int, h: int, fmt: int, typ: int, dtype, channels: int, x: int = 0, y: int = 0):
@@ -393,17 +398,26 @@ class GLRenderer:
     ) -> RenderResult:
         """Render one frame: linear hazed image, and the optional clean image, ids and range.
 
+        Range (passes.range) is the range at the pixel centre where the centre hits a surface, else the nearest
+        range any of the pixel's samples hits, and +inf only where no sample hits: so a pixel is open water in
+        the range exactly when its colour is pure water. Where every sample lies at the pixel centre (one sample
+        per pixel) the surface pass's own samples give it; otherwise a single-sample pass adds the centres.
+
         mark: called with a stage name when each stage's GL work has finished (benchmarks only: it waits).
         """
         self._platform.make_current()
         self._call += 1
         done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
         log: list[str] = []
-        image, clean = self._surface(view, items, lighting, water, sampling, passes.clean, -1, done=done, log=log)
-        instance = range_m = None
-        if passes.ids or passes.range:
-            instance, range_m = self._ids(view, items, passes.ids, passes.range, log=log)
+        image, clean, nearest = self._surface(
+            view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done, log=log
+        )
+        centres = passes.range and sampling.per_pixel > 1
+        instance = centre = None
+        if passes.ids or centres:
+            instance, centre = self._ids(view, items, passes.ids, centres, log=log)
             done("ids")
+        range_m = nearest if centre is None else np.where(np.isfinite(centre), centre, nearest)
         return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m, passes=tuple(log))
 
     def samples(
@@ -414,24 +428,26 @@ class GLRenderer:
         self._call += 1
         Js, Rs = [], []
         for k in range(sampling.per_pixel):
-            J, R = self._surface(view, items, lighting, None, sampling, False, k, sample_range=True)
+            J, R, _ = self._surface(view, items, lighting, None, sampling, False, k, sample_range=True)
             Js.append(J)
             Rs.append(R[..., 0])
         return np.stack(Js), np.stack(Rs)
 
     def _surface(
-        self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, done=None, log=None
+        self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, want_nearest=False,
+        done=None, log=None,
     ):
-        """Draw the surface pass and resolve it; log (if given) gets the passes drawn and attachments read."""
+        """Draw the surface pass and resolve it: (image, clean or the one sample's range, nearest sample range), the
+        last two None unless asked. log (if given) gets the passes drawn and attachments read."""
         GL = self._gl
         log = [] if log is None else log
         if sampling.msaa > self.max_samples:
             raise RenderError(f"{sampling.msaa}x MSAA asked for, {self.name} supports at most {self.max_samples}")
         ss, msaa = sampling.supersample, sampling.msaa
         W, H = view.width * ss, view.height * ss
-        with_range = water is not None or sample_range
+        with_range = water is not None or sample_range or want_nearest
         surf = self._surface_target(W, H, msaa, with_range)
-        self._bind_and_clear(surf, ids_first=False, with_range=with_range)
+        self._bind_and_clear(surf, ("colour", "range")[: 1 + with_range])
         prog, locs = self._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
         GL.glUseProgram(prog)
         self._set_view(locs, view, W, H)
@@ -450,10 +466,11 @@ class GLRenderer:
 
         from worker.formation import GLSL_HAZE
 
-        n_out = 2 if (want_clean or sample_range) else 1
-        res = self._resolve_target(view.width, view.height, n_out)
+        second = want_clean or sample_range
+        formats = (GL.GL_RGBA32F,) * (1 + second) + (GL.GL_R32F,) * want_nearest
+        res = self._resolve_target(view.width, view.height, formats)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
-        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0, GL.GL_COLOR_ATTACHMENT1][:n_out])
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
         GL.glDisable(GL.GL_DEPTH_TEST)
         src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
         prog, locs = self._program(
@@ -464,6 +481,8 @@ class GLRenderer:
             WITH_HAZE=water is not None,
             WITH_CLEAN=want_clean and not sample_range,
             WITH_SAMPLE_RANGE=sample_range,
+            WITH_NEAREST=want_nearest,
+            NEAREST_LOCATION=1 + second,
         )
         GL.glUseProgram(prog)
         GL.glViewport(0, 0, view.width, view.height)
@@ -486,32 +505,37 @@ class GLRenderer:
         w, h = view.width, view.height
         image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
         log.append("read image")
-        second = None
-        if n_out == 2:
-            second = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+        extra = nearest = None
+        if second:
+            extra = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
             log.append("read sample range" if sample_range else "read clean")
+        if want_nearest:
+            nearest = self._read(1 + second, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
+            log.append("read nearest range")
         if done is not None:
             done("formation")
-        return image, second
+        return image, extra, nearest
 
     def _ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool, log: list[str] | None = None):
-        """Draw the ids pass; log (if given) gets the pass drawn and the attachments read."""
+        """Draw ids and/or range at pixel centres (one sample); log (if given) gets the pass and the reads."""
         GL = self._gl
         log = [] if log is None else log
         w, h = view.width, view.height
-        t = self._ids_target(w, h, want_range)
-        self._bind_and_clear(t, ids_first=True, with_range=want_range)
-        prog, locs = self._program(shaders.VERTEX, shaders.IDS, WITH_RANGE=want_range)
+        t = self._ids_target(w, h, want_ids, want_range)
+        self._bind_and_clear(t, ("ids",) * want_ids + ("range",) * want_range)
+        prog, locs = self._program(
+            shaders.VERTEX, shaders.IDS, WITH_IDS=want_ids, WITH_RANGE=want_range, RANGE_LOCATION=int(want_ids)
+        )
         GL.glUseProgram(prog)
         self._set_view(locs, view, w, h)
-        self._draw(view, items, locs, lit=False, ids=True)
-        log.append("ids+range" if len(t.renderbuffers) > 2 else "ids")  # what the target holds
+        self._draw(view, items, locs, lit=False, ids=want_ids)
+        log.append("+".join(["ids"] * want_ids + ["range"] * want_range))
         ids = rng = None
         if want_ids:
             ids = self._read(0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1)
             log.append("read ids")
         if want_range:
-            rng = self._read(1, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
+            rng = self._read(int(want_ids), w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
             log.append("read range")
         return ids, rng
 
@@ -529,14 +553,14 @@ class GLRenderer:
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
         if x1 < x0 or y1 < y0:
             return 0
-        t = self._ids_target(w, h, False)
+        t = self._ids_target(w, h, True, False)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0])
         GL.glEnable(GL.GL_SCISSOR_TEST)
         GL.glScissor(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
         GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
         GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-        prog, locs = self._program(shaders.VERTEX, shaders.IDS, WITH_RANGE=False)
+        prog, locs = self._program(shaders.VERTEX, shaders.IDS, WITH_IDS=True, WITH_RANGE=False, RANGE_LOCATION=1)
         GL.glUseProgram(prog)
         self._set_view(locs, view, w, h)
         self._draw(view, [item], locs, lit=False, ids=True)

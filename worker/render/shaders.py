@@ -1,4 +1,5 @@
-"""GLSL sources of the renderer's passes: surface (in-air radiance, range), ids (+ range), resolve (per-sample haze)."""
+"""GLSL sources of the renderer's passes: surface (in-air radiance, range), ids and/or range at pixel centres, resolve
+(per-sample haze, nearest sample range)."""
 
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
@@ -60,7 +61,8 @@ void main() {
 }
 """
 
-# Instance ids (0 = terrain) and, when asked, range at pixel centres (single sample).
+# Instance ids (0 = terrain) and/or range at pixel centres (single sample): ids at location 0 when drawn, range
+# after them.
 IDS = """
 #version 330 core
 in vec3 v_pos;
@@ -68,12 +70,16 @@ in vec3 v_nrm;
 in vec3 v_col;
 uniform uint u_id;
 uniform vec2 u_range_bounds;
+#ifdef WITH_IDS
 layout(location = 0) out uint o_id;
+#endif
 #ifdef WITH_RANGE
-layout(location = 1) out float o_range;
+layout(location = RANGE_LOCATION) out float o_range;
 #endif
 void main() {
+#ifdef WITH_IDS
     o_id = u_id;
+#endif
 #ifdef WITH_RANGE
     o_range = clamp(length(v_pos), u_range_bounds.x, u_range_bounds.y);
 #endif
@@ -113,11 +119,15 @@ layout(location = 1) out vec4 o_clean;
 #ifdef WITH_SAMPLE_RANGE
 layout(location = 1) out vec4 o_range;
 #endif
+#ifdef WITH_NEAREST
+layout(location = NEAREST_LOCATION) out float o_nearest;   // nearest range of any sample, +inf if none hits
+#endif
 HAZE_FUNCTION
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     vec3 acc = vec3(0.0);
     vec3 clean = vec3(0.0);
+    float nearest = uintBitsToFloat(0x7F800000u);   // +inf
     float n = 0.0;
     for (int dy = 0; dy < SUPERSAMPLE; ++dy) {
         for (int dx = 0; dx < SUPERSAMPLE; ++dx) {
@@ -136,6 +146,9 @@ void main() {
 #ifdef WITH_SAMPLE_RANGE
                 o_range = vec4(FETCH(u_R, q, s).r, 0.0, 0.0, 1.0);
 #endif
+#ifdef WITH_NEAREST
+                nearest = min(nearest, FETCH(u_R, q, s).r);
+#endif
                 n += 1.0;
             }
         }
@@ -143,6 +156,9 @@ void main() {
     o_img = vec4(acc / n, 1.0);
 #ifdef WITH_CLEAN
     o_clean = vec4(clean / n, 1.0);
+#endif
+#ifdef WITH_NEAREST
+    o_nearest = nearest;
 #endif
 }
 """
