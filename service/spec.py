@@ -23,8 +23,9 @@ from pydantic import (
 from service.errors import SpecError
 from service.water import JERLOV_TYPES
 
-# Documented limits. They keep one frame inside memory and one shard inside the task time limit.
-MAX_FRAMES = 10_000_000
+# Documented limits. They keep one frame inside memory and one shard inside the task time limit, and every frame
+# name within KITTI's six digits (000000 to 999999).
+MAX_FRAMES = 1_000_000
 MAX_SIDE = 4096
 MIN_SIDE = 8
 MAX_SHARD_SIZE = 10_000

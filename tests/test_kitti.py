@@ -7,8 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from service.spec import MAX_FRAMES
 from worker.kitti import CALIB_SHAPES, format_calib, format_label_file, format_label_line, parse_calib, parse_label_file
 from worker.labels import KittiObject
+from worker.pipeline import frame_name
 
 TWO_DECIMALS = re.compile(r"-?\d+\.\d{2}")
 K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
@@ -141,3 +143,11 @@ def test_calib_rejects_bad_input():
         parse_calib("P0 1 2 3")
     with pytest.raises(ValueError, match="P1"):
         parse_calib("P1: 1 2 x")
+
+
+def test_every_frame_of_the_largest_dataset_has_a_six_digit_name():
+    assert (frame_name(0), frame_name(MAX_FRAMES - 1)) == ("000000", "999999")
+    with pytest.raises(ValueError, match=r"outside 0\.\.999999"):
+        frame_name(MAX_FRAMES)
+    with pytest.raises(ValueError):
+        frame_name(-1)

@@ -14,7 +14,7 @@ import numpy as np
 
 import service
 from service.seeds import STREAM_NOISE, frame_rng
-from service.spec import AssetRef, DatasetSpec, FileRef
+from service.spec import MAX_FRAMES, AssetRef, DatasetSpec, FileRef
 from worker import kitti, labels
 from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
@@ -41,6 +41,9 @@ VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow")
 
 
 def frame_name(index: int) -> str:
+    """KITTI's six-digit file stem of frame `index` (the spec's frame limit keeps every index below 10^6)."""
+    if not 0 <= index < MAX_FRAMES:
+        raise ValueError(f"frame index {index} is outside 0..{MAX_FRAMES - 1}")
     return f"{index:06d}"
 
 

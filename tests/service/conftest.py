@@ -26,6 +26,7 @@ def infra(tmp_path_factory) -> Iterator[Stack]:
         "SEASYNTH_FRAME_TIMEOUT_S": "30",
         "SEASYNTH_WORKER_SOFT_SHUTDOWN_S": "2",
         "SEASYNTH_TASK_TIME_LIMIT_S": "300",  # shard_size 1000 of tiny frames fits its budget
+        "SEASYNTH_MAX_FRAMES": "500000",  # below the spec's own cap (1,000,000), so both refusals can be seen
         "AWS_ACCESS_KEY_ID": "testing",
         "AWS_SECRET_ACCESS_KEY": "testing",
         "AWS_DEFAULT_REGION": "us-east-1",
