@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import filecmp
+import hashlib
 import json
 import subprocess
 import sys
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from PIL import Image
 
+import service
 from service.spec import load_spec
 from worker import kitti
 from worker.formation import decode_srgb8, encode_srgb8, haze
@@ -191,19 +195,67 @@ def test_rehazing_clean_with_range_reproduces_image(full):
     assert open_water > 100  # the example's frames show open water
 
 
+OBJECT_KEYS = {"instance_id", "class", "role", "label_line", "visible_pixels", "pixels_alone", "asset", "scale",
+               "pose_world_from_object", "albedo_scale", "albedo_bias"}
+
+
 def test_meta_records_reproduction_inputs(full):
     out, spec = full
-    meta = json.loads((out / "meta/000002.json").read_text())
-    assert meta["dataset_seed"] == spec.seed and meta["frame_index"] == 2
-    assert set(meta["versions"]) == {"numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow"}
-    assert meta["gl_renderer"] and meta["preset"] == spec.quality
-    assert np.asarray(meta["camera"]["pose_world_from_camera"]).shape == (4, 4)
-    assert {"beta_D", "beta_B", "B_inf"} <= set(meta["water"])
-    text = json.dumps(meta)
-    for word in ("time", "host", "duration", "worker"):
-        assert word not in text.lower(), word
-    roles = {o["role"] for o in meta["objects"]}
-    assert roles <= {"target", "distractor"} and "target" in roles
+    versions = {p: version(p) for p in ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow")}
+    for i in range(spec.frames):
+        n = f"{i:06d}"
+        meta = json.loads((out / f"meta/{n}.json").read_text())
+        assert meta["dataset_seed"] == spec.seed and meta["frame_index"] == i
+        assert meta["code_version"] == service.__version__ and meta["versions"] == versions
+        assert meta["gl_renderer"] and meta["preset"] == spec.quality
+        cam = meta["camera"]
+        assert (cam["width"], cam["height"]) == (spec.camera.width, spec.camera.height)
+        np.testing.assert_array_equal(np.asarray(cam["K"]), spec.camera.K())
+        pose = np.asarray(cam["pose_world_from_camera"])
+        assert pose.shape == (4, 4) and np.array_equal(pose[3], [0, 0, 0, 1])
+        np.testing.assert_allclose(pose[:3, :3].T @ pose[:3, :3], np.eye(3), atol=1e-12)
+        assert np.linalg.det(pose[:3, :3]) == pytest.approx(1.0)
+        assert {"beta_D", "beta_B", "B_inf"} <= set(meta["water"])
+        assert set(meta["lights"]) == {"sun_direction_world", "sun_intensity", "ambient"}
+        assert np.linalg.norm(meta["lights"]["sun_direction_world"]) == pytest.approx(1.0)
+        # Objects: unique ids 1..n, every id in instance/ among them, each label line named by exactly one target.
+        objects = meta["objects"]
+        assert all(set(o) == OBJECT_KEYS for o in objects)
+        ids = [o["instance_id"] for o in objects]
+        assert sorted(ids) == list(range(1, len(ids) + 1))
+        drawn = set(np.unique(np.asarray(Image.open(out / f"instance/{n}.png")))) - {0}
+        assert drawn <= set(ids)
+        lines = (out / f"label_2/{n}.txt").read_text().splitlines()
+        named = sorted(o["label_line"] for o in objects if o["label_line"] is not None)
+        assert named == list(range(len(lines)))
+        for o in objects:
+            assert o["role"] in {"target", "distractor"} and np.asarray(o["pose_world_from_object"]).shape == (4, 4)
+            assert o["asset"]["sha256"] is None  # procedural assets only in the example
+            if o["label_line"] is not None:
+                assert o["role"] == "target" and lines[o["label_line"]].split()[0] == o["class"]
+                assert o["instance_id"] in drawn and o["visible_pixels"] >= 1
+            elif o["role"] == "target":
+                assert o["instance_id"] not in drawn and o["visible_pixels"] == 0
+        text = json.dumps(meta)
+        for word in ("time", "host", "duration", "worker"):
+            assert word not in text.lower(), word
+    roles = {o["role"] for i in range(spec.frames) for o in
+             json.loads((out / f"meta/{i:06d}.json").read_text())["objects"]}
+    assert roles == {"target", "distractor"}
+
+
+def test_meta_records_the_sha256_of_user_meshes(tmp_path):
+    mesh_path = tmp_path / "assets" / "box.ply"
+    mesh_path.parent.mkdir()
+    trimesh.creation.box(extents=(0.2, 0.2, 0.1)).export(mesh_path)
+    spec = load_spec(EXAMPLE, {**SMALL, "frames": 2, "targets.assets": [{"path": str(mesh_path)}]})
+    generate(spec, tmp_path / "out")
+    digest = hashlib.sha256(mesh_path.read_bytes()).hexdigest()
+    targets = [o for i in range(2) for o in json.loads((tmp_path / f"out/meta/{i:06d}.json").read_text())["objects"]
+               if o["role"] == "target"]
+    assert targets and all(o["asset"]["sha256"] == digest for o in targets)
+    assert all(o["asset"]["sha256"] is None for i in range(2) for o in
+               json.loads((tmp_path / f"out/meta/{i:06d}.json").read_text())["objects"] if o["role"] == "distractor")
 
 
 def test_water_off_gives_null_water_record(tmp_path):
