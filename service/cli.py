@@ -3,6 +3,7 @@ never loads OpenGL and `generate` never loads the web stack."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import Annotated, NoReturn, Optional
@@ -179,20 +180,41 @@ def worker(
     run_worker(Settings(), concurrency, [q.strip() for q in queues.split(",") if q.strip()], loglevel)
 
 
+def _positive_seconds(value: Optional[float]) -> Optional[float]:
+    if value is not None and not (value > 0 and math.isfinite(value)):
+        raise typer.BadParameter(f"must be a finite number of seconds > 0, got {value:g}")
+    return value
+
+
 @app.command()
 def reconcile(
+    ctx: typer.Context,
     dataset_ids: Annotated[
         Optional[list[str]], typer.Argument(help="Datasets to sweep now (default: every stalled one).")
     ] = None,
+    every: Annotated[
+        Optional[float],
+        typer.Option("--every", metavar="SECONDS", callback=_positive_seconds,
+                     help="Keep running: a round every SECONDS until SIGTERM or Ctrl-C (no DATASET_IDs then).")
+    ] = None,
 ) -> None:
     """Republish lost shards: of the given datasets now, or of every live dataset that has stalled (nothing started,
-    committed or failed for SEASYNTH_STALL_TIMEOUT_S and nothing running). Safe to run at any time, e.g. from cron."""
+    committed or failed for SEASYNTH_STALL_TIMEOUT_S and nothing running). Safe to run at any time, e.g. from cron.
+    With --every it keeps running until SIGTERM: each round sweeps every stalled dataset, has the manifests that
+    could not be written written, and touches seasynth-reconciler.alive in the temp folder for health checks."""
+    if every is not None and dataset_ids:
+        ctx.fail("--every and DATASET_IDs exclude each other: each round of --every sweeps every stalled dataset")
     from api.deps import open_services
     from api.operations import sweep_all
     from service.settings import Settings
 
     services = open_services(Settings())
     try:
+        if every is not None:
+            from service.queues import run_reconciler
+
+            run_reconciler(services, every, lambda: sweep_all(services), echo=typer.echo)
+            return
         swept = sweep_all(services, dataset_ids)
     finally:
         services.close()
