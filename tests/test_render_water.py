@@ -166,3 +166,15 @@ def test_a_surface_at_a_tiny_range_is_the_clean_image_to_float32_precision(rende
     assert np.all(np.isfinite(result.range_m)) and result.range_m.max() < 2 * z
     assert np.all(result.clean > 0)
     np.testing.assert_allclose(result.image, result.clean, rtol=4 * 2.0**-23, atol=0)
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_huge_optical_depth_is_the_veiling_light_exactly_with_no_nan(renderer, preset):
+    """beta z of 1e6, 5e3 and 700 on the quad at 5 m (the shaders' float32 path, not numpy's): transmission
+    underflows to nothing and backscatter is exactly 1, so every pixel, quad and open water alike, is exactly
+    float32(B_inf) — no NaN, no inf, no residue of the surface colour."""
+    beta = np.array([2e5, 1e3, 140.0])
+    result, _ = quad_frame(renderer, WaterParams(beta_D=beta, beta_B=beta, B_inf=B_INF), preset)
+    assert np.all(np.isfinite(result.image))
+    assert np.all(result.clean[QUAD_PIXELS] > 0.005)  # there is a surface colour to lose
+    np.testing.assert_array_equal(result.image, np.broadcast_to(B_INF.astype(np.float32), result.image.shape))
