@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.spec import DatasetSpec, apply_overrides, read_spec_file
+from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 WIDTH, HEIGHT = 640, 480
@@ -219,7 +219,9 @@ def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platfo
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     result = {"machine": machine or machine_description(), "gl_renderer": renderer_name, "resolution": [WIDTH, HEIGHT],
-              "reference": f"{REFERENCE_GRID}x{REFERENCE_GRID} samples, float64 water per sample", "rows": rows}
+              "reference": f"{REFERENCE_GRID}x{REFERENCE_GRID} samples, float64 water per sample", "repeats": repeats,
+              # Each scene's whole spec, hashed: a table is comparable with another only where these agree.
+              "scene_spec_sha256": {name: spec_digest(scene_spec(name)) for name in scenes}, "rows": rows}
     out.mkdir(parents=True, exist_ok=True)
     (out / "accuracy.json").write_text(json.dumps(result, indent=1) + "\n")
     (out / "accuracy.md").write_text(format_table(result) + "\n")
@@ -235,7 +237,8 @@ def format_table(result: dict) -> str:
         "",
         f"machine: {result['machine']}  ",
         f"GL renderer: {result['gl_renderer']}  ",
-        f"reference: {result['reference']}",
+        f"reference: {result['reference']}  ",
+        f"ms_per_frame: median of {result['repeats']} repeats",
         "",
         "| scene | preset | " + " | ".join(keys) + " |",
         "|---|---|" + "---|" * len(keys),

@@ -6,6 +6,7 @@ import math
 import numpy as np
 
 from bench import accuracy
+from service.spec import spec_digest
 
 # wide-fov: a 110-degree view over the example scene, where range and z-depth differ most. At 96 x 72 the bench runs
 # in a few seconds and a 2% error in the shader's transmission already moves some pixel by two codes.
@@ -19,7 +20,8 @@ def test_every_preset_forms_the_image_within_one_code_of_float64_on_its_own_samp
     result = accuracy.run(tmp_path, scenes=[SCENE], presets=None, repeats=1, machine="test", platform="egl")
     rows = {r["preset"]: r for r in result["rows"]}
     assert sorted(rows) == sorted(accuracy.PRESET_NAMES) and all(r["scene"] == SCENE for r in rows.values())
-    assert result["resolution"] == [WIDTH, HEIGHT]
+    assert result["resolution"] == [WIDTH, HEIGHT] and result["repeats"] == 1
+    assert result["scene_spec_sha256"] == {SCENE: spec_digest(accuracy.scene_spec(SCENE))}
     for preset, r in rows.items():
         # The GL path (float32, per sample) against float64 water on the very samples it used: rounding only.
         assert r["formation_error"] <= 1, (preset, r)
