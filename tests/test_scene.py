@@ -11,7 +11,15 @@ from scipy import stats
 from service.seeds import frame_rng
 from service.spec import Box, load_spec
 from worker.pipeline import RenderSession
-from worker.scene import CAMERA_CLEARANCE_M, Scene, in_box, rotation_between, sample_scene
+from worker.scene import (
+    CAMERA_CLEARANCE_M,
+    PLACEMENT_TRIES,
+    Scene,
+    footprint_radius,
+    in_box,
+    rotation_between,
+    sample_scene,
+)
 
 EXAMPLE = "examples/urchins.yaml"
 FRAMES = range(40)
@@ -163,6 +171,58 @@ def test_yaw_is_uniform(scenes):
     assert len(yaws) >= 400
     assert stats.kstest(yaws / (2 * math.pi), "uniform").pvalue > 0.01
     assert np.all(np.histogram(yaws, bins=8, range=(0, 2 * math.pi))[0] >= len(yaws) / 16)
+
+
+def world_vertices(p) -> np.ndarray:
+    """(n, 3) float64: the object's vertices in the world, metres."""
+    v = np.asarray(p.asset.mesh.vertices, dtype=np.float64)
+    return v @ p.world_from_obj[:3, :3].T + p.world_from_obj[:3, 3]
+
+
+def test_footprint_radius_is_the_reach_of_the_transformed_vertices():
+    stick = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0], [0.1, 0.0, 0.0]])
+    assert footprint_radius(stick, 3.0 * np.eye(3)) == pytest.approx(0.3, abs=1e-15)
+    theta = 0.4  # tilted about x: the top of the stick leans out by 2 sin(theta)
+    tilt = np.array([[1.0, 0, 0], [0, math.cos(theta), -math.sin(theta)], [0, math.sin(theta), math.cos(theta)]])
+    assert footprint_radius(stick, tilt) == pytest.approx(2 * math.sin(theta), abs=1e-15)
+
+
+def test_placed_objects_do_not_interpenetrate(session, spec, scenes):
+    pairs = tilted_reach = 0
+    for i in range(200):
+        scene = scenes[i] if i < len(scenes) else session.scene(spec, i)
+        objs = scene.objects
+        world = [world_vertices(p) for p in objs]
+        anchors = np.array([p.world_from_obj[:2, 3] for p in objs])
+        reach = np.array([np.linalg.norm(w[:, :2] - a, axis=1).max() for w, a in zip(world, anchors)])
+        np.testing.assert_allclose([p.footprint_m for p in objs], reach, rtol=1e-12, atol=0)
+        upright = np.array([p.scale * np.linalg.norm(np.asarray(p.asset.mesh.vertices)[:, :2], axis=1).max()
+                            for p in objs])
+        tilted_reach = max(tilted_reach, float((reach / upright).max()))
+        for a in range(len(objs)):
+            for b in range(a + 1, len(objs)):
+                gap = anchors[b] - anchors[a]
+                assert np.linalg.norm(gap) >= reach[a] + reach[b], (i, a + 1, b + 1)
+                # A separating vertical plane, checked on the vertices themselves: no interpenetration.
+                u = gap / np.linalg.norm(gap)
+                assert (world[a][:, :2] @ u).max() <= (world[b][:, :2] @ u).min(), (i, a + 1, b + 1)
+                pairs += 1
+    assert pairs >= 10_000
+    assert tilted_reach > 1.5  # tilted objects reach well past their upright footprint: the tilt is counted
+
+
+def test_an_object_with_no_free_spot_is_left_out(session, spec):
+    one_vertex = Box(min=(-0.01, -0.01, -2.0), max=(0.01, 0.01, 2.0))  # the terrain vertex at (0, 0)
+    s = spec.model_copy(update={
+        "targets": spec.targets.model_copy(update={"count": (3, 3)}),
+        "distractors": spec.distractors.model_copy(update={"count": (0, 0)}),
+        "workspaces": spec.workspaces.model_copy(update={"targets": one_vertex}),
+    })
+    for i in range(3):
+        scene = session.scene(s, i)
+        [target] = scene.objects
+        np.testing.assert_array_equal(target.world_from_obj[:2, 3], [0.0, 0.0])
+        assert scene.dropped == 2  # after PLACEMENT_TRIES draws each
 
 
 # --- camera and look-at point -----------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ class Placed:
     world_from_obj: np.ndarray  # (4, 4) float64, metres, world z up
     albedo_scale: np.ndarray  # (3,) float32
     albedo_bias: np.ndarray  # (3,) float32
-    footprint_m: float  # radius of the object's footprint on the terrain, metres
+    footprint_m: float  # metres: radius of the disc about the anchor holding the object's horizontal projection
 
 
 @dataclass(frozen=True)
@@ -116,10 +116,14 @@ def _candidates(terrain: Terrain, box: Box) -> np.ndarray:
     return got
 
 
-def footprint_radius(asset: Asset) -> float:
-    """Radius (metres, unscaled) of the asset's footprint about its z axis."""
-    v = np.asarray(asset.mesh.vertices)
-    return float(np.sqrt((v[:, 0] ** 2 + v[:, 1] ** 2).max()))
+def footprint_radius(vertices: np.ndarray, linear: np.ndarray) -> float:
+    """Radius (metres) of the disc about the anchor that holds the object's horizontal projection as placed.
+
+    vertices: (n, 3) float64, object metres; linear: (3, 3) world_from_obj's rotation times scale. Two objects
+    whose discs do not overlap cannot interpenetrate: each lies in the vertical cylinder over its disc.
+    """
+    xy = vertices @ linear[:2].T
+    return float(np.sqrt(np.einsum("ij,ij->i", xy, xy).max()))
 
 
 def uniform3(rng: np.random.Generator, lo, hi) -> np.ndarray:
@@ -134,26 +138,30 @@ def _place(
     scale: float,
     placed: list[Placed],
 ) -> tuple[np.ndarray, float] | None:
-    """A pose for `asset` resting on a terrain vertex in `box` that overlaps no placed footprint, or None."""
+    """A pose for `asset` resting on a terrain vertex in `box` whose footprint (after tilt, yaw and scale)
+    overlaps no placed footprint, and that footprint's radius; or None."""
     cands = _candidates(terrain, box)
     if cands.size == 0:
         return None
-    radius = footprint_radius(asset) * scale
     verts = np.asarray(terrain.mesh.vertices)
     normals = np.asarray(terrain.mesh.vertex_normals)
+    obj_verts = np.asarray(asset.mesh.vertices, dtype=np.float64)
     others = np.array([p.world_from_obj[:2, 3] for p in placed]).reshape(-1, 2)
     other_r = np.array([p.footprint_m for p in placed])
     for _ in range(PLACEMENT_TRIES):
         idx = cands[rng.integers(cands.size)]
         yaw = rng.uniform(0.0, 2 * math.pi)
         pos = verts[idx]
-        if others.size and np.any(np.linalg.norm(others - pos[:2], axis=1) < other_r + radius):
-            continue
         n = normals[idx] / max(np.linalg.norm(normals[idx]), 1e-12)
         c, s = math.cos(yaw), math.sin(yaw)
         Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        linear = rotation_between(np.array([0, 0, 1.0]), n) @ Rz * scale
+        # Measured as placed: on a slope a tall object leans out past its upright footprint (2.5x seen).
+        radius = footprint_radius(obj_verts, linear)
+        if others.size and np.any(np.linalg.norm(others - pos[:2], axis=1) < other_r + radius):
+            continue
         T = np.eye(4)
-        T[:3, :3] = rotation_between(np.array([0, 0, 1.0]), n) @ Rz * scale
+        T[:3, :3] = linear
         T[:3, 3] = pos
         return T, radius
     return None
