@@ -1,6 +1,7 @@
 # syntax=docker/dockerfile:1
 # seasynth HTTP API. No OpenGL here: the API never imports worker code, and this image
-# does not even contain it (only service/ and api/ are copied).
+# does not even contain it (only service/ and api/ are copied). Uploads are checked with trimesh
+# and Pillow (the `api` extra), which need no OpenGL.
 #   docker build -f docker/api.Dockerfile -t seasynth-api .
 
 FROM python:3.11-slim AS build

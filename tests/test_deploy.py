@@ -3,7 +3,8 @@
 No Docker engine and no cluster run where this is tested, so: compose is checked by Debian's
 docker-compose (`config`, its own schema and interpolation), the manifests by kubernetes-validate's
 bundled Kubernetes schemas (KEDA's ScaledObject against deploy/schemas/), and the Dockerfiles by
-parsing their instructions and building the package from exactly what they COPY.
+parsing their instructions, building the package from exactly what they COPY, and running the API's
+code in an environment of exactly the distributions its image installs (linked from this one).
 `.ci/validate-deploy` installs the tools and runs this file; a missing tool fails with its install hint.
 """
 
@@ -34,8 +35,9 @@ INSTALL_HINT = "run .ci/validate-deploy, which installs it"
 # timeout, then cancels them and hands them back to the queue; this much more covers that and the exit.
 SHUTDOWN_MARGIN_S = 30
 
-OPENGL_MODULES = {"pyrender", "OpenGL", "pyglet", "trimesh", "worker"}
-API_ONLY_MODULES = {"fastapi", "uvicorn", "starlette", "api", "multipart"}
+# Distributions (canonical names) an image must not install: OpenGL in the API, the web server in workers.
+OPENGL_DISTRIBUTIONS = {"pyrender", "pyopengl", "pyopengl-accelerate", "pyglet"}
+API_ONLY_DISTRIBUTIONS = {"fastapi", "starlette", "uvicorn", "python-multipart"}
 MESA_PACKAGES = {"libegl1", "libgl1", "libegl-mesa0", "libgles2", "libgl1-mesa-dri"}
 GL_PACKAGE_RE = re.compile(r"\b(lib(egl|gl|gles|glx|glvnd|opengl|osmesa)[\w.+-]*|mesa[\w.+-]*)\b")
 NVIDIA_VENDOR_FILE = "/usr/share/glvnd/egl_vendor.d/10_nvidia.json"
@@ -46,7 +48,7 @@ IMAGES = {
         "extra": "api",
         "packages": {"service", "api"},
         "cmd": ["seasynth", "serve", "--host", "0.0.0.0", "--port", "8000"],
-        "forbidden_imports": OPENGL_MODULES,
+        "forbidden_distributions": OPENGL_DISTRIBUTIONS,
         "k8s_image": "seasynth/api",
     },
     "worker": {
@@ -54,7 +56,7 @@ IMAGES = {
         "extra": "worker",
         "packages": {"service", "worker"},
         "cmd": ["seasynth", "worker"],
-        "forbidden_imports": API_ONLY_MODULES,
+        "forbidden_distributions": API_ONLY_DISTRIBUTIONS,
         "k8s_image": "seasynth/worker",
     },
     "worker-gpu": {
@@ -62,7 +64,7 @@ IMAGES = {
         "extra": "worker",
         "packages": {"service", "worker"},
         "cmd": ["seasynth", "worker"],
-        "forbidden_imports": API_ONLY_MODULES,
+        "forbidden_distributions": API_ONLY_DISTRIBUTIONS,
         "k8s_image": "seasynth/worker-gpu",
     },
 }
@@ -415,45 +417,222 @@ def test_build_stage_packages_exactly_the_image_packages(name, tmp_path):
         top = {n.split("/")[0] for n in zf.namelist() if "/" in n and ".dist-info" not in n.split("/")[0]}
     assert top == spec["packages"], f"{name}: the image would hold packages {sorted(top)}, not {sorted(spec['packages'])}"
 
+# ---- what each image installs, and what its modules import
 
-def _module_level_imports(path: Path) -> set[str]:
-    """Top-level names imported when the module is imported (not inside functions, not TYPE_CHECKING)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
-    found: set[str] = set()
 
-    def visit(body):
-        for node in body:
+def _canonical(name: str) -> str:
+    from packaging.utils import canonicalize_name
+
+    return canonicalize_name(name)
+
+
+def _image_distributions(extra: str) -> set[str]:
+    """Canonical names of the distributions `pip install ".[extra]"` puts in an image: the base dependencies and
+    the extra's, with their own requirements, resolved against the metadata installed here (the versions
+    constraints.txt pins). The project itself is not counted: its image packages are checked separately."""
+    import tomllib
+    from importlib import metadata
+
+    from packaging.requirements import Requirement
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    todo = [Requirement(r) for r in project["dependencies"] + project["optional-dependencies"][extra]]
+    seen: set[tuple[str, frozenset[str]]] = set()
+    names: set[str] = set()
+    while todo:
+        req = todo.pop()
+        name, extras = _canonical(req.name), frozenset(req.extras)
+        if (name, extras) in seen:
+            continue
+        seen.add((name, extras))
+        names.add(name)
+        try:
+            requires = metadata.distribution(name).requires or []
+        except metadata.PackageNotFoundError:
+            pytest.fail(f".[{extra}] needs {name}, which is not installed here: pip install -c constraints.txt "
+                        f'-e ".[worker,api,test,bench]"')
+        for text in requires:
+            r = Requirement(text)
+            if r.marker is None or any(r.marker.evaluate({"extra": e}) for e in {"", *extras}):
+                todo.append(r)
+    return names
+
+
+def _imports(path: Path) -> list[tuple[str, str, int]]:
+    """(top-level name, enclosing function or "" at module level, line) of every absolute import in a module,
+    inside functions and `try: ... except ImportError` included: an upload or a command reaches them at run time.
+    Only `if TYPE_CHECKING:` blocks, which never run, are left out."""
+    found: list[tuple[str, str, int]] = []
+
+    def visit(nodes, where: str) -> None:
+        for node in nodes:
             if isinstance(node, ast.Import):
-                found.update(a.name.split(".")[0] for a in node.names)
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                found.add(node.module.split(".")[0])
-            elif isinstance(node, ast.If):
-                if "TYPE_CHECKING" not in ast.unparse(node.test):
-                    visit(node.body)
-                    visit(node.orelse)
-            elif isinstance(node, ast.Try):
-                # `try: import x / except ImportError:` is an optional import: it cannot break the start.
-                caught = " ".join(ast.unparse(h.type) for h in node.handlers if h.type is not None)
-                if "ImportError" not in caught and "ModuleNotFoundError" not in caught:
-                    visit(node.body)
-            elif isinstance(node, (ast.With,)):
-                visit(node.body)
+                found.extend((a.name.split(".")[0], where, node.lineno) for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                if node.level == 0 and node.module:
+                    found.append((node.module.split(".")[0], where, node.lineno))
+            elif isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+                visit(node.orelse, where)
+            elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                visit(ast.iter_child_nodes(node), f"{where}.{node.name}" if where else node.name)
+            else:
+                visit(ast.iter_child_nodes(node), where)
 
-    visit(tree.body)
+    visit(ast.parse(path.read_text(), filename=str(path)).body, "")
     return found
+
+
+# CLI commands shipped in every image but run only where their package is: (module, function) -> the project
+# packages they may import that an image lacks. Nothing else is excused.
+COMMANDS_OF_OTHER_IMAGES = {
+    "api": {
+        ("service/cli.py", "generate"): {"worker"},
+        ("service/cli.py", "reproduce"): {"worker"},
+        ("service/cli.py", "worker"): {"worker"},
+        ("service/cli.py", "bench_throughput"): {"bench"},
+        ("service/cli.py", "bench_accuracy"): {"bench"},
+    },
+    "worker": {
+        ("service/cli.py", "serve"): {"api"},
+        ("service/cli.py", "reconcile"): {"api"},
+        ("service/cli.py", "bench_throughput"): {"bench"},
+        ("service/cli.py", "bench_accuracy"): {"bench"},
+    },
+}
 
 
 @pytest.mark.parametrize("name", ["api", "worker"])
 def test_image_modules_import_nothing_the_image_lacks(name):
-    """A module-level import of OpenGL in the API image (or FastAPI in a worker) breaks its start."""
+    """Every import in the image's packages, those inside functions too, is the standard library, a package the
+    image ships, or a module of a distribution its `pip install ".[extra]"` installs (an import of trimesh in an
+    upload check of the API image answered 500 while it installed only FastAPI's side)."""
+    from importlib import metadata
+
     spec = IMAGES[name]
-    offenders = []
+    installed = _image_distributions(spec["extra"])
+    providers = {top: {_canonical(d) for d in dists} for top, dists in metadata.packages_distributions().items()}
+    excused = COMMANDS_OF_OTHER_IMAGES[name]
+    used, offenders = set(), []
     for package in sorted(spec["packages"]):
         for path in sorted((ROOT / package).rglob("*.py")):
-            bad = _module_level_imports(path) & spec["forbidden_imports"]
-            if bad:
-                offenders.append(f"{path.relative_to(ROOT)}: {sorted(bad)}")
-    assert not offenders, f"modules in the {name} image import at load time what it does not install: {offenders}"
+            rel = path.relative_to(ROOT).as_posix()
+            for top, where, line in _imports(path):
+                if top in sys.stdlib_module_names or top in spec["packages"] or providers.get(top, set()) & installed:
+                    continue
+                if top in excused.get((rel, where), set()):
+                    used.add((rel, where))
+                    continue
+                by = ", ".join(sorted(providers.get(top, set()))) or "no distribution installed here"
+                offenders.append(f"{rel}:{line} ({where or 'module level'}) imports {top} ({by})")
+    assert not offenders, f'the {name} image (.[{spec["extra"]}]) lacks what these import:\n' + "\n".join(offenders)
+    assert used == set(excused), f"stale entries in COMMANDS_OF_OTHER_IMAGES[{name!r}]: {sorted(set(excused) - used)}"
+
+
+@pytest.mark.parametrize("name", ["api", "worker"])
+def test_images_install_nothing_of_the_other_side(name):
+    """No OpenGL in the API image, no web server in the workers, even pulled in by a dependency."""
+    spec = IMAGES[name]
+    unwanted = _image_distributions(spec["extra"]) & spec["forbidden_distributions"]
+    assert not unwanted, f'.[{spec["extra"]}] installs {sorted(unwanted)} in the {name} image'
+
+
+@pytest.mark.parametrize("name", ["api", "worker"])
+def test_constraints_pin_every_distribution_an_image_installs(name):
+    """Images install with -c constraints.txt: what it leaves unpinned would be whatever the index has that day."""
+    pins = {_canonical(line.split("==")[0]) for line in (ROOT / "constraints.txt").read_text().splitlines()
+            if "==" in line and not line.lstrip().startswith("#")}
+    unpinned = _image_distributions(IMAGES[name]["extra"]) - pins
+    assert not unpinned, f"constraints.txt does not pin {sorted(unpinned)}, which the {name} image installs"
+
+
+def _assemble_venv(distributions: set[str], dest: Path) -> Path:
+    """A virtual environment holding exactly `distributions`, linked from the files this environment installed
+    for them (offline: no index, no download, no build); returns its python. Top-level entries another
+    installed distribution shares (namespace folders) are linked file by file, so nothing else comes along."""
+    from importlib import metadata
+
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(dest)], check=True, timeout=60)
+    python = dest / "bin" / "python"
+    site = Path(subprocess.run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+                               capture_output=True, text=True, check=True, timeout=60).stdout.strip())
+    owners: dict[tuple[Path, str], set[str]] = {}
+    for dist in metadata.distributions():
+        base = Path(dist.locate_file(""))
+        for top in {f.parts[0] for f in dist.files or [] if f.parts[0] != ".."}:
+            owners.setdefault((base, top), set()).add(_canonical(dist.metadata["Name"]))
+    for name in sorted(distributions):
+        dist = metadata.distribution(name)
+        base = Path(dist.locate_file(""))
+        for file in dist.files or []:
+            if file.parts[0] == "..":  # console scripts: the image runs `seasynth`, not these
+                continue
+            whole = owners[(base, file.parts[0])] <= distributions
+            rel = Path(file.parts[0]) if whole else Path(file)
+            if not (base / rel).exists() or (site / rel).exists() or (site / rel).is_symlink():
+                continue
+            (site / rel).parent.mkdir(parents=True, exist_ok=True)
+            (site / rel).symlink_to(base / rel)
+    return python
+
+
+# Run in the assembled API environment: every module the image ships imports, OpenGL is absent, and uploads are
+# checked (argv: the build context, then files; prints {file name: null or the error's class and message}).
+API_IMAGE_PROBE = """
+import importlib, importlib.util, json, pkgutil, sys
+from pathlib import Path
+ctx = Path(sys.argv[1])
+sys.path.insert(0, str(ctx))
+for package in ("service", "api"):
+    importlib.import_module(package)
+    for m in pkgutil.walk_packages([str(ctx / package)], prefix=package + "."):
+        importlib.import_module(m.name)
+absent = [n for n in ("pyrender", "OpenGL", "pyglet", "worker") if importlib.util.find_spec(n) is not None]
+assert not absent, f"the API environment holds {absent}"
+from api.uploads import format_of, validate
+got = {}
+for arg in sys.argv[2:]:
+    path = Path(arg)
+    try:
+        validate(path, format_of(path.name), path.name)
+        got[path.name] = None
+    except Exception as err:
+        got[path.name] = f"{type(err).__name__}: {err}"
+print(json.dumps(got))
+"""
+
+
+def test_api_image_environment_checks_uploads(tmp_path):
+    """The API image's Python environment, assembled offline from exactly the distributions `.[api]` installs:
+    the image's modules import, pyrender and PyOpenGL are absent, and uploads of each format are checked there
+    (a good file passes, a broken one is refused naming it) instead of failing for a missing package."""
+    import numpy as np
+    import trimesh
+    from PIL import Image
+
+    python = _assemble_venv(_image_distributions("api"), tmp_path / "venv")
+    ctx = tmp_path / "src"
+    ctx.mkdir()
+    _build_context(parse_dockerfile(ROOT / IMAGES["api"]["dockerfile"])[0], ctx)
+    files = tmp_path / "files"
+    files.mkdir()
+    box = trimesh.creation.box()
+    for fmt in ("glb", "obj", "ply", "stl"):
+        box.export(files / f"box.{fmt}")
+    pixels = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)  # noise: a long IDAT
+    Image.fromarray(pixels).save(files / "texture.png")
+    Image.fromarray(pixels).save(files / "texture.jpg")
+    (files / "broken.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n0 0\n")
+    png = (files / "texture.png").read_bytes()
+    (files / "broken.png").write_bytes(png[: len(png) // 2])  # half its pixels
+    proc = subprocess.run([python, "-I", "-c", API_IMAGE_PROBE, ctx, *sorted(files.iterdir())],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                          env={"PATH": os.environ["PATH"], "PYTHONDONTWRITEBYTECODE": "1", "HOME": str(tmp_path)})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = json.loads(proc.stdout)
+    good = {"box.glb", "box.obj", "box.ply", "box.stl", "texture.png", "texture.jpg"}
+    assert {n: e for n, e in got.items() if n in good} == dict.fromkeys(good), got
+    for name in ("broken.ply", "broken.png"):
+        assert got[name].startswith(f"AssetError: {name}: "), got
 
 
 # ---- the shipped health probe, run for real
