@@ -116,6 +116,30 @@ def _candidates(terrain: Terrain, box: Box) -> np.ndarray:
     return got
 
 
+_EXTREMES: dict[str, np.ndarray] = {}
+
+
+def _extreme_points(asset: Asset) -> np.ndarray:
+    """(k, 3) float64: the asset's convex hull vertices, or all its vertices where it has no 3D hull (flat).
+
+    A footprint's radius is the largest norm of a linear image of the vertices, a convex function, so it is
+    reached at a hull vertex: measuring only those is exact, and cheap for large user meshes. Cached per process.
+    """
+    got = _EXTREMES.get(asset.key)
+    if got is None:
+        from scipy.spatial import ConvexHull, QhullError
+
+        verts = np.asarray(asset.mesh.vertices, dtype=np.float64)
+        try:
+            got = verts[ConvexHull(verts).vertices]
+        except (QhullError, ValueError):  # coplanar, collinear or too few points: measure them all
+            got = verts
+        if len(_EXTREMES) >= 1024:
+            _EXTREMES.clear()
+        _EXTREMES[asset.key] = got
+    return got
+
+
 def footprint_radius(vertices: np.ndarray, linear: np.ndarray) -> float:
     """Radius (metres) of the disc about the anchor that holds the object's horizontal projection as placed.
 
@@ -145,7 +169,7 @@ def _place(
         return None
     verts = np.asarray(terrain.mesh.vertices)
     normals = np.asarray(terrain.mesh.vertex_normals)
-    obj_verts = np.asarray(asset.mesh.vertices, dtype=np.float64)
+    obj_verts = _extreme_points(asset)
     others = np.array([p.world_from_obj[:2, 3] for p in placed]).reshape(-1, 2)
     other_r = np.array([p.footprint_m for p in placed])
     for _ in range(PLACEMENT_TRIES):
