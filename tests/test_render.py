@@ -108,6 +108,29 @@ def test_range_matches_the_ray_plane_intersection_across_a_120_degree_view(rende
     assert expected[0, 0] > 1.8 * expected[H // 2, W // 2]
 
 
+@pytest.mark.parametrize("preset", ["draft", "default"])
+def test_range_matches_a_trimesh_ray_cast_across_a_120_degree_view_at_100_m(renderer, preset):
+    """From inside a coarse sphere of radius 100 m every pixel centre's ray hits a facet: the renderer's range
+    equals trimesh's ray cast of the same facets through each pixel centre, the corners of the view included."""
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=100.0)
+    sphere.visual.vertex_colors = np.tile([90, 160, 120, 255], (len(sphere.vertices), 1))
+    result = renderer.render(
+        camera_view(K_WIDE, W, H), [draw("test/render/inside-sphere", sphere)],
+        LIGHT, None, PRESETS[preset], Passes(range=True),
+    )
+    d = rays(K_WIDE, W, H).reshape(-1, 3)  # camera frame = world frame
+    where, ray_index, _ = sphere.ray.intersects_location(np.zeros_like(d), d, multiple_hits=False)
+    cast = np.full(len(d), np.nan)
+    cast[ray_index] = np.linalg.norm(where, axis=1)
+    cast = cast.reshape(H, W)
+    assert np.all(np.isfinite(cast))
+    np.testing.assert_allclose(result.range_m, cast, rtol=1e-3)
+    rows, cols = corners_and_centre(W, H)
+    np.testing.assert_allclose(result.range_m[rows, cols], cast[rows, cols], rtol=1e-3)
+    # The facets are visible at this tolerance: a smooth sphere (range 100 everywhere) would fail.
+    assert cast.min() < 100.0 * (1 - 5e-3)
+
+
 def test_z_depth_and_range_are_not_confused(renderer):
     z = 100.0
     mesh, pose = slab(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, z]))
