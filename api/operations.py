@@ -22,15 +22,14 @@ from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, s
 from service.records import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord, wait_reply
 from service.settings import Settings
 from service.shards import (
-    FRAME_OVERHEAD_S,
     FRAME_PARTS,
-    SAMPLES_PER_S,
     asset_info_key,
     asset_key,
     dataset_prefix,
     frame_file,
     shard_count,
-    shard_seconds,
+    spec_cost_terms,
+    spec_shard_seconds,
 )
 from service.spec import DatasetSpec
 
@@ -74,19 +73,47 @@ def check_limits(spec: DatasetSpec, settings: Settings) -> None:
                 f"{role}.count: max {hi} is over the limit of {settings.max_objects} objects (SEASYNTH_MAX_OBJECTS)"
             )
     # A shard must finish well inside the task time limit on a slow worker (service/shards.py's cost model).
-    size = min(spec.shard_size, spec.frames)
-    need = shard_seconds(size, spec.camera.width, spec.camera.height, spec.quality)
-    budget = settings.task_soft_time_limit_s
-    if need > budget:
-        per_frame = need / size
-        over.append(
-            f"shard_size: {size} frames of {spec.camera.width}x{spec.camera.height} at quality {spec.quality!r} "
-            f"are estimated at {need:.0f} s per shard, over the limit of {budget} s (the soft task time limit, "
-            f"SEASYNTH_TASK_TIME_LIMIT_S); use shard_size <= {max(1, int(budget // per_frame))} (estimate: "
-            f"{FRAME_OVERHEAD_S} s per frame plus {SAMPLES_PER_S:.0e} samples/s)"
-        )
+    shard = shard_over_time_limit(spec, settings.task_soft_time_limit_s)
+    if shard is not None:
+        over.append(shard)
     if over:
         raise LimitExceeded("\n".join(over))
+
+
+def shard_over_time_limit(spec: DatasetSpec, budget: float) -> str | None:
+    """Why a shard of `spec` would not finish well inside the task time limit on a slow worker, or None.
+
+    Both the estimate and the suggested shard_size come from the full cost model (service.shards.spec_shard_seconds:
+    resolution and quality, objects, terrain cells and builds, extra outputs), so the suggestion really fits.
+    """
+    need = spec_shard_seconds(spec)
+    if need <= budget:
+        return None
+    size = min(spec.shard_size, spec.frames)
+    terms = spec_cost_terms(spec)
+    what = (f"shard_size: {size} frames of {spec.camera.width}x{spec.camera.height} at quality {spec.quality!r} "
+            f"(up to {terms['objects']} objects, {terms['terrain_cells']} terrain cells a side, "
+            f"{terms['terrain_builds']} terrains, {terms['extra_outputs']} of clean/range/depth/instance) are estimated "
+            f"at {need:.0f} s per shard, over the limit of {budget} s (the soft task time limit, "
+            f"SEASYNTH_TASK_TIME_LIMIT_S)")
+    fits = largest_shard_size(spec, budget, below=size)
+    if fits == 0:
+        return (f"{what}; even one frame per shard is estimated at {spec_shard_seconds(spec, 1):.0f} s: lower the "
+                "resolution, quality, object counts, terrain.cells or outputs")
+    return f"{what}; use shard_size <= {fits}"
+
+
+def largest_shard_size(spec: DatasetSpec, budget: float, below: int) -> int:
+    """The largest shard size under `below` whose estimate fits `budget` (0: none does). Binary search: the
+    estimate grows with the shard size."""
+    lo, hi = 0, below - 1  # the answer is in [lo, hi]; a shard of 0 frames costs nothing
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if spec_shard_seconds(spec, mid) <= budget:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
 
 
 def check_files(spec: DatasetSpec, services: Services) -> None:
