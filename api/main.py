@@ -1,5 +1,5 @@
-"""The FastAPI app: routes, error mapping, the key and size gate, and Services opened in the lifespan from the
-Settings it is given."""
+"""The FastAPI app: routes, error mapping, the key and size gate, the bound on waiting frame requests, and Services
+opened in the lifespan from the Settings it is given."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from api import errors
 from api.deps import Services, open_services
 from api.gate import Gate
 from api.routes import assets, datasets, health
+from api.waits import FrameWaits
 from service import __version__
 from service.settings import Settings
 
@@ -42,11 +43,14 @@ def create_app(settings: Settings, services: Services | None = None) -> FastAPI:
         openapi_url=None,
     )
     errors.install(app, settings.retry_after_s)
-    app.add_middleware(Gate, settings=settings)
     app.include_router(health.router)
     app.include_router(datasets.router)
     app.include_router(assets.router)
     _install_docs(app)
+    # The last added runs first: the key and body gate, then the bound on frame requests.
+    frames = next(r for r in datasets.router.routes if r.endpoint is datasets.get_frame)  # included as it is
+    app.add_middleware(FrameWaits, route=frames, limit=settings.max_frame_waits, retry_after_s=settings.retry_after_s)
+    app.add_middleware(Gate, settings=settings)
     return app
 
 

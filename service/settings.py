@@ -41,6 +41,9 @@ class Settings(BaseSettings):
     max_asset_bytes: int = Field(256 * 2**20, ge=1)  # one uploaded file; a multipart body may add 64 KiB
     max_spec_bytes: int = Field(2**20, ge=1024)  # the body of POST /datasets (and of any other non-upload request)
     frame_timeout_s: float = Field(60.0, gt=0)  # GET /datasets/{id}/frames/{i} waits this long, then 503
+    # Frame requests waiting at once per API process; more are 503 at once. Each holds one of the 40 threads all
+    # sync routes share while it waits, so this stays well below 40.
+    max_frame_waits: int = Field(8, ge=1)
     retry_after_s: int = Field(10, ge=1)
 
     # --- workers

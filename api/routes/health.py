@@ -11,8 +11,8 @@ router = APIRouter(tags=["health"])
 
 
 @router.api_route("/healthz", methods=["GET", "HEAD"], response_model=Health)
-def healthz() -> Health:
-    """The process is up."""
+async def healthz() -> Health:
+    """The process is up: answered on the event loop, so busy threads of sync routes cannot delay it."""
     return Health(status="ok", version=__version__)
 
 
