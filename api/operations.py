@@ -309,13 +309,16 @@ def sweep_all(services: Services, dataset_ids: list[str] | None = None) -> list[
 def cancel_dataset(services: Services, dataset_id: str, purge: bool) -> DatasetPublic:
     """Cancel at once (pending shards will be skipped); with purge, also delete the dataset's objects.
 
-    The record says purged only once the objects are gone: a purge the bucket fails answers 503 (Unavailable)
-    and leaves `purged` false, so the same request can be repeated.
+    The purge is marked as begun before anything is deleted, and a worker checks that mark after writing an
+    object: a write whose check missed the mark came before it, so the delete finds the object; a write whose
+    check sees it is taken back out by its worker. The record says purged only once the delete is done: a purge
+    the bucket fails answers 503 (Unavailable) and leaves `purged` false, so the same request can be repeated.
     """
     state = services.records.cancel(dataset_id, time.time())
     if state != CANCELLED and not purge:
         raise Conflict(f"dataset {dataset_id} already {state}; nothing to cancel (add ?purge=true to delete it)")
     if purge:
+        services.records.mark_purging(dataset_id)
         services.store.delete_prefix(dataset_prefix(dataset_id))
         services.records.mark_purged(dataset_id)
     return public(services.records.get(dataset_id), time.time())

@@ -246,9 +246,19 @@ class Records:
     def finish(self, dataset_id: str, state: str, now: float) -> str:
         return self._finish(keys=[self._k(dataset_id)], args=[state, repr(now)])
 
+    def mark_purging(self, dataset_id: str) -> None:
+        """Note that a purge has begun: call it before deleting any object. A worker that writes an object of the
+        dataset checks this afterwards (purge_started) and takes what it wrote back out."""
+        self._update(keys=[self._k(dataset_id)], args=["purging", "1"])
+
     def mark_purged(self, dataset_id: str) -> None:
         """Note that the dataset's objects are gone: call it only after they were deleted."""
         self._update(keys=[self._k(dataset_id)], args=["purged", "1"])
+
+    def purge_started(self, dataset_id: str) -> bool:
+        """Whether a purge has begun (mark_purging) or finished: an object of the dataset written before this answer
+        may already have been missed by the purge's delete."""
+        return "1" in self.r.hmget(self._k(dataset_id), "purging", "purged")
 
     def touch(self, dataset_id: str, now: float) -> None:
         """Note activity (planning, a sweep): the reconciler leaves a dataset alone for a stall timeout after."""

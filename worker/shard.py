@@ -306,8 +306,10 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int) -> Outcom
     )
     ctx.store.put_bytes(commit_key(dataset_id, shard.index), commit.to_json().encode(), "application/json")
     ctx.records.commit(dataset_id, commit)
-    if ctx.records.get(dataset_id).purged:  # purged while we uploaded: take our objects back out
-        ctx.store.delete_prefix(f"datasets/{dataset_id}/")
+    # Checked after both writes: a purge that began before this answer may have listed the prefix without them.
+    if ctx.records.purge_started(dataset_id):
+        for written in (key, commit_key(dataset_id, shard.index)):
+            ctx.store.delete_prefix(written)
         return Outcome.CANCELLED
     log.info("dataset %s shard %s committed: frames %s..%s", dataset_id, shard.index, shard.first_frame,
              shard.first_frame + shard.frame_count - 1)
@@ -380,11 +382,11 @@ def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
         elif not ctx.records.r.sismember(pending, dataset_id):  # another finaliser wrote it meanwhile
             return False
         rec = ctx.records.get(dataset_id)  # as decided: state and finished_at
-        if not rec.purged:
+        if not ctx.records.purge_started(dataset_id):
             key = manifest_key(dataset_id)
             ctx.store.put_bytes(key, manifest_bytes(build_manifest(rec, ctx.records.commits(dataset_id))),
                                 "application/json")
-            if ctx.records.get(dataset_id).purged:  # purged while we wrote: take it back out
+            if ctx.records.purge_started(dataset_id):  # a purge began while we wrote: take it back out
                 ctx.store.delete_prefix(key)
         ctx.records.r.srem(pending, dataset_id)
     except BaseException:

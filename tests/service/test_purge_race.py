@@ -1,0 +1,86 @@
+"""A purge racing a worker's writes, on real Redis and the S3 server: a worker that writes between the purge's delete
+and its `purged` mark takes what it wrote back out, so no object of a purged dataset survives."""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Callable
+
+import pytest
+
+from api.deps import Services
+from api.operations import cancel_dataset
+from service.shards import dataset_prefix, manifest_key, shard_key
+from service.storage import open_store
+from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
+from worker.shard import Outcome, run_shard
+
+
+class BeforeWrite:
+    """An object store that calls `before()` just before it writes `key`."""
+
+    def __init__(self, inner, key: str, before: Callable[[], None]):
+        self.inner, self.key, self.before = inner, key, before
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def put_file(self, key, path, content_type="application/octet-stream"):
+        if key == self.key:
+            self.before()
+        self.inner.put_file(key, path, content_type)
+
+    def put_bytes(self, key, data, content_type="application/octet-stream"):
+        if key == self.key:
+            self.before()
+        self.inner.put_bytes(key, data, content_type)
+
+
+class HoldAfterDelete:
+    """An object store whose delete_prefix deletes, then waits for `resume` before it returns."""
+
+    def __init__(self, inner, deleted: threading.Event, resume: threading.Event):
+        self.inner, self.deleted, self.resume = inner, deleted, resume
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def delete_prefix(self, prefix: str) -> int:
+        n = self.inner.delete_prefix(prefix)
+        self.deleted.set()
+        assert self.resume.wait(30), "the test never resumed the purge"
+        return n
+
+
+@pytest.mark.parametrize("written, outcome, state", [
+    ("shard", Outcome.CANCELLED, "cancelled"),  # a shard past its last cancel check
+    ("manifest", Outcome.COMMITTED, "succeeded"),  # the manifest of a dataset its last shard completed
+])
+def test_an_object_written_between_the_purges_delete_and_its_mark_is_taken_back_out(
+    infra, records, tmp_path, written, outcome, state  # noqa: F811 (records is a fixture)
+):
+    store = open_store(infra.settings())
+    ds = new_dataset(records, frames=2 if written == "manifest" else 4, shard_size=2, dataset_id=uuid.uuid4().hex)
+    deleted, resume, answer = threading.Event(), threading.Event(), {}
+    api = Services(settings=infra.settings(), records=records, raw_redis=None,
+                   store=HoldAfterDelete(store, deleted, resume), producer=None)
+    purge = threading.Thread(target=lambda: answer.update(public=cancel_dataset(api, ds, purge=True)))
+
+    def purge_up_to_its_mark() -> None:
+        purge.start()
+        assert deleted.wait(30), "the purge never deleted"
+
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    key = shard_key(ds, 0, ctx.settings.shard_compression) if written == "shard" else manifest_key(ds)
+    ctx.store = BeforeWrite(store, key, purge_up_to_its_mark)
+    try:
+        # The worker writes after the purge's delete and finishes before the purge marks the dataset purged.
+        assert run_shard(ctx, ds, 0) is outcome
+        assert deleted.is_set() and not records.get(ds).purged
+    finally:
+        resume.set()
+        purge.join(30)
+    assert not purge.is_alive()
+    assert (answer["public"].state, answer["public"].purged) == (state, True)
+    assert [o.key for o in store.list(dataset_prefix(ds))] == []
