@@ -185,6 +185,8 @@ def _time(t: float | None) -> datetime | None:
 
 
 def public(rec: DatasetRecord, now: float) -> DatasetPublic:
+    """The API's view of a record. `errors` lists the failed shards the record carries, the first ERRORS_SHOWN
+    (service.records) by index; `shards_failed` counts them all."""
     rate = eta = None
     if rec.started_at is not None and rec.frames_done > 0:
         elapsed = (rec.finished_at or now) - rec.started_at

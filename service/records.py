@@ -8,6 +8,8 @@ Keys (P = settings.key_prefix):
   P:ds:{id}:shards    HASH  shard index -> commit record JSON (key, sha256, bytes, frames, renderer)
   P:ds:{id}:tries     HASH  shard index -> executions started
   P:ds:{id}:errors    HASH  shard index -> last error
+  P:ds:{id}:shown     ZSET  the first ERRORS_SHOWN failed shard indices (score: the index), whose errors a record
+                            carries
   P:ds:{id}:running   HASH  shard index -> JSON {pid, host, since} while a process renders it; an entry older
                             than the hard task time limit is stale (that execution is certainly over)
   P:ds:{id}:final     STR   finalise guard (SET NX with a TTL, so a finaliser that died can be replaced)
@@ -26,6 +28,10 @@ from service.errors import NotFound
 
 QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED = "queued", "running", "succeeded", "failed", "cancelled"
 TERMINAL = frozenset({SUCCEEDED, FAILED, CANCELLED})
+
+# A record carries the errors of at most this many failed shards, those of lowest index: reading a record costs
+# the same however many shards failed (shards_failed counts them all).
+ERRORS_SHOWN = 20
 
 # Counts an execution unless the shard has used up its attempts (then returns -1 and counts nothing).
 _START = """
@@ -51,12 +57,35 @@ end
 return {added, redis.call('SCARD', KEYS[2]), redis.call('SCARD', KEYS[4])}
 """
 
+# A newly failed shard also joins the ERRORS_SHOWN (ARGV[4]) lowest failed indices, if it is one of them.
 _FAIL = """
 redis.call('HSET', KEYS[3], ARGV[1], ARGV[2])
 local added = 0
 if redis.call('SISMEMBER', KEYS[4], ARGV[1]) == 0 then added = redis.call('SADD', KEYS[2], ARGV[1]) end
-if added == 1 then redis.call('HSET', KEYS[1], 'touched_at', ARGV[3]) end
+if added == 1 then
+  redis.call('HSET', KEYS[1], 'touched_at', ARGV[3])
+  redis.call('ZADD', KEYS[5], ARGV[1], ARGV[1])
+  redis.call('ZREMRANGEBYRANK', KEYS[5], tonumber(ARGV[4]), -1)
+end
 return {added, redis.call('SCARD', KEYS[4]), redis.call('SCARD', KEYS[2])}
+"""
+
+# {index, error, ...} of the shown failed shards (KEYS: failed, shown, errors; ARGV[1]: ERRORS_SHOWN), in index
+# order. Fewer shown than failed, with room for more, only happens to a record written before failed shards were
+# indexed: they are indexed then, once.
+_ERRORS = """
+local limit = tonumber(ARGV[1])
+local shown = redis.call('ZCARD', KEYS[2])
+if shown < limit and shown < redis.call('SCARD', KEYS[1]) then
+  for _, i in ipairs(redis.call('SMEMBERS', KEYS[1])) do redis.call('ZADD', KEYS[2], i, i) end
+  redis.call('ZREMRANGEBYRANK', KEYS[2], limit, -1)
+end
+local out = {}
+for _, i in ipairs(redis.call('ZRANGE', KEYS[2], 0, -1)) do
+  out[#out + 1] = i
+  out[#out + 1] = redis.call('HGET', KEYS[3], i) or ''
+end
+return out
 """
 
 # Moves a live dataset to a terminal state; a terminal one keeps its state. Returns the state after.
@@ -78,7 +107,7 @@ return 1
 """
 
 # Every key of a dataset, for discarding one that was never published.
-PARTS = ("done", "failed", "shards", "tries", "errors", "running", "final", "sweep")
+PARTS = ("done", "failed", "shards", "tries", "errors", "shown", "running", "final", "sweep")
 
 
 @dataclass(frozen=True)
@@ -103,7 +132,8 @@ class DatasetRecord:
     finished_at: float | None
     touched_at: float  # the last shard started, committed or failed, or the last planning or sweep
     purged: bool
-    errors: dict[int, str] = field(default_factory=dict)  # failed shard -> last error
+    # failed shard -> its last error, for the ERRORS_SHOWN failed shards of lowest index only
+    errors: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -136,6 +166,7 @@ class Records:
         self._start = redis.register_script(_START)
         self._commit = redis.register_script(_COMMIT)
         self._fail = redis.register_script(_FAIL)
+        self._errors = redis.register_script(_ERRORS)
         self._finish = redis.register_script(_FINISH)
         self._update = redis.register_script(_UPDATE)
 
@@ -183,14 +214,15 @@ class Records:
             pipe.execute()
 
     def get(self, dataset_id: str) -> DatasetRecord:
-        """The record; NotFound for an id that names no dataset."""
+        """The record, with the errors of the first ERRORS_SHOWN failed shards; NotFound for an id that names no
+        dataset."""
         with self.r.pipeline(transaction=True) as pipe:
             pipe.hgetall(self._k(dataset_id))
             pipe.scard(self._k(dataset_id, "done"))
             pipe.scard(self._k(dataset_id, "failed"))
-            pipe.hgetall(self._k(dataset_id, "errors"))
-            pipe.smembers(self._k(dataset_id, "failed"))
-            h, done, failed, errors, failed_set = pipe.execute()
+            keys = [self._k(dataset_id, "failed"), self._k(dataset_id, "shown"), self._k(dataset_id, "errors")]
+            self._errors(keys=keys, args=[ERRORS_SHOWN], client=pipe)
+            h, done, failed, errors = pipe.execute()
         if not h:
             raise NotFound(f"no dataset {dataset_id}")
         opt = lambda k: float(h[k]) if h.get(k) else None  # noqa: E731
@@ -213,7 +245,7 @@ class Records:
             finished_at=opt("finished_at"),
             touched_at=float(h.get("touched_at") or h["created_at"]),
             purged=h.get("purged") == "1",
-            errors={int(i): errors.get(i, "") for i in failed_set},
+            errors={int(i): e for i, e in zip(errors[::2], errors[1::2])},
         )
 
     def exists(self, dataset_id: str) -> bool:
@@ -330,8 +362,8 @@ class Records:
     def fail(self, dataset_id: str, index: int, message: str) -> tuple[int, int]:
         """Give up on a shard (unless it was committed meanwhile); return (shards done, shards failed)."""
         keys = [self._k(dataset_id), self._k(dataset_id, "failed"), self._k(dataset_id, "errors"),
-                self._k(dataset_id, "done")]
-        _, done, failed = self._fail(keys=keys, args=[index, message[:2000], repr(time.time())])
+                self._k(dataset_id, "done"), self._k(dataset_id, "shown")]
+        _, done, failed = self._fail(keys=keys, args=[index, message[:2000], repr(time.time()), ERRORS_SHOWN])
         return int(done), int(failed)
 
     def commits(self, dataset_id: str) -> list[ShardCommit]:

@@ -19,7 +19,7 @@ from celery.signals import worker_process_init, worker_process_shutdown
 from service import __version__
 from service.errors import NotFound
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, TASK_SHARD, frame_queue, shard_queue
-from service.records import CANCELLED, Records, push_reply
+from service.records import TERMINAL, Records, push_reply
 from service.settings import Settings
 from service.storage import open_store
 from worker.shard import (
@@ -213,7 +213,8 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
 
     @app.task(name=TASK_PLAN, shared=False, acks_late=True, reject_on_worker_lost=True)
     def plan_dataset(dataset_id: str, first_shard: int = 0, sweep: bool = False) -> int:
-        """Publish one batch of shard tasks, then a planner for the next batch; returns messages published.
+        """Publish one batch of shard tasks, then a planner for the next batch; returns messages published (none
+        for a dataset that is gone or final: cancelled, succeeded or failed).
 
         `sweep` (the reconciler): only the shards still pending and not going round between workers of another
         renderer (worker.shard.sweepable), marked so that they defer to a running execution.
@@ -223,7 +224,7 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
             rec = ctx.records.get(dataset_id)
         except NotFound:
             return 0
-        if rec.state == CANCELLED:
+        if rec.state in TERMINAL:  # cancelled, or every shard already committed or failed
             return 0
         end = min(first_shard + settings.plan_batch, rec.shards_total)
         batch = list(range(first_shard, end))
