@@ -7,6 +7,8 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
+from service.records import ERRORS_SHOWN
+
 
 class DatasetLinks(BaseModel):
     self: str
@@ -40,7 +42,10 @@ class DatasetPublic(BaseModel):
     attempts: int = Field(description="Shard task executions started, retries included")
     frames_per_s: float | None
     eta_s: float | None
-    errors: list[ShardErrorPublic]
+    errors: list[ShardErrorPublic] = Field(
+        description=f"Errors of the failed shards with the lowest indices, at most {ERRORS_SHOWN} (shards_failed "
+        "counts them all)"
+    )
     seed: int
     code_version: str
     renderer: str | None
