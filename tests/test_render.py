@@ -259,18 +259,22 @@ def test_range_is_the_centre_where_it_hits_else_the_nearest_sample_and_inf_only_
     K = pinhole(W, H, 60.0)
     view = camera_view(K, W, H)
     # A sheet seen edge-on and a quad whose edges cut through pixels: pixels whose centre misses but samples hit.
-    items = [receding_sheet(), draw("test/render/off-grid-quad", fronto_quad(K, (2.2, 5.7), (1.3, 3.9), 5.0), 7)]
+    # A sliver 0.04 px wide through the centres of column 1: centres hit, (multisample) samples do not.
+    sliver = fronto_quad(K, (0.98, 1.02), (0.5, H - 1.5), 5.0)
+    items = [receding_sheet(), draw("test/render/off-grid-quad", fronto_quad(K, (2.2, 5.7), (1.3, 3.9), 5.0), 7),
+             draw("test/render/sliver", sliver, 8)]
     sampling = PRESETS[preset]
     result = renderer.render(view, items, LIGHT, WATER, sampling, Passes(range=True))
     centre = renderer.render(view, items, LIGHT, None, Sampling(msaa=1), Passes(range=True)).range_m
     _, samples = renderer.samples(view, items, LIGHT, sampling)  # (k, h, w): every sample of every pixel
-    expected = np.where(np.isfinite(centre), centre, samples.min(axis=0))
-    np.testing.assert_array_equal(result.range_m, expected)
     water = np.isinf(samples).all(axis=0)
+    expected = np.where(np.isfinite(centre) & ~water, centre, samples.min(axis=0))
+    np.testing.assert_array_equal(result.range_m, expected)
     np.testing.assert_array_equal(np.isinf(result.range_m), water)
     assert_veiling_light(result.image[water], sampling)  # open water by the range is the veiling light
-    if sampling.per_pixel > 1:  # the case this rule is for occurs here
-        assert np.any(np.isinf(centre) & ~water)
+    assert np.all(np.isfinite(centre[1:H - 1, 1]))  # the sliver covers its column's centres
+    if sampling.per_pixel > 1:  # the cases this rule is for occur here
+        assert np.any(np.isinf(centre) & ~water) and np.any(np.isfinite(centre) & water)
 
 
 # --- determinism ----------------------------------------------------------------------------------------------

@@ -81,8 +81,8 @@ class Passes:
 
     clean: bool = False  # the in-air image J, resolved like the hazed one
     ids: bool = False  # per-pixel instance ids at pixel centres
-    # Per-pixel range: at the pixel centre where it hits a surface, else the nearest of the pixel's samples that
-    # hits one; +inf only where no sample hits (the pixel is pure water).
+    # Per-pixel range: +inf exactly where no sample of the pixel hits a surface (the pixel is pure water); else
+    # the range at the pixel centre where it hits a surface, else the nearest of the pixel's samples that does.
     range: bool = False
 
 

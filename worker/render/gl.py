@@ -398,10 +398,10 @@ class GLRenderer:
     ) -> RenderResult:
         """Render one frame: linear hazed image, and the optional clean image, ids and range.
 
-        Range (passes.range) is the range at the pixel centre where the centre hits a surface, else the nearest
-        range any of the pixel's samples hits, and +inf only where no sample hits: so a pixel is open water in
-        the range exactly when its colour is pure water. Where every sample lies at the pixel centre (one sample
-        per pixel) the surface pass's own samples give it; otherwise a single-sample pass adds the centres.
+        Range (passes.range) is +inf exactly where none of the pixel's samples hits a surface (the pixel's colour
+        is pure water); elsewhere the range at the pixel centre where the centre hits a surface, else the nearest
+        range a sample hits. Where every sample lies at the pixel centre (one sample per pixel) the surface pass's
+        own samples give it; otherwise a single-sample pass adds the centres.
 
         mark: called with a stage name when each stage's GL work has finished (benchmarks only: it waits).
         """
@@ -417,7 +417,8 @@ class GLRenderer:
         if passes.ids or centres:
             instance, centre = self._ids(view, items, passes.ids, centres, log=log)
             done("ids")
-        range_m = nearest if centre is None else np.where(np.isfinite(centre), centre, nearest)
+        # A sliver can cover a pixel centre and none of its samples: the image shows water there, so must range.
+        range_m = nearest if centre is None else np.where(np.isfinite(centre) & np.isfinite(nearest), centre, nearest)
         return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m, passes=tuple(log))
 
     def samples(

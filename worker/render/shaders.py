@@ -127,7 +127,8 @@ void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     vec3 acc = vec3(0.0);
     vec3 clean = vec3(0.0);
-    float nearest = uintBitsToFloat(0x7F800000u);   // +inf
+    // Any sample will do to start the minimum: an uncovered one holds the +inf its buffer was cleared to.
+    float nearest = FETCH(u_R, px * SUPERSAMPLE, 0).r;
     float n = 0.0;
     for (int dy = 0; dy < SUPERSAMPLE; ++dy) {
         for (int dx = 0; dx < SUPERSAMPLE; ++dx) {
