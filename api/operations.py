@@ -260,8 +260,9 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
     """Republish a live dataset's lost shards; True when a reconcile task was sent.
 
     A shard is pending when it is neither committed, nor failed, nor running within its lease (the hard task time
-    limit). Queued messages cannot be seen cheaply, so the sweep waits until the dataset has stalled: nothing
-    started, committed or failed for SEASYNTH_STALL_TIMEOUT_S and nothing running. Then a worker adopts missed
+    limit). Queued messages cannot be told apart cheaply, so the sweep waits until the dataset has stalled: nothing
+    started, committed or failed for SEASYNTH_STALL_TIMEOUT_S and nothing running; after a first sweep, also
+    fewer messages in its shard queue than it has pending shards. Then a worker adopts missed
     commit markers and republishes the pending shards, marked to defer to a running execution; a copy of a
     shard that was only waiting in the queue is skipped once its original committed. At most once per stall
     timeout per dataset (a Redis lock), whoever triggers it: status reads or `seasynth reconcile`.
@@ -276,6 +277,13 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
             return False
         if services.records.live_running(rec.id, now, s.running_lease_s):
             return False
+        # Waiting behind other datasets' backlog looks the same as lost. Once a sweep has republished the pending
+        # shards, another waits until the queue cannot hold them all (some surely are not there): copies sent
+        # while they may still be queued would only pile up behind the backlog, and autoscaling would count them.
+        if services.records.swept(rec.id):
+            pending = rec.shards_total - rec.shards_done - rec.shards_failed
+            if services.records.r.llen(shard_queue(rec.code_version)) >= pending:
+                return False
         if not services.records.claim_sweep(rec.id, s.stall_s):
             return False
     try:
@@ -284,6 +292,7 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
         if not force:
             services.records.release_sweep(rec.id)
         raise
+    services.records.note_sweep(rec.id, now)
     return True
 
 

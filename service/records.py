@@ -296,6 +296,14 @@ class Records:
         """Note activity (planning, a sweep): the reconciler leaves a dataset alone for a stall timeout after."""
         self._update(keys=[self._k(dataset_id)], args=["touched_at", repr(now)])
 
+    def note_sweep(self, dataset_id: str, now: float) -> None:
+        """Note that a sweep sent the dataset's pending shards to be published again (swept_at)."""
+        self._update(keys=[self._k(dataset_id)], args=["swept_at", repr(now)])
+
+    def swept(self, dataset_id: str) -> bool:
+        """Whether a sweep has sent the dataset's pending shards to be published again."""
+        return bool(self.r.hexists(self._k(dataset_id), "swept_at"))
+
     def claim_sweep(self, dataset_id: str, ttl_s: int) -> bool:
         """True for the one caller that may sweep the dataset now; the next sweep waits ttl_s."""
         return bool(self.r.set(self._k(dataset_id, "sweep"), "1", nx=True, ex=max(1, int(ttl_s))))

@@ -462,3 +462,24 @@ def test_gzip_shards_end_to_end(stack: Stack, tmp_path):
         finally:
             worker.stop()
 
+
+
+def test_a_second_sweep_waits_until_the_queue_cannot_hold_the_pending_shards(stack: Stack):
+    """A stalled dataset is swept once whatever the queue holds; after that, not while its shard queue has at least
+    as many messages as it has pending shards (they may be its copies waiting behind a backlog), then again."""
+    from api.operations import sweep_if_stalled
+
+    with isolated(stack, 13) as (_, services):
+        version = "0.0.0+backlog"  # a queue no worker reads
+        queue, records = shard_queue(version), services.records
+        ds = record_only(services, tiny_spec(), age_s=10_000, version=version)  # 3 shards, none done
+        services.raw_redis.rpush(queue, *[b"waiting"] * 5)  # another dataset's backlog
+        assert sweep_if_stalled(services, records.get(ds), time.time()) and records.swept(ds)
+        assert services.raw_redis.llen(queue) == 6  # the reconcile task joined the backlog
+        records.release_sweep(ds)  # a stall timeout later
+        assert not sweep_if_stalled(services, records.get(ds), time.time())
+        assert records.claim_sweep(ds, 60)  # the lock was left alone
+        records.release_sweep(ds)
+        services.raw_redis.ltrim(queue, 0, 1)  # the backlog drains to 2 messages, fewer than the 3 pending shards
+        assert sweep_if_stalled(services, records.get(ds), time.time())
+        assert services.raw_redis.llen(queue) == 3
