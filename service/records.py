@@ -344,6 +344,10 @@ class Records:
                 out.append(i)
         return out
 
+    def attempts(self, dataset_id: str, index: int) -> int:
+        """Executions of shard `index` started so far."""
+        return int(self.r.hget(self._k(dataset_id, "tries"), index) or 0)
+
     def tries(self, dataset_id: str) -> dict[int, int]:
         return {int(i): int(v) for i, v in self.r.hgetall(self._k(dataset_id, "tries")).items()}
 

@@ -37,7 +37,9 @@ class ObjectStore(Protocol):
 
     def head(self, key: str) -> ObjectInfo | None: ...
 
-    def list(self, prefix: str) -> Iterator[ObjectInfo]: ...
+    def list(self, prefix: str) -> Iterator[ObjectInfo]: ...  # keys starting with `prefix` (a string prefix, as S3's)
+
+    def delete(self, key: str) -> None: ...  # the one object `key`, if it exists
 
     def delete_prefix(self, prefix: str) -> int: ...  # objects deleted
 
@@ -120,7 +122,9 @@ class LocalStore:
         return ObjectInfo(key, p.stat().st_size) if p.is_file() else None
 
     def list(self, prefix: str) -> Iterator[ObjectInfo]:
-        base = self.root / prefix.rstrip("/") if prefix else self.root
+        # A string prefix, as S3 lists: search the deepest folder it names, keep the keys that start with it.
+        folder = prefix.rsplit("/", 1)[0] if "/" in prefix else ""
+        base = self.root / folder if folder else self.root
         if not base.is_dir():
             return
         for p in sorted(base.rglob("*")):
@@ -128,6 +132,9 @@ class LocalStore:
                 key = p.relative_to(self.root).as_posix()
                 if key.startswith(prefix):
                     yield ObjectInfo(key, p.stat().st_size)
+
+    def delete(self, key: str) -> None:
+        self._path(key).unlink(missing_ok=True)
 
     def delete_prefix(self, prefix: str) -> int:
         n = 0
@@ -230,6 +237,12 @@ class S3Store:
                     yield ObjectInfo(o["Key"], int(o["Size"]))
         except Exception as err:
             raise self._fail(err, prefix) from err
+
+    def delete(self, key: str) -> None:
+        try:
+            self.client.delete_object(Bucket=self.bucket, Key=key)  # no error when there is no such object
+        except Exception as err:
+            raise self._fail(err, key) from err
 
     def delete_prefix(self, prefix: str) -> int:
         keys = [o.key for o in self.list(prefix)]

@@ -240,6 +240,10 @@ def _before_attempt(ctx: ShardContext, dataset_id: str, index: int, sweep: bool)
     if rec.code_version != ctx.code_version:
         raise WrongVersion(rec.code_version)
     if rec.state == CANCELLED:
+        # An earlier execution may have written after a purge listed the prefix, then died before taking its
+        # objects back: take them back now (only a shard that ran can have written any).
+        if ctx.records.purge_started(dataset_id) and ctx.records.attempts(dataset_id, index):
+            _take_back(ctx, dataset_id, index)
         return Outcome.CANCELLED
     if ctx.records.is_committed(dataset_id, index):
         finalise_or_defer(ctx, dataset_id)
@@ -308,13 +312,20 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int) -> Outcom
     ctx.records.commit(dataset_id, commit)
     # Checked after both writes: a purge that began before this answer may have listed the prefix without them.
     if ctx.records.purge_started(dataset_id):
-        for written in (key, commit_key(dataset_id, shard.index)):
-            ctx.store.delete_prefix(written)
+        _take_back(ctx, dataset_id, shard.index)
         return Outcome.CANCELLED
     log.info("dataset %s shard %s committed: frames %s..%s", dataset_id, shard.index, shard.first_frame,
              shard.first_frame + shard.frame_count - 1)
     finalise_or_defer(ctx, dataset_id)
     return Outcome.COMMITTED
+
+
+def _take_back(ctx: ShardContext, dataset_id: str, index: int) -> None:
+    """Delete what an execution of shard `index` may have written (its tar, in either compression, and its commit
+    marker) once the dataset's purge has begun."""
+    written = (shard_key(dataset_id, index, "none"), shard_key(dataset_id, index, "gz"), commit_key(dataset_id, index))
+    for key in written:
+        ctx.store.delete(key)
 
 
 def _adopt_marker(ctx: ShardContext, dataset_id: str, index: int) -> bool:
@@ -382,12 +393,13 @@ def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
         elif not ctx.records.r.sismember(pending, dataset_id):  # another finaliser wrote it meanwhile
             return False
         rec = ctx.records.get(dataset_id)  # as decided: state and finished_at
+        key = manifest_key(dataset_id)
         if not ctx.records.purge_started(dataset_id):
-            key = manifest_key(dataset_id)
             ctx.store.put_bytes(key, manifest_bytes(build_manifest(rec, ctx.records.commits(dataset_id))),
                                 "application/json")
-            if ctx.records.purge_started(dataset_id):  # a purge began while we wrote: take it back out
-                ctx.store.delete_prefix(key)
+        # A purge that began while we wrote, or before a finaliser that died between its write and this check.
+        if ctx.records.purge_started(dataset_id):
+            ctx.store.delete(key)
         ctx.records.r.srem(pending, dataset_id)
     except BaseException:
         ctx.records.release_finalise(dataset_id)

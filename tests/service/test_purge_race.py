@@ -11,10 +11,16 @@ import pytest
 
 from api.deps import Services
 from api.operations import cancel_dataset
-from service.shards import dataset_prefix, manifest_key, shard_key
-from service.storage import open_store
+from service.manifest import pending_manifests_key
+from service.shards import commit_key, dataset_prefix, manifest_key, shard_key
+from service.storage import LocalStore, open_store
 from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
-from worker.shard import Outcome, run_shard
+from worker.shard import Outcome, reconcile, run_shard
+
+
+def bucket(infra, tmp_path, kind: str):
+    """The S3 server's bucket, or a local folder: both stores must behave alike."""
+    return open_store(infra.settings()) if kind == "s3" else LocalStore(tmp_path / "bucket")
 
 
 class BeforeWrite:
@@ -53,14 +59,15 @@ class HoldAfterDelete:
         return n
 
 
+@pytest.mark.parametrize("kind", ["s3", "local"])
 @pytest.mark.parametrize("written, outcome, state", [
     ("shard", Outcome.CANCELLED, "cancelled"),  # a shard past its last cancel check
     ("manifest", Outcome.COMMITTED, "succeeded"),  # the manifest of a dataset its last shard completed
 ])
 def test_an_object_written_between_the_purges_delete_and_its_mark_is_taken_back_out(
-    infra, records, tmp_path, written, outcome, state  # noqa: F811 (records is a fixture)
+    infra, records, tmp_path, written, outcome, state, kind  # noqa: F811 (records is a fixture)
 ):
-    store = open_store(infra.settings())
+    store = bucket(infra, tmp_path, kind)
     ds = new_dataset(records, frames=2 if written == "manifest" else 4, shard_size=2, dataset_id=uuid.uuid4().hex)
     deleted, resume, answer = threading.Event(), threading.Event(), {}
     api = Services(settings=infra.settings(), records=records, raw_redis=None,
@@ -84,3 +91,70 @@ def test_an_object_written_between_the_purges_delete_and_its_mark_is_taken_back_
     assert not purge.is_alive()
     assert (answer["public"].state, answer["public"].purged) == (state, True)
     assert [o.key for o in store.list(dataset_prefix(ds))] == []
+
+
+class Killed(BaseException):
+    """The process dies here (SIGKILL, OOM): nothing after this point runs."""
+
+
+class PurgeThenDie:
+    """A store that lets a whole purge run just before the tar is written, and dies right after writing `last`."""
+
+    def __init__(self, inner, tar: str, last: str, purge: Callable[[], None]):
+        self.inner, self.tar, self.last, self.purge = inner, tar, last, purge
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def put_file(self, key, path, content_type="application/octet-stream"):
+        if key == self.tar:
+            self.purge()
+        self.inner.put_file(key, path, content_type)
+
+    def put_bytes(self, key, data, content_type="application/octet-stream"):
+        self.inner.put_bytes(key, data, content_type)
+        if key == self.last:
+            raise Killed(key)
+
+
+@pytest.mark.parametrize("kind", ["s3", "local"])
+def test_a_shard_an_execution_wrote_after_the_purge_and_died_is_taken_back_by_the_next_execution(
+    infra, records, tmp_path, kind  # noqa: F811 (records is a fixture)
+):
+    store = bucket(infra, tmp_path, kind)
+    ds = new_dataset(records, frames=4, shard_size=2, dataset_id=uuid.uuid4().hex)
+    api = Services(settings=infra.settings(), records=records, raw_redis=None, store=store, producer=None)
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    tar = shard_key(ds, 0, ctx.settings.shard_compression)
+    ctx.store = PurgeThenDie(store, tar, commit_key(ds, 0), lambda: cancel_dataset(api, ds, purge=True))
+    with pytest.raises(Killed):
+        run_shard(ctx, ds, 0)
+    # The purge finished before these were written, and their writer died before it could take them back.
+    assert records.get(ds).purged
+    assert sorted(o.key for o in store.list(dataset_prefix(ds))) == sorted([tar, commit_key(ds, 0)])
+    ctx.store = store
+    assert run_shard(ctx, ds, 0) is Outcome.CANCELLED  # the message, redelivered
+    assert [o.key for o in store.list(dataset_prefix(ds))] == []
+    # A shard that never ran wrote nothing and costs no deletes.
+    assert run_shard(ctx, ds, 1) is Outcome.CANCELLED
+
+
+@pytest.mark.parametrize("kind", ["s3", "local"])
+def test_a_manifest_a_dead_finaliser_wrote_after_the_purge_is_deleted_by_the_next_reconcile(
+    infra, records, tmp_path, kind  # noqa: F811 (records is a fixture)
+):
+    store = bucket(infra, tmp_path, kind)
+    ds = new_dataset(records, frames=2, shard_size=2, dataset_id=uuid.uuid4().hex)
+    ctx = make_ctx(infra, records, tmp_path, FakeSession())
+    ctx.store = store
+    assert run_shard(ctx, ds, 0) is Outcome.COMMITTED and records.get(ds).state == "succeeded"
+    api = Services(settings=infra.settings(), records=records, raw_redis=None, store=store, producer=None)
+    assert cancel_dataset(api, ds, purge=True).purged
+    # A finaliser that decided before the purge writes the manifest after the purge's delete, then dies with the
+    # dataset still in the set of manifests to write.
+    store.put_bytes(manifest_key(ds), b"{}", "application/json")
+    records.r.sadd(pending_manifests_key(records.p), ds)
+    records.release_finalise(ds)  # the dead finaliser's lock expires
+    assert reconcile(ctx, ds) == []
+    assert [o.key for o in store.list(dataset_prefix(ds))] == []
+    assert ds not in records.r.smembers(pending_manifests_key(records.p))

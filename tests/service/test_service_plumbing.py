@@ -222,6 +222,15 @@ def test_object_store_contract(infra, tmp_path, kind):
     assert (tmp_path / "back.bin").read_bytes() == src.read_bytes()
     assert store.url(prefix + "a/one.json").startswith("file://" if kind == "local" else "http://")
     store.check()
+    # Prefixes are strings, as S3 has them: a key itself, or a key's first letters, lists that key (and its longer
+    # namesakes) and nothing in its folder that does not start with them.
+    store.put_bytes(prefix + "a/one.json.bak", b"[]", "application/json")
+    assert [o.key for o in store.list(prefix + "a/one.json")] == [prefix + "a/one.json", prefix + "a/one.json.bak"]
+    assert [o.key for o in store.list(prefix + "a/t")] == [prefix + "a/two.bin"]
+    assert list(store.list(prefix + "b")) == []
+    store.delete(prefix + "a/one.json.bak")
+    store.delete(prefix + "a/never-written")  # deleting what is not there is not an error
+    assert store.head(prefix + "a/one.json.bak") is None and store.head(prefix + "a/one.json") is not None
     assert store.delete_prefix(prefix) == 2 and list(store.list(prefix)) == []
     with pytest.raises(ValueError):
         store.put_bytes("../escape", b"")
