@@ -3,7 +3,6 @@ never loads OpenGL and `generate` never loads the web stack."""
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 from typing import Annotated, NoReturn, Optional
@@ -180,9 +179,13 @@ def worker(
     run_worker(Settings(), concurrency, [q.strip() for q in queues.split(",") if q.strip()], loglevel)
 
 
+RECONCILE_EVERY_S = (0.1, 86400.0)  # a round at most ten times a second (Redis) and at least once a day
+
+
 def _positive_seconds(value: Optional[float]) -> Optional[float]:
-    if value is not None and not (value > 0 and math.isfinite(value)):
-        raise typer.BadParameter(f"must be a finite number of seconds > 0, got {value:g}")
+    lo, hi = RECONCILE_EVERY_S
+    if value is not None and not (lo <= value <= hi):  # NaN fails both comparisons
+        raise typer.BadParameter(f"must be a number of seconds from {lo:g} to {hi:g}, got {value:g}")
     return value
 
 

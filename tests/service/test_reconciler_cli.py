@@ -55,9 +55,10 @@ def test_reconcile_every_refuses_bad_periods_and_named_datasets(infra: Stack):
         return subprocess.run([sys.executable, "-m", "service.cli", "reconcile", *args], env=infra.env,
                               capture_output=True, text=True, timeout=60)
 
-    for every in ["0", "-1", "inf", "nan"]:
+    for every in ["0", "-1", "0.01", "1e12", "inf", "nan"]:
         r = run("--every", every)
-        assert r.returncode == 2 and "Invalid value for '--every': must be a finite number of seconds > 0" in r.stderr
+        assert r.returncode == 2 and "Invalid value for '--every': must be a number of seconds from 0.1 to 86400" \
+            in r.stderr, (every, r.stderr)
     r = run("--every", "60", "a" * 32)
     assert r.returncode == 2 and "--every and DATASET_IDs exclude each other" in r.stderr, r.stderr
     assert r.stdout == ""
