@@ -190,7 +190,16 @@ FRAME_PARTS: dict[str, tuple[str, str]] = {
 }
 
 
+def frame_name(index: int) -> str:
+    """KITTI's six-digit file stem of frame `index` (the spec's frame limit keeps every index below 10^6)."""
+    from service.spec import MAX_FRAMES
+
+    if not 0 <= index < MAX_FRAMES:
+        raise ValueError(f"frame index {index} is outside 0..{MAX_FRAMES - 1}")
+    return f"{index:06d}"
+
+
 def frame_file(part: str, index: int) -> str:
     """The relative path of one of a frame's files, as a local generate writes it: image_2/000123.png."""
     folder, suffix = FRAME_PARTS[part]
-    return f"{folder}/{index:06d}{suffix}"
+    return f"{folder}/{frame_name(index)}{suffix}"

@@ -14,7 +14,8 @@ import numpy as np
 
 import service
 from service.seeds import STREAM_NOISE, frame_rng
-from service.spec import MAX_FRAMES, AssetRef, DatasetSpec, FileRef
+from service.shards import frame_name
+from service.spec import AssetRef, DatasetSpec, FileRef
 from worker import kitti, labels
 from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
@@ -38,13 +39,6 @@ PRESETS: dict[str, Sampling] = {
 PNG_COMPRESS_LEVEL = 1  # zlib level: larger files, much faster encoding; any level decodes to the same pixels
 DEPTH_SCALE = 256.0  # KITTI depth PNG: metres * 256 in uint16, 0 = no measurement
 VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow")
-
-
-def frame_name(index: int) -> str:
-    """KITTI's six-digit file stem of frame `index` (the spec's frame limit keeps every index below 10^6)."""
-    if not 0 <= index < MAX_FRAMES:
-        raise ValueError(f"frame index {index} is outside 0..{MAX_FRAMES - 1}")
-    return f"{index:06d}"
 
 
 def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
