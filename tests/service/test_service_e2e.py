@@ -18,7 +18,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service import __version__
 from service.fetch import STATE_DIR, fetch_dataset
+from service.queues import shard_queue
 from service_stack import Stack, log_since, log_size, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, not frame files
@@ -74,6 +76,10 @@ def test_dataset_complete_and_identical_to_local_generate(
             wait_worker_ready(w, 2)
         workers = stack.workers()
         assert len(workers) == 2 + extra_workers
+        # Messages earlier tests left (a cancelled dataset's shards) would keep some worker busy meanwhile.
+        queue = shard_queue(__version__)
+        wait_for(lambda: services.raw_redis.llen(queue) == 0 and services.raw_redis.hlen("unacked") == 0, 120,
+                 "the shard queue drained of earlier tests' messages")
         offsets = {w.log: log_size(w) for w in workers}
         spec = tiny_spec(frames=7, shard_size=shard_size)
         dataset_id = post(client, spec)
