@@ -23,24 +23,26 @@ def bucket(infra, tmp_path, kind: str):
     return open_store(infra.settings()) if kind == "s3" else LocalStore(tmp_path / "bucket")
 
 
-class BeforeWrite:
-    """An object store that calls `before()` just before it writes `key`."""
+class HookedWrites:
+    """An object store that calls `before[key]()` just before writing `key` and `after[key]()` just after."""
 
-    def __init__(self, inner, key: str, before: Callable[[], None]):
-        self.inner, self.key, self.before = inner, key, before
+    def __init__(self, inner, before: dict[str, Callable[[], None]] | None = None,
+                 after: dict[str, Callable[[], None]] | None = None):
+        self.inner, self.before, self.after = inner, before or {}, after or {}
 
     def __getattr__(self, name):
         return getattr(self.inner, name)
 
+    def _write(self, key: str, write: Callable[[], None]) -> None:
+        self.before.get(key, lambda: None)()
+        write()
+        self.after.get(key, lambda: None)()
+
     def put_file(self, key, path, content_type="application/octet-stream"):
-        if key == self.key:
-            self.before()
-        self.inner.put_file(key, path, content_type)
+        self._write(key, lambda: self.inner.put_file(key, path, content_type))
 
     def put_bytes(self, key, data, content_type="application/octet-stream"):
-        if key == self.key:
-            self.before()
-        self.inner.put_bytes(key, data, content_type)
+        self._write(key, lambda: self.inner.put_bytes(key, data, content_type))
 
 
 class HoldAfterDelete:
@@ -80,7 +82,7 @@ def test_an_object_written_between_the_purges_delete_and_its_mark_is_taken_back_
 
     ctx = make_ctx(infra, records, tmp_path, FakeSession())
     key = shard_key(ds, 0, ctx.settings.shard_compression) if written == "shard" else manifest_key(ds)
-    ctx.store = BeforeWrite(store, key, purge_up_to_its_mark)
+    ctx.store = HookedWrites(store, before={key: purge_up_to_its_mark})
     try:
         # The worker writes after the purge's delete and finishes before the purge marks the dataset purged.
         assert run_shard(ctx, ds, 0) is outcome
@@ -93,28 +95,22 @@ def test_an_object_written_between_the_purges_delete_and_its_mark_is_taken_back_
     assert [o.key for o in store.list(dataset_prefix(ds))] == []
 
 
-class Killed(BaseException):
-    """The process dies here (SIGKILL, OOM): nothing after this point runs."""
+class CountDeletes:
+    """An object store that notes the keys it is asked to delete one by one."""
 
-
-class PurgeThenDie:
-    """A store that lets a whole purge run just before the tar is written, and dies right after writing `last`."""
-
-    def __init__(self, inner, tar: str, last: str, purge: Callable[[], None]):
-        self.inner, self.tar, self.last, self.purge = inner, tar, last, purge
+    def __init__(self, inner):
+        self.inner, self.keys = inner, []
 
     def __getattr__(self, name):
         return getattr(self.inner, name)
 
-    def put_file(self, key, path, content_type="application/octet-stream"):
-        if key == self.tar:
-            self.purge()
-        self.inner.put_file(key, path, content_type)
+    def delete(self, key: str) -> None:
+        self.keys.append(key)
+        self.inner.delete(key)
 
-    def put_bytes(self, key, data, content_type="application/octet-stream"):
-        self.inner.put_bytes(key, data, content_type)
-        if key == self.last:
-            raise Killed(key)
+
+class Killed(BaseException):
+    """The process dies here (SIGKILL, OOM): nothing after this point runs."""
 
 
 @pytest.mark.parametrize("kind", ["s3", "local"])
@@ -126,17 +122,24 @@ def test_a_shard_an_execution_wrote_after_the_purge_and_died_is_taken_back_by_th
     api = Services(settings=infra.settings(), records=records, raw_redis=None, store=store, producer=None)
     ctx = make_ctx(infra, records, tmp_path, FakeSession())
     tar = shard_key(ds, 0, ctx.settings.shard_compression)
-    ctx.store = PurgeThenDie(store, tar, commit_key(ds, 0), lambda: cancel_dataset(api, ds, purge=True))
+
+    def die() -> None:
+        raise Killed(commit_key(ds, 0))
+
+    # The whole purge runs just before the tar is written; the process dies right after writing its marker.
+    ctx.store = HookedWrites(store, before={tar: lambda: cancel_dataset(api, ds, purge=True)},
+                             after={commit_key(ds, 0): die})
     with pytest.raises(Killed):
         run_shard(ctx, ds, 0)
     # The purge finished before these were written, and their writer died before it could take them back.
     assert records.get(ds).purged
     assert sorted(o.key for o in store.list(dataset_prefix(ds))) == sorted([tar, commit_key(ds, 0)])
-    ctx.store = store
+    ctx.store = deletes = CountDeletes(store)
     assert run_shard(ctx, ds, 0) is Outcome.CANCELLED  # the message, redelivered
-    assert [o.key for o in store.list(dataset_prefix(ds))] == []
+    assert [o.key for o in store.list(dataset_prefix(ds))] == [] and deletes.keys
     # A shard that never ran wrote nothing and costs no deletes.
-    assert run_shard(ctx, ds, 1) is Outcome.CANCELLED
+    deletes.keys.clear()
+    assert run_shard(ctx, ds, 1) is Outcome.CANCELLED and deletes.keys == []
 
 
 @pytest.mark.parametrize("kind", ["s3", "local"])
