@@ -280,8 +280,9 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
         # Waiting behind other datasets' backlog looks the same as lost. Once a sweep has republished the pending
         # shards, another waits until the queue cannot hold them all (some surely are not there): copies sent
         # while they may still be queued would only pile up behind the backlog, and autoscaling would count them.
-        if services.records.swept(rec.id):
-            pending = rec.shards_total - rec.shards_done - rec.shards_failed
+        # (With no shard pending, the sweep's reconcile only finalises: nothing to pile up.)
+        pending = rec.shards_total - rec.shards_done - rec.shards_failed
+        if pending > 0 and services.records.swept(rec.id):
             if services.records.r.llen(shard_queue(rec.code_version)) >= pending:
                 return False
         if not services.records.claim_sweep(rec.id, s.stall_s):

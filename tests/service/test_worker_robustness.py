@@ -21,7 +21,7 @@ import pytest
 from service import __version__
 from service.manifest import pending_manifests_key
 from service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
-from service.records import Records
+from service.records import Records, ShardCommit
 from service.shards import manifest_key, shard_count, shard_key
 from service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
@@ -483,3 +483,10 @@ def test_a_second_sweep_waits_until_the_queue_cannot_hold_the_pending_shards(sta
         services.raw_redis.ltrim(queue, 0, 1)  # the backlog drains to 2 messages, fewer than the 3 pending shards
         assert sweep_if_stalled(services, records.get(ds), time.time())
         assert services.raw_redis.llen(queue) == 3
+        # Every shard in, the finaliser gone: a sweep (its reconcile finalises) whatever the queue holds.
+        records.release_sweep(ds)
+        for i in range(3):
+            records.commit(ds, ShardCommit(index=i, key=shard_key(ds, i), first_frame=2 * i, frame_count=2,
+                                           sha256="0" * 64, bytes=1, code_version=version, renderer="test"))
+        services.raw_redis.rpush(queue, *[b"waiting"] * 5)
+        assert sweep_if_stalled(services, records.get(ds), time.time() + 2 * services.settings.stall_s)
