@@ -25,6 +25,10 @@ class IntegrityError(SeasynthError):
     """A downloaded shard whose sha256 or size differs from the manifest's."""
 
 
+class Expired(Unavailable):
+    """The object store refused a shard's URL (HTTP 403): a presigned URL that expired, which a fresh one cures."""
+
+
 @dataclass(frozen=True)
 class FetchReport:
     shards_total: int
@@ -39,11 +43,14 @@ PAGE_FIELDS = ("start", "limit", "next")
 MAX_PAGES = 1_000_000  # a guard against a server whose `next` links never end
 
 
+def manifest_url(api_url: str, dataset_id: str) -> str:
+    return f"{api_url.rstrip('/')}/datasets/{urllib.parse.quote(dataset_id, safe='')}/manifest"
+
+
 def get_manifest(client, api_url: str, dataset_id: str) -> dict[str, Any]:
     """The whole manifest: every page's shards, following `next` links, under the first page's other fields."""
     base = api_url.rstrip("/")
-    man = get_manifest_page(client, f"{base}/datasets/{urllib.parse.quote(dataset_id, safe='')}/manifest",
-                            api_url, dataset_id)
+    man = get_manifest_page(client, manifest_url(api_url, dataset_id), api_url, dataset_id)
     shards, nxt, pages = list(man["shards"]), man.get("next"), 1
     while nxt:
         if pages >= MAX_PAGES:
@@ -72,6 +79,19 @@ def get_manifest_page(client, url: str, api_url: str, dataset_id: str) -> dict[s
     return r.json()
 
 
+def url_refresher(client, api_url: str, dataset_id: str) -> Callable[[dict[str, Any]], str]:
+    """refresh(shard) -> a new URL for a manifest shard, from the one-shard manifest page at its index."""
+
+    def refresh(shard: dict[str, Any]) -> str:
+        url = f"{manifest_url(api_url, dataset_id)}?start={shard['index']}&limit=1"
+        for s in get_manifest_page(client, url, api_url, dataset_id)["shards"]:
+            if s["index"] == shard["index"] and s["sha256"] == shard["sha256"]:
+                return s["url"]
+        raise Unavailable(f"{shard['key']}: no longer in the manifest of {dataset_id} at {api_url}")
+
+    return refresh
+
+
 def _detail(r) -> str:
     try:
         return str(r.json().get("detail", r.text))
@@ -98,6 +118,8 @@ def download(client, url: str, part: Path, on_bytes: Callable[[int], None]) -> N
     with client.stream("GET", url, headers=headers) as r:
         if r.status_code == 416:  # already whole
             return
+        if r.status_code == 403:
+            raise Expired(f"GET {url.split('?')[0]}: HTTP 403 (a presigned URL that expired?)")
         if r.status_code not in (200, 206):
             raise Unavailable(f"GET {url.split('?')[0]}: HTTP {r.status_code}")
         mode = "ab" if r.status_code == 206 else "wb"
@@ -135,8 +157,18 @@ def extract(tar_path: Path, out: Path) -> int:
     return n
 
 
-def fetch_shard(client, shard: dict[str, Any], out: Path, on_bytes: Callable[[int], None]) -> tuple[bool, int]:
-    """Fetch, verify and extract one shard unless its .done marker says so; return (fetched, files)."""
+def fetch_shard(
+    client,
+    shard: dict[str, Any],
+    out: Path,
+    on_bytes: Callable[[int], None],
+    refresh: Callable[[dict[str, Any]], str] | None = None,
+) -> tuple[bool, int]:
+    """Fetch, verify and extract one shard unless its .done marker says so; return (fetched, files).
+
+    refresh(shard): a new URL for the shard, asked for when the store refuses its URL (presigned URLs expire, and
+    a long download can outlast them); the part already downloaded is kept and continued.
+    """
     import httpx
 
     state = out / STATE_DIR
@@ -156,6 +188,10 @@ def fetch_shard(client, shard: dict[str, Any], out: Path, on_bytes: Callable[[in
                     f"{shard['bytes']} bytes with sha256 {shard['sha256']}"
                 )
             break
+        except Expired:
+            if refresh is None or attempt == ATTEMPTS:
+                raise
+            shard = {**shard, "url": refresh(shard)}
         except (IntegrityError, Unavailable, OSError, httpx.HTTPError) as err:
             on_bytes(-(part.stat().st_size if part.exists() else 0))
             part.unlink(missing_ok=True)  # a bad or stale part never gets resumed
@@ -181,9 +217,16 @@ def fetch_dataset(
     import httpx
 
     headers = {"X-API-Key": api_key} if api_key else {}
-    out = Path(out)
     with httpx.Client(headers=headers, timeout=httpx.Timeout(60.0, connect=10.0), follow_redirects=True) as api:
-        man = get_manifest(api, api_url, dataset_id)
+        return _fetch(api, api_url, dataset_id, Path(out), parallel=parallel, partial=partial, progress=progress)
+
+
+def _fetch(api, api_url: str, dataset_id: str, out: Path, *, parallel: int, partial: bool, progress: bool
+           ) -> FetchReport:
+    """fetch_dataset with its API client (kept open: expired shard URLs are asked for again)."""
+    import httpx
+
+    man = get_manifest(api, api_url, dataset_id)
     if not man["complete"] and not partial:
         raise Conflict(
             f"dataset {dataset_id} is {man['state']} with {len(man['shards'])} of {man['shards_total']} shards "
@@ -200,7 +243,8 @@ def fetch_dataset(
     # Presigned URLs carry their own authorisation: no API key goes to the object store.
     with bar, httpx.Client(timeout=httpx.Timeout(120.0, connect=10.0)) as storage:
         with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
-            futures = [pool.submit(fetch_shard, storage, s, out, bar.advance) for s in shards]
+            refresh = url_refresher(api, api_url, dataset_id)
+            futures = [pool.submit(fetch_shard, storage, s, out, bar.advance, refresh) for s in shards]
             for fut in as_completed(futures):
                 got, n = fut.result()
                 fetched += got

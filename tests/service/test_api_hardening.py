@@ -520,6 +520,69 @@ def test_fetch_follows_the_manifest_pages(serve, services, tmp_path):
     assert not {"start", "limit", "next"} & set(man) and man["shards_done"] == 3 and not man["complete"]
 
 
+class ExpiringURLs:
+    """A store whose URLs point at a local HTTP server that refuses the first URL handed out for each key with 403,
+    as S3 refuses an expired presigned URL, and serves the object at any later one."""
+
+    def __init__(self, inner):
+        from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+        self.inner, self.issued, self._lock = inner, {}, threading.Lock()
+        store = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                generation, key = self.path.lstrip("/").split("/", 1)
+                if generation == "1":
+                    status = 403
+                    body = b"<Error><Code>AccessDenied</Code><Message>Request has expired</Message></Error>"
+                else:
+                    body, status = store.inner.get_bytes(key), 200
+                self.send_response(status)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def log_message(self, *args) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def url(self, key: str) -> str:
+        with self._lock:
+            self.issued[key] = n = self.issued.get(key, 0) + 1
+        return f"http://127.0.0.1:{self.server.server_port}/{n}/{key}"
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def test_fetch_asks_the_api_again_for_urls_the_store_refuses(serve, services, tmp_path):
+    """A download that outlasts its presigned URLs: each refused URL is replaced by a fresh one from the manifest."""
+    from service.fetch import fetch_dataset
+
+    store = ExpiringURLs(services.store)
+    try:
+        url = serve(store=store)
+        dataset_id = new_record(services.records, frames=3)
+        for i in range(3):
+            commit(services.records, dataset_id, i, shard_tar(i), services.store)
+        out = tmp_path / "out"
+        report = fetch_dataset(url, dataset_id, out, api_key=KEY, progress=False)
+        assert (report.shards_total, report.shards_fetched, report.files) == (3, 3, 3)
+        # Each shard's URL: once in the manifest (refused), once asked for again (served).
+        assert sorted(store.issued.values()) == [2, 2, 2]
+        for i in range(3):
+            assert (out / f"label_2/{i:06d}.txt").read_text() == f"label of frame {i}\n"
+    finally:
+        store.close()
+
+
 # --- strict types, frame indices, malformed JSON
 
 
