@@ -232,6 +232,11 @@ class GLRenderer:
         self._programs[key] = got
         return got
 
+    def _ids_program(self, want_ids: bool, want_range: bool) -> tuple[int, dict[str, int]]:
+        """The single-sample pass writing ids (slot 0) and/or range (the slot after them), as _ids_target lays out."""
+        return self._program(shaders.VERTEX, shaders.IDS, WITH_IDS=want_ids, WITH_RANGE=want_range,
+                             RANGE_LOCATION=int(want_ids))
+
     def _target(self, key: tuple, build) -> _Target:
         """The cached framebuffer `key` (kind, size, ...), built and bound by `build` when absent."""
         got = self._targets.get(key)
@@ -524,9 +529,7 @@ class GLRenderer:
         w, h = view.width, view.height
         t = self._ids_target(w, h, want_ids, want_range)
         self._bind_and_clear(t, ("ids",) * want_ids + ("range",) * want_range)
-        prog, locs = self._program(
-            shaders.VERTEX, shaders.IDS, WITH_IDS=want_ids, WITH_RANGE=want_range, RANGE_LOCATION=int(want_ids)
-        )
+        prog, locs = self._ids_program(want_ids, want_range)
         GL.glUseProgram(prog)
         self._set_view(locs, view, w, h)
         self._draw(view, items, locs, lit=False, ids=want_ids)
@@ -561,7 +564,7 @@ class GLRenderer:
         GL.glScissor(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
         GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
         GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-        prog, locs = self._program(shaders.VERTEX, shaders.IDS, WITH_IDS=True, WITH_RANGE=False, RANGE_LOCATION=1)
+        prog, locs = self._ids_program(True, False)
         GL.glUseProgram(prog)
         self._set_view(locs, view, w, h)
         self._draw(view, [item], locs, lit=False, ids=True)
