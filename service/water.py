@@ -66,3 +66,32 @@ def jerlov_beta(name: str) -> np.ndarray:
 def jerlov_veiling_light(name: str) -> np.ndarray:
     """Default veiling light B_inf of water type `name`: (3,) float64, linear RGB in [0, 1]."""
     return np.array(_VEILING_LIGHT[_check_name(name)], dtype=np.float64)
+
+
+# Inherent optical properties of the Jerlov types: absorption a and scattering b (1/m), linear (R, G, B) as band
+# averages over R 600-650 nm, G 525-550 nm, B 450-475 nm of the 25 nm tables of Solonenko & Mobley, "Inherent
+# optical properties of Jerlov water types", Applied Optics 54(17):5392 (2015), Tables 3-8. Their 5C rows at
+# 600-700 nm repeat the 300-400 nm rows (a defect of the published table); 5C's red uses Williamson & Hollins,
+# Applied Optics 61:9951 (2022) instead. Type I's red absorption is pure water's (Pope & Fry 1997). b was obtained
+# there by inverting K_d, so it is the least certain number; a + (1 - g) b with g = 0.92 stays within about 25% of
+# Jerlov's K_d for every type and channel.
+_IOP: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "I": ((0.288, 0.054, 0.0185), (0.00105, 0.00187, 0.00343)),
+    "II": ((0.288, 0.0546, 0.0234), (0.289, 0.372, 0.482)),
+    "III": ((0.290, 0.0577, 0.0362), (0.790, 1.02, 1.32)),
+    "1C": ((0.297, 0.072, 0.091), (0.293, 0.380, 0.491)),
+    "3C": ((0.300, 0.080, 0.130), (0.857, 1.10, 1.43)),
+    "5C": ((0.320, 0.122, 0.251), (1.07, 1.39, 1.79)),
+    "7C": ((0.359, 0.214, 0.465), (1.90, 2.45, 3.15)),
+    "9C": ((0.429, 0.389, 0.826), (2.51, 3.25, 4.20)),
+}
+
+
+def jerlov_absorption(name: str) -> np.ndarray:
+    """Absorption a of water type `name`: (3,) float64, 1/m, (R, G, B)."""
+    return np.array(_IOP[_check_name(name)][0], dtype=np.float64)
+
+
+def jerlov_scattering(name: str) -> np.ndarray:
+    """Scattering b of water type `name`: (3,) float64, 1/m, (R, G, B)."""
+    return np.array(_IOP[_check_name(name)][1], dtype=np.float64)

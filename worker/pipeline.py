@@ -109,6 +109,22 @@ def depth_png16(range_m: np.ndarray, norms: np.ndarray) -> np.ndarray:
     return out
 
 
+def scene_light(scene: Scene):
+    """What the renderer shades with: the physical model's light, else the paper's lighting."""
+    return scene.light if scene.light is not None else scene.lighting
+
+
+def _water_record(scene: Scene) -> dict | None:
+    """meta's water: the model, the Jerlov type drawn, and every coefficient the frame used."""
+    if scene.light is not None:
+        return {"model": "physical", "jerlov_type": scene.water_type, **scene.light.coefficients()}
+    w = scene.water
+    if w is None:
+        return None
+    return {"model": "paper", "jerlov_type": scene.water_type, "beta_D": w.beta_D.tolist(),
+            "beta_B": w.beta_B.tolist(), "B_inf": w.B_inf.tolist()}
+
+
 @dataclass(frozen=True)
 class FrameLabels:
     objects: list[labels.KittiObject]
@@ -250,7 +266,7 @@ class RenderSession:
         o = spec.outputs
         passes = Passes(clean=o.clean, ids=o.labels or o.instance, range=o.range or o.depth)
         result = self.renderer.render(
-            view, items, scene.lighting, scene.water, PRESETS[spec.quality], passes, mark=timer
+            view, items, scene_light(scene), scene.water, PRESETS[spec.quality], passes, mark=timer
         )
         image = result.image
         noise = None
@@ -307,7 +323,6 @@ class RenderSession:
         frame count, shard size or the optional outputs depth/instance/clean/range (the dataset record holds the
         whole spec). With outputs.labels off there are no labels, so each object's label_line, visible_pixels
         and pixels_alone are null."""
-        w = scene.water
         record = {
             "dataset_seed": spec.seed,
             "frame_index": index,
@@ -326,14 +341,7 @@ class RenderSession:
                 "look_at_instance": scene.look_at_instance,
                 "position_draws": scene.camera_tries,
             },
-            "water": None
-            if w is None
-            else {
-                "jerlov_type": scene.water_type,
-                "beta_D": w.beta_D.tolist(),
-                "beta_B": w.beta_B.tolist(),
-                "B_inf": w.B_inf.tolist(),
-            },
+            "water": _water_record(scene),
             "lights": {
                 "sun_direction_world": scene.lighting.sun_dir_world.tolist(),
                 "sun_intensity": scene.lighting.sun_intensity,

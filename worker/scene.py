@@ -13,6 +13,8 @@ from service.spec import AssetRef, Box, DatasetSpec
 from service.water import jerlov_beta, jerlov_veiling_light
 from worker.assets import Asset
 from worker.assets.terrain import Terrain
+from worker.light import PhysicalLight
+from worker.light.build import sample_physical
 from worker.render import Lighting, WaterParams
 
 PLACEMENT_TRIES = 24  # per object, before it is left out
@@ -50,9 +52,10 @@ class Scene:
     look_at: np.ndarray  # (3,) float64 world
     look_at_instance: int | None
     camera_tries: int  # camera positions drawn until one was outside all geometry
-    lighting: Lighting
-    water: WaterParams | None
+    lighting: Lighting  # as drawn, in air (the paper's model shades with it directly)
+    water: WaterParams | None  # the paper's model
     water_type: str | None
+    light: PhysicalLight | None  # the physical model (then water is None)
     dropped: int  # objects left out because no free spot was found
 
     @property
@@ -287,7 +290,12 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
         sun_intensity=float(rng.uniform(*lt.sun_intensity)),
         ambient=float(rng.uniform(*lt.ambient)),
     )
-    water, water_type = _sample_water(spec, rng)
+    water, water_type, light = None, None, None
+    if spec.water.enabled and spec.water.resolved_model == "physical":
+        top_z = max([float(terrain.mesh.bounds[1][2])] + [c[2] + r for c, r in spheres])
+        light, water_type = sample_physical(spec, rng, lighting, top_z)
+    else:
+        water, water_type = _sample_water(spec, rng)
     return Scene(
         terrain=terrain,
         terrain_albedo_scale=t_scale,
@@ -300,6 +308,7 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
         lighting=lighting,
         water=water,
         water_type=water_type,
+        light=light,
         dropped=dropped,
     )
 

@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service.errors import RenderError
+from worker.light import PhysicalLight
 from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
-from worker.render import shaders
+from worker.render import gl_light, shaders
 
 # Cache bounds of a long-lived renderer. Uploaded meshes: least recently drawn first out once their vertex and index
 # buffers pass the budget, never one drawn by the call in progress. Framebuffers: a few of each kind (surface,
@@ -227,7 +228,9 @@ class GLRenderer:
             )
         except RuntimeError as err:
             raise RenderError(f"shader compilation failed on {self.name}: {err}") from err
-        locs = {name: GL.glGetUniformLocation(prog, name) for name in shaders.UNIFORMS}
+        from worker.light.glsl import UNIFORMS as LIGHT_UNIFORMS
+
+        locs = {name: GL.glGetUniformLocation(prog, name) for name in (*shaders.UNIFORMS, *LIGHT_UNIFORMS)}
         got = (prog, {name: loc for name, loc in locs.items() if loc >= 0})
         self._programs[key] = got
         return got
@@ -451,16 +454,27 @@ class GLRenderer:
             raise RenderError(f"{sampling.msaa}x MSAA asked for, {self.name} supports at most {self.max_samples}")
         ss, msaa = sampling.supersample, sampling.msaa
         W, H = view.width * ss, view.height * ss
-        with_range = water is not None or sample_range or want_nearest
+        physical = isinstance(lighting, PhysicalLight)
+        with_range = water is not None or physical or sample_range or want_nearest
+        maps = gl_light.shadow_maps(self, view, items, lighting, log) if physical else None
         surf = self._surface_target(W, H, msaa, with_range)
         self._bind_and_clear(surf, ("colour", "range")[: 1 + with_range])
-        prog, locs = self._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
-        GL.glUseProgram(prog)
-        self._set_view(locs, view, W, H)
-        sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
-        GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
-        GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
-        GL.glUniform1f(locs["u_ambient"], lighting.ambient)
+        if physical:
+            from worker.light.glsl import SURFACE as PHYSICAL_SURFACE
+
+            prog, locs = self._program(shaders.VERTEX, PHYSICAL_SURFACE, WITH_RANGE=with_range,
+                                       **gl_light.defines(lighting))
+            GL.glUseProgram(prog)
+            self._set_view(locs, view, W, H)
+            gl_light.surface_uniforms(self, locs, view, lighting, maps)
+        else:
+            prog, locs = self._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
+            GL.glUseProgram(prog)
+            self._set_view(locs, view, W, H)
+            sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
+            GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
+            GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
+            GL.glUniform1f(locs["u_ambient"], lighting.ambient)
         if msaa > 1 and sampling.per_sample_shading:
             GL.glEnable(GL.GL_SAMPLE_SHADING)
             GL.glMinSampleShading(1.0)
@@ -478,10 +492,19 @@ class GLRenderer:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
         GL.glDisable(GL.GL_DEPTH_TEST)
-        src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
+        volume = physical and not sample_range  # audits (samples()) read J and range before any water
+        if volume:
+            from worker.light.glsl import VOLUME
+
+            src = shaders.RESOLVE.replace("HAZE_FUNCTION", VOLUME)
+            extra_defines = {"PHYSICAL": True, **gl_light.defines(lighting)}
+        else:
+            src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
+            extra_defines = {}
         prog, locs = self._program(
             shaders.FULLSCREEN,
             src,
+            **extra_defines,
             SAMPLES=msaa,
             SUPERSAMPLE=ss,
             WITH_HAZE=water is not None,
@@ -502,12 +525,14 @@ class GLRenderer:
             GL.glUniform3fv(locs["u_betaD"], 1, np.asarray(water.beta_D, np.float32))
             GL.glUniform3fv(locs["u_betaB"], 1, np.asarray(water.beta_B, np.float32))
             GL.glUniform3fv(locs["u_Binf"], 1, np.asarray(water.B_inf, np.float32))
+        if volume:
+            gl_light.volume_uniforms(self, locs, view, lighting)
         GL.glUniform1i(locs["u_only_sample"], only_sample)
         GL.glBindVertexArray(self._empty_vao)
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)
-        log.append("resolve+haze" if water is not None else "resolve")
+        log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
         w, h = view.width, view.height
         image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
         log.append("read image")

@@ -123,6 +123,10 @@ layout(location = 1) out vec4 o_range;
 layout(location = NEAREST_LOCATION) out float o_nearest;   // nearest range of any sample, +inf if none hits
 #endif
 HAZE_FUNCTION
+#ifdef PHYSICAL
+uniform mat3 u_K_inv;
+uniform mat3 u_world_from_cam;
+#endif
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     vec3 acc = vec3(0.0);
@@ -130,6 +134,11 @@ void main() {
     // Any sample will do to start the minimum: an uncovered one holds the +inf its buffer was cleared to.
     float nearest = FETCH(u_R, px * SUPERSAMPLE, 0).r;
     float n = 0.0;
+#ifdef PHYSICAL
+    // The view ray through the pixel centre (pixel centres at integer coordinates, rows already in image order).
+    vec3 w_cam = normalize(u_K_inv * vec3(vec2(px), 1.0));
+    vec3 w_world = u_world_from_cam * w_cam;
+#endif
     for (int dy = 0; dy < SUPERSAMPLE; ++dy) {
         for (int dx = 0; dx < SUPERSAMPLE; ++dx) {
             ivec2 q = px * SUPERSAMPLE + ivec2(dx, dy);
@@ -141,6 +150,8 @@ void main() {
 #ifdef WITH_HAZE
                 float z = FETCH(u_R, q, s).r;
                 acc += haze(J, z, u_betaD, u_betaB, u_Binf);
+#elif defined(PHYSICAL)
+                acc += water(J, FETCH(u_R, q, s).r, w_world, w_cam);
 #else
                 acc += J;
 #endif

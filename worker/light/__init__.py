@@ -1,0 +1,104 @@
+"""Physical underwater light: one water description (absorption, scattering, phase function, depth) and the light
+terms derived from it (sun and sky through the water column, lamps on the vehicle, scattering along view rays).
+
+Each term has its own module (`sun`, `sky`, `lamps`), a GLSL part for the renderer and a float64 twin in numpy
+(`volume`) that the accuracy bench checks the shaders against. `PhysicalLight` is what a frame hands the renderer;
+`Terms` says which terms run, so a term a frame does not need costs nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SNELL_CONE_DEG = 48.6  # half angle of Snell's window (n = 1.333): the sky reaches the water only within it
+WATER_INDEX = 1.333
+
+
+@dataclass(frozen=True)
+class Medium:
+    """Homogeneous water with a flat surface. Arrays are (3,) float64 per linear RGB channel, 1/m."""
+
+    a: np.ndarray  # absorption
+    b: np.ndarray  # scattering
+    g: float  # Henyey-Greenstein asymmetry of the phase function
+    surface_z: float  # world z of the water surface (the seabed's reference z = 0 lies depth_m below it)
+
+    @property
+    def c(self) -> np.ndarray:
+        """Beam attenuation a + b: what an unscattered (shadow-casting) beam loses per metre."""
+        return self.a + self.b
+
+    @property
+    def k(self) -> np.ndarray:
+        """Diffuse attenuation a + (1 - g) b: forward-scattered light stays in the beam, so a broad light field
+        (the sun's below a few metres, the sky's, a lamp's wide cone, a seabed seen by the camera) loses this."""
+        return self.a + (1.0 - self.g) * self.b
+
+
+@dataclass(frozen=True)
+class Lamp:
+    """A spot light in the camera frame (KITTI axes, metres)."""
+
+    position_cam: np.ndarray  # (3,) float64
+    direction_cam: np.ndarray  # (3,) float64, unit
+    cos_cutoff: float  # cos of the half angle where the light ends
+    cutoff_rad: float
+    beam_rad: float  # half angle of full intensity
+    intensity: np.ndarray  # (3,) float64, linear RGB, irradiance units x m^2 per steradian, on the axis
+
+
+@dataclass(frozen=True)
+class Terms:
+    """Which light terms a frame renders; recorded in meta."""
+
+    sun: bool  # the sun's light on surfaces and in the water
+    sun_shadows: bool  # a shadow map for the sun's unscattered part
+    sky: bool  # sky light through Snell's window
+    scattering: bool  # in-scattering along view rays (b > 0)
+    lamps: int  # lamps rendered (shadowed by their own shadow maps)
+
+    def names(self) -> list[str]:
+        out = ["sun"] * self.sun + ["sun_shadows"] * self.sun_shadows + ["sky"] * self.sky
+        return out + ["scattering"] * self.scattering + [f"lamp{i}" for i in range(self.lamps)]
+
+
+@dataclass(frozen=True)
+class PhysicalLight:
+    """Everything the renderer needs for the physical model of one frame (world frame z up)."""
+
+    medium: Medium
+    sun_dir_world: np.ndarray  # (3,) unit, towards the sun, refracted into the water
+    sun_irradiance: np.ndarray  # (3,) just below the surface, normal to the beam (0 when the sun is down)
+    sky_irradiance: np.ndarray  # (3,) sky's irradiance on a horizontal surface just below the surface
+    lamps: tuple[Lamp, ...]
+    terms: Terms
+    # Switched-off terms (benchmarks: what each term buys); never set by the pipeline.
+    disabled: tuple[str, ...] = field(default=())
+
+    def coefficients(self) -> dict:
+        """Every derived coefficient a frame uses, for meta."""
+        m = self.medium
+        return {
+            "a": m.a.tolist(),
+            "b": m.b.tolist(),
+            "g": m.g,
+            "c": m.c.tolist(),
+            "K": m.k.tolist(),
+            "surface_z": m.surface_z,
+            "sun_direction_in_water": self.sun_dir_world.tolist(),
+            "sun_irradiance": self.sun_irradiance.tolist(),
+            "sky_irradiance": self.sky_irradiance.tolist(),
+            "lamps": [
+                {
+                    "position_cam": lp.position_cam.tolist(),
+                    "direction_cam": lp.direction_cam.tolist(),
+                    "beam_width_deg": float(np.degrees(lp.beam_rad)),
+                    "cutoff_deg": float(np.degrees(lp.cutoff_rad)),
+                    "intensity": lp.intensity.tolist(),
+                }
+                for lp in self.lamps
+            ],
+            "terms": self.terms.names(),
+        }

@@ -1,0 +1,53 @@
+"""A frame's PhysicalLight from the spec and its generator: the water's one description, then every light term
+derived from it, and which terms the frame needs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.spec import DatasetSpec
+from service.water import jerlov_absorption, jerlov_scattering
+from worker.light import Medium, PhysicalLight, Terms
+from worker.light.lamps import lamp_from_spec
+from worker.light.sun import shadow_worthwhile, sun_in_water
+from worker.render import Lighting
+
+
+def sample_physical(
+    spec: DatasetSpec, rng: np.random.Generator, lighting: Lighting, top_z: float
+) -> tuple[PhysicalLight, str | None]:
+    """Draw the water (type, jitter, explicit a/b, g, depth) and lamp intensities, in that order, and derive the
+    frame's light. top_z: world z of the highest point that receives light (shadow maps are skipped when the
+    sun's unscattered beam is invisible there). Returns the light and the Jerlov type used (None if explicit)."""
+    w = spec.water
+    kind = w.jerlov[rng.integers(len(w.jerlov))] if w.jerlov else None
+    jitter = rng.uniform(*w.beta_jitter)
+    if w.absorption is not None:
+        a = rng.uniform(np.asarray(w.absorption.min), np.asarray(w.absorption.max))
+    else:
+        a = jerlov_absorption(kind) * jitter
+    if w.scattering is not None:
+        b = rng.uniform(np.asarray(w.scattering.min), np.asarray(w.scattering.max))
+    else:
+        b = jerlov_scattering(kind) * jitter
+    g = float(rng.uniform(*w.phase_g))
+    depth = float(rng.uniform(*w.depth_m))
+    intensities = [float(rng.uniform(*lp.intensity)) for lp in spec.lighting.lamps]
+
+    medium = Medium(a=a, b=b, g=g, surface_z=depth)
+    sun_dir, e0 = sun_in_water(lighting.sun_dir_world, lighting.sun_intensity)
+    sky = np.full(3, lighting.ambient)
+    lamps = tuple(lamp_from_spec(lp, i) for lp, i in zip(spec.lighting.lamps, intensities) if i > 0
+                  and max(lp.colour) > 0)
+    sun_on = bool(e0.max() > 0)
+    terms = Terms(
+        sun=sun_on,
+        sun_shadows=sun_on and spec.lighting.shadows and shadow_worthwhile(medium.c, depth - top_z, sun_dir[2]),
+        sky=bool(sky.max() > 0),
+        scattering=bool(b.max() > 0),
+        lamps=len(lamps),
+    )
+    light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
+                          lamps=lamps, terms=terms)
+    used = w.absorption is None or w.scattering is None
+    return light, kind if used else None

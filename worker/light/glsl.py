@@ -1,0 +1,196 @@
+"""GLSL 330 of the physical model: surface radiance under the water column (`SURFACE`) and the water along view
+rays (`VOLUME`, the twin of `worker.light.volume`). Terms are compiled in or out by defines: WITH_SUN,
+WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
+
+from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M
+from worker.light.volume import MU_SKY
+
+MAX_LAMPS = 4
+SOFT_SHADOW_RADIUS_M = 0.05  # the forward-scattered sun arrives within a few degrees: its shadows blur by this
+
+UNIFORMS = (
+    "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
+    "u_sun_shadow", "u_sun_from_cam", "u_soft_texels", "u_cam_depth", "u_world_from_cam", "u_K_inv",
+    *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "from_cam", "shadow") for i in range(MAX_LAMPS)),
+)
+
+_COMMON = f"""
+const float PI = 3.14159265358979;
+const float X_MAX = 87.0;
+const float MU_SKY = {MU_SKY!r};
+const float SNELL_COS = 0.66131187;       // cos(48.6 deg)
+const float SNELL_SIN2 = 0.56266999;      // sin(48.6 deg)^2
+float exp_neg(float x) {{ return x >= X_MAX ? 0.0 : exp(-x); }}
+vec3 exp_neg3(vec3 x) {{ return vec3(exp_neg(x.x), exp_neg(x.y), exp_neg(x.z)); }}
+float lamp_profile(float cos_axis, vec2 cone) {{   // cone: (beam, cutoff) half angles, radians
+    float ang = acos(clamp(cos_axis, -1.0, 1.0));
+    return ang <= cone.x ? 1.0 : clamp((cone.y - ang) / max(cone.y - cone.x, 1e-9), 0.0, 1.0);
+}}
+"""
+
+SURFACE = (
+    """
+#version 330 core
+in vec3 v_pos;
+in vec3 v_nrm;
+in vec3 v_col;
+uniform vec3 u_scale;
+uniform vec3 u_bias;
+uniform vec2 u_range_bounds;
+uniform vec4 u_world_z;        // row z of world_from_cam: world z of a camera-frame point
+uniform float u_surface_z;
+uniform vec3 u_c;
+uniform vec3 u_K;
+uniform vec3 u_sun_cam;        // towards the sun, refracted, camera frame
+uniform float u_mu_w;          // its cosine to the vertical
+uniform vec3 u_E0;
+uniform vec3 u_Esky;
+uniform sampler2DShadow u_sun_shadow;
+uniform mat4 u_sun_from_cam;   // shadow-map texture coordinates (xy) and depth (z) from the camera frame
+uniform float u_soft_texels;
+#if LAMPS > 0
+uniform vec3 u_lamp_pos[LAMPS];
+uniform vec3 u_lamp_dir[LAMPS];
+uniform vec3 u_lamp_I[LAMPS];
+uniform vec2 u_lamp_cone[LAMPS];
+uniform mat4 u_lamp_from_cam[LAMPS];
+uniform sampler2DShadow u_lamp_shadow[LAMPS];
+#endif
+layout(location = 0) out vec4 o_J;
+#ifdef WITH_RANGE
+layout(location = 1) out float o_range;
+#endif
+"""
+    + _COMMON
+    + """
+float shadow_tap(sampler2DShadow map, vec3 p) {
+    return (any(lessThan(p.xy, vec2(0.0))) || any(greaterThan(p.xy, vec2(1.0))) || p.z >= 1.0)
+        ? 1.0 : texture(map, p);
+}
+void main() {
+    float len = length(v_nrm);
+    vec3 n = len > 1e-20 ? v_nrm / len : -normalize(v_pos);
+    if (dot(n, v_pos) > 0.0) n = -n;
+    vec3 albedo = clamp(v_col * u_scale + u_bias, 0.0, 1.0);
+    float depth = max(u_surface_z - (dot(u_world_z.xyz, v_pos) + u_world_z.w), 0.0);
+    vec3 E = vec3(0.0);
+#ifdef WITH_SUN
+    float cos_i = max(dot(n, u_sun_cam), 0.0);
+    vec3 direct = exp_neg3(u_c * (depth / u_mu_w));
+    vec3 total = exp_neg3(u_K * (depth / u_mu_w));
+    float v_hard = 1.0, v_soft = 1.0;
+#ifdef WITH_SUN_SHADOW
+    vec4 q = u_sun_from_cam * vec4(v_pos, 1.0);
+    v_hard = shadow_tap(u_sun_shadow, q.xyz);
+    vec2 px = vec2(u_soft_texels) / vec2(textureSize(u_sun_shadow, 0));
+    v_soft = v_hard;
+    for (int k = 0; k < 8; ++k) {
+        float ang = 0.785398 * float(k);
+        v_soft += shadow_tap(u_sun_shadow, vec3(q.xy + px * vec2(cos(ang), sin(ang)), q.z));
+    }
+    v_soft /= 9.0;
+#endif
+    E += u_E0 * cos_i * (direct * v_hard + (total - direct) * v_soft);
+#endif
+#ifdef WITH_SKY
+    float up = dot(u_world_z.xyz, n);   // world z of the normal
+    E += u_Esky * exp_neg3(u_K * (depth / MU_SKY)) * (0.5 + 0.5 * up);
+#endif
+#if LAMPS > 0
+    for (int l = 0; l < LAMPS; ++l) {
+        vec3 to_p = v_pos - u_lamp_pos[l];
+        float d = max(length(to_p), 1e-3);
+        vec3 wi = to_p / d;
+        float cos_n = max(dot(n, -wi), 0.0);
+        float prof = lamp_profile(dot(wi, u_lamp_dir[l]), u_lamp_cone[l]);
+        if (cos_n <= 0.0 || prof <= 0.0) continue;
+        vec4 q = u_lamp_from_cam[l] * vec4(v_pos, 1.0);
+        float vis = q.w > 0.0 ? shadow_tap(u_lamp_shadow[l], q.xyz / q.w) : 0.0;
+        E += u_lamp_I[l] * (prof * cos_n * vis / (d * d)) * exp_neg3(u_K * d);
+    }
+#endif
+    o_J = vec4(albedo * E, 1.0);
+#ifdef WITH_RANGE
+    o_range = clamp(length(v_pos), u_range_bounds.x, u_range_bounds.y);
+#endif
+}
+"""
+)
+
+# The resolve shader's per-sample water for the physical model: defines `vec3 water(vec3 J, float z, vec3 w_world,
+# vec3 w_cam)` (z = +inf where no surface).
+VOLUME = (
+    _COMMON
+    + f"""
+uniform vec3 u_c;
+uniform vec3 u_K;
+uniform vec3 u_b;
+uniform float u_g;
+uniform vec3 u_sun_world;
+uniform float u_mu_w;
+uniform vec3 u_E0;
+uniform vec3 u_Esky;
+uniform float u_cam_depth;
+#if LAMPS > 0
+uniform vec3 u_lamp_pos[LAMPS];
+uniform vec3 u_lamp_dir[LAMPS];
+uniform vec3 u_lamp_I[LAMPS];
+uniform vec2 u_lamp_cone[LAMPS];
+#endif
+float hg(float mu, float g) {{
+    float d = max(1.0 + g * g - 2.0 * g * mu, 1e-12);
+    return (1.0 - g * g) / (4.0 * PI * d * sqrt(d));
+}}
+// integral_0^z exp(-x1 - alpha t) dt, x1 >= 0 and x1 + alpha z >= 0; z = +inf needs alpha > 0.
+float segment(float x1, float alpha, float z) {{
+    if (isinf(z)) return alpha > 0.0 ? exp_neg(x1) / alpha : 0.0;
+    float y = alpha * z;
+    if (abs(y) < 1e-2) return z * exp_neg(x1) * (1.0 - y * (0.5 - y * (1.0 / 6.0 - y * (1.0 / 24.0))));
+    return (exp_neg(x1) - exp_neg(x1 + y)) / alpha;
+}}
+vec3 segment3(vec3 x1, vec3 alpha, float z) {{
+    return vec3(segment(x1.x, alpha.x, z), segment(x1.y, alpha.y, z), segment(x1.z, alpha.z, z));
+}}
+vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
+    vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(u_K * z);
+    float to_surface = w.z > 0.0 ? u_cam_depth / w.z : uintBitsToFloat(0x7F800000u);
+    float zs = min(z, to_surface);
+#if defined(WITH_SCATTER) && defined(WITH_SUN)
+    float mu_s = dot(w, u_sun_world);
+    vec3 direct = segment3(u_c / u_mu_w * u_cam_depth, u_K - u_c / u_mu_w * w.z, zs);
+    vec3 total = segment3(u_K / u_mu_w * u_cam_depth, u_K - u_K / u_mu_w * w.z, zs);
+    I += u_b * (PI * u_E0) * (hg(mu_s, u_g) * direct + hg(mu_s, u_g * u_g) * (total - direct));
+#endif
+#ifdef WITH_SKY
+    vec3 L = u_Esky / SNELL_SIN2;
+#ifdef WITH_SCATTER
+    I += u_b * (L * (0.5 * (1.0 - SNELL_COS))) * segment3(u_K / MU_SKY * u_cam_depth, u_K - u_K / MU_SKY * w.z, zs);
+#endif
+    if (isinf(z) && w.z > SNELL_COS) I += L * exp_neg3(u_K * to_surface);
+#endif
+#if defined(WITH_SCATTER) && LAMPS > 0
+    float kmin = 1e30;
+    for (int c = 0; c < 3; ++c) if (u_b[c] > 0.0) kmin = min(kmin, u_K[c]);
+    float t_end = min(zs, {CUTOFF_OPTICAL_DEPTH!r} / max(kmin, 1e-30));
+    for (int l = 0; l < LAMPS; ++l) {{
+        vec3 p = u_lamp_pos[l];
+        float tc = dot(w_cam, p);
+        float h = max(length(w_cam * tc - p), {MIN_LAMP_DISTANCE_M!r});
+        float u0 = atan(-tc, h);
+        float du = (atan(t_end - tc, h) - u0) / float({BACKSCATTER_NODES});
+        vec3 acc = vec3(0.0);
+        for (int i = 0; i < {BACKSCATTER_NODES}; ++i) {{
+            float u = u0 + (float(i) + 0.5) * du;
+            float t = tc + h * tan(u);
+            vec3 to_x = w_cam * t - p;
+            float r = max(length(to_x), {MIN_LAMP_DISTANCE_M!r});
+            float f = hg(-dot(to_x, w_cam) / r, u_g) * lamp_profile(dot(to_x, u_lamp_dir[l]) / r, u_lamp_cone[l]) / h;
+            acc += f * exp_neg3(u_K * (t + r));
+        }}
+        I += acc * du * u_b * (PI * u_lamp_I[l]);
+    }}
+#endif
+    return I;
+}}
+"""
+)

@@ -1,0 +1,108 @@
+"""The physical model's water along view rays, in float64: the numpy twin of the resolve shader (`glsl.VOLUME`).
+
+Per sample and channel, with K the diffuse attenuation (see `Medium.k`):
+
+    I = J exp(-K z) + b * sum_terms P_term E_term integral_0^z' exp(-K t) exp(-k_term depth(t)) dt  + lamps + window
+
+depth(t) = D_c - t w_z (camera depth D_c, ray direction w, z up), z' = z cut at the water surface. Each term's
+integral is closed-form (`segment`); a lamp's single scattering is integrated numerically (`lamps.BACKSCATTER_NODES`
+nodes in the equiangular variable).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from worker.light import SNELL_CONE_DEG, PhysicalLight
+from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M, profile
+
+MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
+_SMALL = 1e-2  # |alpha z| below this: the series of (1 - exp(-x)) / x to x^3 (truncation < 1e-10)
+
+
+def hg(cos_theta: np.ndarray, g: float) -> np.ndarray:
+    """Henyey-Greenstein phase function (1/sr) of the scattering angle's cosine."""
+    denom = np.maximum(1.0 + g * g - 2.0 * g * cos_theta, 1e-12)
+    return (1.0 - g * g) / (4.0 * math.pi * denom**1.5)
+
+
+def segment(x1: np.ndarray, alpha: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """integral_0^z exp(-x1 - alpha t) dt for x1 >= 0, x1 + alpha z >= 0 (so nothing overflows), z >= 0 or +inf
+    (then alpha > 0). Stable at alpha -> 0 and for huge optical depths; arrays broadcast."""
+    x1, alpha, z = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (x1, alpha, z)))
+    zf = np.where(np.isfinite(z), z, 0.0)
+    y = alpha * zf
+    small = np.abs(y) < _SMALL
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        big = np.where(small, 0.0, (np.exp(-x1) - np.exp(-(x1 + y))) / np.where(small, 1.0, alpha))
+        series = zf * np.exp(-x1) * (1.0 - y * (0.5 - y * (1.0 / 6.0 - y / 24.0)))
+        inf = np.exp(-x1) / np.where(alpha > 0, alpha, 1.0)
+    return np.where(np.isfinite(z), np.where(small, series, big), np.where(alpha > 0, inf, 0.0))
+
+
+def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.ndarray, cam_depth: float,
+           light: PhysicalLight) -> np.ndarray:
+    """I for samples: J (..., 3) linear, z (...) metres (+inf: no surface), dirs_world/dirs_cam (..., 3) unit view
+    directions in the world (z up) and camera frames. Returns (..., 3) float64."""
+    m = light.medium
+    K, c, b = m.k, m.c, m.b
+    z = np.asarray(z, dtype=np.float64)
+    wz = dirs_world[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_surface = np.where(wz > 0, cam_depth / np.where(wz > 0, wz, 1.0), np.inf)
+    zs = np.minimum(z, to_surface)[..., None]
+    out = np.where(np.isfinite(z)[..., None], np.asarray(J, np.float64) * np.exp(-K * np.where(
+        np.isfinite(z), z, 0.0)[..., None]), 0.0)
+    w = wz[..., None]
+    t = light.terms
+    if t.scattering and t.sun:
+        s = light.sun_dir_world
+        mu_s = np.dot(dirs_world, s)[..., None]
+        mu_w = s[2]
+        e = math.pi * light.sun_irradiance
+        direct = segment(c / mu_w * cam_depth, K - c / mu_w * w, zs)
+        total = segment(K / mu_w * cam_depth, K - K / mu_w * w, zs)
+        out = out + b * e * (hg(mu_s, m.g) * direct + hg(mu_s, m.g * m.g) * (total - direct))
+    if t.scattering and t.sky:
+        L = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
+        scalar = 2 * math.pi * L * (1 - math.cos(math.radians(SNELL_CONE_DEG)))
+        out = out + b * scalar / (4 * math.pi) * segment(K / MU_SKY * cam_depth, K - K / MU_SKY * w, zs)
+    if t.sky:
+        # Open water looking up through Snell's window sees the sky itself.
+        L = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
+        window = (~np.isfinite(z) & (wz > math.cos(math.radians(SNELL_CONE_DEG))))[..., None]
+        with np.errstate(divide="ignore", over="ignore"):
+            out = out + np.where(window, L * np.exp(-K * np.where(window, to_surface[..., None], 0.0)), 0.0)
+    if t.scattering:
+        for lamp in light.lamps[: t.lamps]:
+            out = out + lamp_backscatter(lamp, dirs_cam, zs[..., 0], K, b, m.g)
+    return out
+
+
+def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, K: np.ndarray, b: np.ndarray, g: float):
+    """Single scattering of one lamp's light towards the camera along rays (camera at the origin) up to z.
+    dirs_cam (..., 3) unit, z (...) metres (finite or +inf). Returns (..., 3) float64."""
+    k_pos = K[b > 0]
+    if k_pos.size == 0:
+        return np.zeros((*z.shape, 3))
+    t_end = np.minimum(z, CUTOFF_OPTICAL_DEPTH / max(float(k_pos.min()), 1e-30))
+    p = lamp.position_cam
+    tc = dirs_cam @ p  # along-ray position of the point nearest the lamp
+    h = np.maximum(np.linalg.norm(dirs_cam * tc[..., None] - p, axis=-1), MIN_LAMP_DISTANCE_M)
+    u0 = np.arctan2(-tc, h)
+    u1 = np.arctan2(t_end - tc, h)
+    du = (u1 - u0) / BACKSCATTER_NODES
+    acc = np.zeros((*z.shape, 3))
+    for i in range(BACKSCATTER_NODES):
+        u = u0 + (i + 0.5) * du
+        t = tc + h * np.tan(u)
+        x = dirs_cam * t[..., None]
+        to_x = x - p
+        r = np.maximum(np.linalg.norm(to_x, axis=-1), MIN_LAMP_DISTANCE_M)
+        cos_axis = (to_x @ lamp.direction_cam) / r
+        cos_scatter = -np.einsum("...i,...i->...", to_x, dirs_cam) / r
+        f = hg(cos_scatter, g) * profile(lamp, cos_axis) / h  # inverse square * dt = du / h
+        acc += f[..., None] * np.exp(-K * (t + r)[..., None])
+    return acc * (du[..., None] * b * math.pi * lamp.intensity)

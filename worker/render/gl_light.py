@@ -1,0 +1,179 @@
+"""The physical model's GL side: shadow maps for the sun and lamps, and the uniforms of the surface and resolve
+passes (`worker.light.glsl`). Used by GLRenderer; only frames with water.model physical reach it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from worker.light import PhysicalLight
+from worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
+from worker.render import DrawItem, View
+from worker.render import shadows
+
+DEPTH_ONLY = """
+#version 330 core
+void main() {}
+"""
+SHADOW_UNIT = 2  # texture units from here on hold shadow maps (0 and 1 are the resolve's)
+
+
+def defines(light: PhysicalLight) -> dict[str, object]:
+    t = light.terms
+    return {
+        "WITH_SUN": t.sun,
+        "WITH_SUN_SHADOW": t.sun and t.sun_shadows,
+        "WITH_SKY": t.sky,
+        "WITH_SCATTER": t.scattering,
+        "LAMPS": t.lamps,
+    }
+
+
+def _spheres(items: list[DrawItem]) -> list[tuple[np.ndarray, float]]:
+    out = []
+    for it in items:
+        M = it.world_from_obj
+        scale = float(np.abs(np.linalg.svd(M[:3, :3], compute_uv=False)).max())
+        out.append((M[:3, :3] @ it.mesh.centre + M[:3, 3], it.mesh.radius * scale))
+    return out
+
+
+def _shadow_target(r, size: int, slot: int):
+    GL = r._gl
+
+    def build():
+        t = r._new_fbo()
+        tex = GL.glGenTextures(1)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+        GL.glTexStorage2D(GL.GL_TEXTURE_2D, 1, GL.GL_DEPTH_COMPONENT32F, size, size)
+        for k, v in ((GL.GL_TEXTURE_MIN_FILTER, GL.GL_LINEAR), (GL.GL_TEXTURE_MAG_FILTER, GL.GL_LINEAR),
+                     (GL.GL_TEXTURE_WRAP_S, GL.GL_CLAMP_TO_EDGE), (GL.GL_TEXTURE_WRAP_T, GL.GL_CLAMP_TO_EDGE),
+                     (GL.GL_TEXTURE_COMPARE_MODE, GL.GL_COMPARE_REF_TO_TEXTURE),
+                     (GL.GL_TEXTURE_COMPARE_FUNC, GL.GL_LEQUAL)):
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, k, v)
+        GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_TEXTURE_2D, tex, 0)
+        GL.glDrawBuffers([GL.GL_NONE])
+        GL.glReadBuffer(GL.GL_NONE)
+        t.textures.append(tex)
+        return t
+
+    return r._target(("shadow", size, slot), build)
+
+
+def _draw_depth(r, clip_from_world: np.ndarray, items: list[DrawItem], size: int, slot: int) -> int:
+    """Draw a shadow map; returns its depth texture."""
+    GL = r._gl
+    t = _shadow_target(r, size, slot)
+    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
+    GL.glViewport(0, 0, size, size)
+    GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+    prog, locs = r._program(r_vertex(), DEPTH_ONLY)
+    GL.glUseProgram(prog)
+    GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, np.eye(4, dtype=np.float32))
+    GL.glEnable(GL.GL_POLYGON_OFFSET_FILL)
+    GL.glPolygonOffset(2.0, 4.0)
+    for it in items:
+        gpu = r._mesh(it.mesh)
+        M = (clip_from_world @ it.world_from_obj).astype(np.float32)
+        GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, M)
+        GL.glBindVertexArray(gpu.vao)
+        GL.glDrawElements(GL.GL_TRIANGLES, gpu.count, GL.GL_UNSIGNED_INT, None)
+    GL.glBindVertexArray(0)
+    GL.glDisable(GL.GL_POLYGON_OFFSET_FILL)
+    return t.textures[0]
+
+
+def r_vertex() -> str:
+    from worker.render.shaders import VERTEX
+
+    return VERTEX
+
+
+def shadow_maps(r, view: View, items: list[DrawItem], light: PhysicalLight, log: list[str]) -> dict:
+    """Draw the shadow maps the frame's terms need: {"sun": (texture, map_from_cam), "lamps": [...]}."""
+    out: dict = {"sun": None, "lamps": []}
+    world_from_cam = np.linalg.inv(view.cam_from_world)
+    t = light.terms
+    if t.sun and t.sun_shadows:
+        clip = shadows.sun_clip_from_world(light.sun_dir_world, _spheres(items))
+        tex = _draw_depth(r, clip, items, shadows.SUN_MAP_SIZE, 0)
+        out["sun"] = (tex, shadows.texture_from_clip(clip) @ world_from_cam, clip)
+        log.append("sun shadow")
+    for i, lamp in enumerate(light.lamps[: t.lamps]):
+        clip_cam = shadows.lamp_clip_from_cam(lamp.position_cam, lamp.direction_cam, lamp.cutoff_rad, view.far)
+        tex = _draw_depth(r, clip_cam @ view.cam_from_world, items, shadows.LAMP_MAP_SIZE, 1 + i)
+        out["lamps"].append((tex, shadows.texture_from_clip(clip_cam)))
+        log.append(f"lamp{i} shadow")
+    return out
+
+
+def _set(GL, locs, name, fn, *args):
+    if name in locs:
+        fn(locs[name], *args)
+
+
+def _vec3(GL, locs, name, v) -> None:
+    _set(GL, locs, name, GL.glUniform3fv, 1, np.asarray(v, np.float32))
+
+
+def _common(GL, locs, view: View, light: PhysicalLight) -> None:
+    m = light.medium
+    _vec3(GL, locs, "u_c", m.c)
+    _vec3(GL, locs, "u_K", m.k)
+    _vec3(GL, locs, "u_b", m.b)
+    _set(GL, locs, "u_g", GL.glUniform1f, float(m.g))
+    _set(GL, locs, "u_mu_w", GL.glUniform1f, float(light.sun_dir_world[2]))
+    _vec3(GL, locs, "u_E0", light.sun_irradiance)
+    _vec3(GL, locs, "u_Esky", light.sky_irradiance)
+    for i, lamp in enumerate(light.lamps[:MAX_LAMPS]):
+        _vec3(GL, locs, f"u_lamp_pos[{i}]", lamp.position_cam)
+        _vec3(GL, locs, f"u_lamp_dir[{i}]", lamp.direction_cam)
+        _vec3(GL, locs, f"u_lamp_I[{i}]", lamp.intensity)
+        _set(GL, locs, f"u_lamp_cone[{i}]", GL.glUniform2f, lamp.beam_rad, lamp.cutoff_rad)
+
+
+def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, maps: dict) -> None:
+    GL = r._gl
+    world_from_cam = np.linalg.inv(view.cam_from_world)
+    _common(GL, locs, view, light)
+    row = world_from_cam[2].astype(np.float32)
+    _set(GL, locs, "u_world_z", GL.glUniform4f, *row.tolist())
+    _set(GL, locs, "u_surface_z", GL.glUniform1f, float(light.medium.surface_z))
+    _vec3(GL, locs, "u_sun_cam", view.cam_from_world[:3, :3] @ light.sun_dir_world)
+    units = []
+    if maps["sun"] is not None:
+        tex, map_from_cam, _ = maps["sun"]
+        units.append(("u_sun_shadow", tex))
+        _set(GL, locs, "u_sun_from_cam", GL.glUniformMatrix4fv, 1, GL.GL_TRUE, map_from_cam.astype(np.float32))
+        # The forward-scattered sun blurs shadows by SOFT_SHADOW_RADIUS_M: that many metres in map texels.
+        clip = maps["sun"][2]
+        texels = SOFT_SHADOW_RADIUS_M * 0.5 * clip[0, :3].dot(clip[0, :3]) ** 0.5 * shadows.SUN_MAP_SIZE
+        _set(GL, locs, "u_soft_texels", GL.glUniform1f, float(texels))
+    for i, (tex, map_from_cam) in enumerate(maps["lamps"]):
+        units.append((f"u_lamp_shadow[{i}]", tex))
+        _set(GL, locs, f"u_lamp_from_cam[{i}]", GL.glUniformMatrix4fv, 1, GL.GL_TRUE, map_from_cam.astype(np.float32))
+    for k, (name, tex) in enumerate(units):
+        GL.glActiveTexture(GL.GL_TEXTURE0 + SHADOW_UNIT + k)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+        _set(GL, locs, name, GL.glUniform1i, SHADOW_UNIT + k)
+    GL.glActiveTexture(GL.GL_TEXTURE0)
+
+
+def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -> None:
+    GL = r._gl
+    world_from_cam = np.linalg.inv(view.cam_from_world)
+    _common(GL, locs, view, light)
+    _vec3(GL, locs, "u_sun_world", light.sun_dir_world)
+    depth = light.medium.surface_z - float(world_from_cam[2, 3])
+    _set(GL, locs, "u_cam_depth", GL.glUniform1f, max(depth, 0.0))
+    _set(GL, locs, "u_K_inv", GL.glUniformMatrix3fv, 1, GL.GL_TRUE, np.linalg.inv(view.K).astype(np.float32))
+    _set(GL, locs, "u_world_from_cam", GL.glUniformMatrix3fv, 1, GL.GL_TRUE,
+         world_from_cam[:3, :3].astype(np.float32))
+
+
+def cam_depth(view: View, light: PhysicalLight) -> float:
+    return max(light.medium.surface_z - float(np.linalg.inv(view.cam_from_world)[2, 3]), 0.0)
+
+
+_ = math  # noqa: F401 (kept for callers' unit conversions)
