@@ -85,14 +85,23 @@ def psnr_db(a: np.ndarray, b: np.ndarray) -> float:
     return 100.0 if mse == 0 else min(100.0, 10 * np.log10(255.0**2 / mse))
 
 
-def hazed_mean(J: np.ndarray, R: np.ndarray, water) -> np.ndarray:
-    """Per-sample float64 water, averaged in linear light. J: (k, h, w, 3), R: (k, h, w) -> (h, w, 3) float64."""
+def hazed_mean(J: np.ndarray, R: np.ndarray, scene, view) -> np.ndarray:
+    """Per-sample float64 water of the scene's model (the paper's haze, or the physical model's `volume`), averaged
+    in linear light. J: (k, h, w, 3), R: (k, h, w) -> (h, w, 3) float64."""
     from worker.formation import haze
+    from worker.light.volume import camera_depth, pixel_rays, volume
 
+    water, light = scene.water, scene.light
+    if light is not None:
+        dirs_world, dirs_cam = pixel_rays(view.K, view.width, view.height, scene.world_from_cam)
+        depth = camera_depth(light, scene.world_from_cam)
     acc = np.zeros(J.shape[1:], np.float64)
     for Jk, Rk in zip(J, R):
         Jk = Jk.astype(np.float64)
-        acc += Jk if water is None else haze(Jk, Rk, water.beta_D, water.beta_B, water.B_inf, np.float64)
+        if light is not None:
+            acc += volume(Jk, Rk, dirs_world, dirs_cam, depth, light)
+        else:
+            acc += Jk if water is None else haze(Jk, Rk, water.beta_D, water.beta_B, water.B_inf, np.float64)
     return acc / len(J)
 
 
@@ -128,13 +137,14 @@ class Reference:
 
 def reference(session, spec: DatasetSpec) -> Reference:
     from worker.formation import encode_srgb8
+    from worker.pipeline import scene_light
     from worker.render import Sampling, View
 
     scene = session.scene(spec, 0)
     view = session.view(spec, scene)
     items = session.draw_items(scene)
-    J, R = session.renderer.samples(view, items, scene.lighting, Sampling(msaa=1, supersample=REFERENCE_GRID))
-    image = encode_srgb8(hazed_mean(J, R, scene.water))
+    J, R = session.renderer.samples(view, items, scene_light(scene), Sampling(msaa=1, supersample=REFERENCE_GRID))
+    image = encode_srgb8(hazed_mean(J, R, scene, view))
     s = REFERENCE_GRID
     K = view.K.copy()
     K[:2, :2] *= s
@@ -166,7 +176,7 @@ def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
     from PIL import Image
 
     from worker.formation import encode_srgb8
-    from worker.pipeline import PRESETS, Passes
+    from worker.pipeline import PRESETS, Passes, scene_light
 
     s = spec.model_copy(update={"quality": preset})
     files = session.frame_files(s, 0)
@@ -174,8 +184,8 @@ def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
     scene = session.scene(s, 0)
     view = session.view(s, scene)
     items = session.draw_items(scene)
-    J, R = session.renderer.samples(view, items, scene.lighting, PRESETS[preset])
-    exact = encode_srgb8(hazed_mean(J, R, scene.water))
+    J, R = session.renderer.samples(view, items, scene_light(scene), PRESETS[preset])
+    exact = encode_srgb8(hazed_mean(J, R, scene, view))
     res = session.renderer.render(view, items, scene.lighting, scene.water, PRESETS[preset], Passes(ids=True))
     boxes = boxes_of(session, view, scene, items, res.instance)
     # label_error_px: the largest difference of any box edge (pixels) over the targets labelled both here (tight

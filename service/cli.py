@@ -152,6 +152,31 @@ def bench_accuracy(
     run(out, scenes=scene, presets=preset, repeats=repeats, machine=machine, platform=gl)
 
 
+@bench_app.command("fidelity")
+def bench_fidelity(
+    out: Annotated[Path, typer.Option("--out", help="Folder for fidelity.json, .md and .png.")],
+    config: Annotated[
+        Optional[list[str]],
+        typer.Option("--config", help="A pinned configuration's name, or NAME=WATER:LIGHT[@DEPTH] (repeatable)."),
+    ] = None,
+    spp: Annotated[int, typer.Option("--spp", min=1, help="Path-traced samples per pixel, per render.")] = 1024,
+    repeats: Annotated[int, typer.Option("--repeats", min=1)] = 5,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """seasynth's frames against a volumetric path tracer of the same scene: PSNR, MAE, time, per term."""
+    from bench.fidelity import CONFIGS, parse_config, run
+
+    chosen: dict[str, str] = {}
+    for c in config or list(CONFIGS):
+        name, _, text = c.partition("=")
+        if not text and name not in CONFIGS:
+            raise typer.BadParameter(f"unknown configuration {name!r}; pinned: {', '.join(CONFIGS)}", param_hint="--config")
+        chosen[name] = text or CONFIGS[name]
+        parse_config(chosen[name])
+    run(out, configs=chosen, spp=spp, repeats=repeats, machine=machine, platform=gl)
+
+
 @app.command()
 def serve(
     host: Annotated[str, typer.Option("--host", help="Interface to bind.")] = "0.0.0.0",

@@ -292,8 +292,8 @@ class Water(_Model):
     """Water: one physical description (absorption, scattering, phase function, depth) from which every light term
     is derived (model physical), or the paper's deferred model with its three coefficients (model paper).
 
-    model: unset means physical, unless the explicit beta_D/beta_B/B_inf form is given (then paper), so specs
-    written for the paper's model keep their meaning.
+    model: unset means paper, so every spec written before the physical model keeps its frames; the physical
+    model becomes the default once its fidelity table meets its targets (bench/results/cpu/fidelity.md).
     """
 
     enabled: StrictBool = True
@@ -326,10 +326,8 @@ class Water(_Model):
 
     @property
     def resolved_model(self) -> str:
-        """The model frames use: `model`, or paper where only the paper's explicit form is given."""
-        if self.model is not None:
-            return self.model
-        return "paper" if any(getattr(self, f) is not None for f in _PAPER_FIELDS) else "physical"
+        """The model frames use: `model`, or paper when unset."""
+        return self.model or "paper"
 
     @model_validator(mode="after")
     def _described(self) -> Water:
@@ -525,5 +523,7 @@ def spec_digest(spec: DatasetSpec) -> str:
     """sha256 of the spec's canonical JSON: two equal specs have the same digest."""
     import hashlib
 
-    canon = json.dumps(spec.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    # Fields at their defaults are left out: a field added later with a default that keeps earlier behaviour does
+    # not change the digest of any spec written before it.
+    canon = json.dumps(spec.model_dump(mode="json", exclude_defaults=True), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canon.encode()).hexdigest()

@@ -491,12 +491,14 @@ COMMANDS_OF_OTHER_IMAGES = {
         ("service/cli.py", "worker"): {"worker"},
         ("service/cli.py", "bench_throughput"): {"bench"},
         ("service/cli.py", "bench_accuracy"): {"bench"},
+        ("service/cli.py", "bench_fidelity"): {"bench"},
     },
     "worker": {
         ("service/cli.py", "serve"): {"api"},
         ("service/cli.py", "reconcile"): {"api"},
         ("service/cli.py", "bench_throughput"): {"bench"},
         ("service/cli.py", "bench_accuracy"): {"bench"},
+        ("service/cli.py", "bench_fidelity"): {"bench"},
     },
 }
 

@@ -55,8 +55,8 @@ class Scene:
     lighting: Lighting  # as drawn, in air (the paper's model shades with it directly)
     water: WaterParams | None  # the paper's model
     water_type: str | None
-    light: PhysicalLight | None  # the physical model (then water is None)
     dropped: int  # objects left out because no free spot was found
+    light: PhysicalLight | None = None  # the physical model (then water is None)
 
     @property
     def cam_from_world(self) -> np.ndarray:

@@ -106,3 +106,17 @@ def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, K: np.ndarray, b
         f = hg(cos_scatter, g) * profile(lamp, cos_axis) / h  # inverse square * dt = du / h
         acc += f[..., None] * np.exp(-K * (t + r)[..., None])
     return acc * (du[..., None] * b * math.pi * lamp.intensity)
+
+
+def pixel_rays(K: np.ndarray, width: int, height: int, world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit view directions through the pixel centres, as the resolve shader takes them: (dirs_world, dirs_cam),
+    each (h, w, 3) float64 (camera frame KITTI: x right, y down, z forward; world z up)."""
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    d = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return d @ world_from_cam[:3, :3].T, d
+
+
+def camera_depth(light: PhysicalLight, world_from_cam: np.ndarray) -> float:
+    """The camera's depth below the water surface, metres (>= 0)."""
+    return max(light.medium.surface_z - float(world_from_cam[2, 3]), 0.0)

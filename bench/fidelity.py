@@ -1,0 +1,232 @@
+"""Fidelity against physics: seasynth's frames against a volumetric path tracer (Mitsuba 3) of the same scene.
+
+A configuration is water x light: the water a Jerlov type or explicit `a=R,G,B/b=R,G,B/g=G`, the light `sun`
+(sun and sky), `lamp` (two lamps on the vehicle, no sun or sky) or `sun+lamp`; `NAME=WATER:LIGHT[@DEPTH]` on the
+command line. Each configuration's scene is the example's pinned frame with that water and light; it is exported
+to the path tracer (meshes with their albedo, camera, sun/sky/lamps, a homogeneous medium with the water's a, b and
+HG g under a flat surface) and rendered twice with different seeds: their mean is the reference and their PSNR to
+each other the noise floor. Rows: every preset with every term, the paper's deferred model (in-air shading, its
+three coefficients from the same water), and `default` with each term switched off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.accuracy import EXAMPLE, psnr_db
+from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
+
+WIDTH, HEIGHT = 160, 120
+SEED, FRAME = 7, 3
+PT_SPP = 1024
+LAMPS = [
+    {"offset_m": [-0.35, 0.1, 0.0], "direction": [0.15, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
+     "intensity": [3.0, 3.0]},
+    {"offset_m": [0.35, 0.1, 0.0], "direction": [-0.15, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
+     "intensity": [3.0, 3.0]},
+]
+CONFIGS: dict[str, str] = {
+    "clear-ocean-sun": "I:sun@15",
+    "ocean-sun": "II:sun@10",
+    "coastal-sun": "1C:sun@6",
+    "clear-lamps": "I:lamp@40",
+    "turbid-lamps": "3C:lamp@40",
+    "ocean-sun+lamp": "II:sun+lamp@10",
+}
+PRESET_NAMES = ("draft", "fast", "default", "high")
+
+
+def parse_config(text: str) -> tuple[str, str, float]:
+    """'WATER:LIGHT[@DEPTH]' -> (water, light, depth_m)."""
+    water, _, rest = text.partition(":")
+    light, _, depth = rest.partition("@")
+    if light not in ("sun", "lamp", "sun+lamp") or not water:
+        raise SystemExit(f"configuration {text!r}: give WATER:LIGHT[@DEPTH], LIGHT one of sun, lamp, sun+lamp")
+    return water, light, float(depth or 10.0)
+
+
+def _water_overrides(water: str) -> dict:
+    if "=" not in water:
+        return {"water.jerlov": [water]}
+    parts = dict(p.split("=", 1) for p in water.split("/"))
+    out: dict = {"water.jerlov": []}
+    for key, field in (("a", "water.absorption"), ("b", "water.scattering")):
+        v = [float(x) for x in parts[key].split(",")]
+        out[field] = {"min": v, "max": v}
+    g = float(parts.get("g", 0.92))
+    out["water.phase_g"] = [g, g]
+    return out
+
+
+def config_spec(text: str) -> DatasetSpec:
+    water, light, depth = parse_config(text)
+    sun = "sun" in light
+    overrides = {
+        "seed": SEED, "frames": FRAME + 1, "camera.width": WIDTH, "camera.height": HEIGHT,
+        "water.model": "physical", "water.beta_jitter": [1.0, 1.0], "water.depth_m": [depth, depth],
+        "lighting.sun_elevation_deg": [60.0, 60.0], "lighting.sun_azimuth_deg": [30.0, 30.0],
+        "lighting.sun_intensity": [1.2, 1.2] if sun else [0.0, 0.0],
+        "lighting.ambient": [0.25, 0.25] if sun else [0.0, 0.0],
+        "lighting.lamps": LAMPS if "lamp" in light else [],
+        **_water_overrides(water),
+    }
+    return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
+
+
+def path_traced_scene(session, spec: DatasetSpec):
+    """The frame's scene for the path tracer, in its units (radiance: our J = albedo x irradiance is pi times less
+    than a Lambertian surface's radiance under the same irradiance, so lights are scaled by pi)."""
+    from bench.pathtracer import PTLamp, PTMesh, PTScene
+    from worker.light import SNELL_CONE_DEG
+
+    scene = session.scene(spec, FRAME)
+    view = session.view(spec, scene)
+    light = scene.light
+    meshes = []
+    for it in session.draw_items(scene):
+        M = it.world_from_obj
+        v = it.mesh.vertices.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
+        albedo = np.clip(it.mesh.albedo * it.albedo_scale + it.albedo_bias, 0.0, 1.0)
+        meshes.append(PTMesh(vertices=v.astype(np.float32), faces=it.mesh.faces, albedo=albedo.astype(np.float32),
+                             instance_id=it.instance_id))
+    world_from_cam = scene.world_from_cam
+    lamps = tuple(
+        PTLamp(position_world=world_from_cam[:3, :3] @ lp.position_cam + world_from_cam[:3, 3],
+               direction_world=world_from_cam[:3, :3] @ lp.direction_cam, cutoff_deg=math.degrees(lp.cutoff_rad),
+               beam_width_deg=math.degrees(lp.beam_rad), intensity_rgb=math.pi * lp.intensity)
+        for lp in light.lamps
+    )
+    sky = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
+    return PTScene(meshes=tuple(meshes), K=view.K, width=view.width, height=view.height,
+                   world_from_cam=world_from_cam, sigma_a=light.medium.a, sigma_s=light.medium.b, g=light.medium.g,
+                   surface_z=light.medium.surface_z, sun_dir_world=light.sun_dir_world,
+                   sun_irradiance_rgb=math.pi * light.sun_irradiance, sky_radiance_rgb=sky, lamps=lamps,
+                   sky_cone_deg=SNELL_CONE_DEG)
+
+
+def paper_water(scene, view):
+    """The deferred model's coefficients from the same water: beta_D = beta_B = c, and B_inf the physical model's
+    open water looking horizontally at the camera's depth."""
+    from worker.light.volume import volume
+    from worker.render import WaterParams
+
+    light = scene.light
+    w = np.array([[1.0, 0.0, 0.0]])
+    depth = light.medium.surface_z - float(scene.world_from_cam[2, 3])
+    b_inf = volume(np.zeros((1, 3)), np.array([np.inf]), w, w, depth, light)[0]
+    c = light.medium.c
+    return WaterParams(beta_D=c, beta_B=c, B_inf=b_inf)
+
+
+def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:
+    """(preset, terms, 8-bit image, ms per frame) for each row of a configuration."""
+    from worker.formation import encode_srgb8
+    from worker.pipeline import PRESETS
+    from worker.render import Passes
+
+    scene = session.scene(spec, FRAME)
+    view = session.view(spec, scene)
+    items = session.draw_items(scene)
+    light = scene.light
+    variants = [(p, "full", light, None) for p in PRESET_NAMES]
+    variants.append(("default", "paper", scene.lighting, paper_water(scene, view)))
+    for term in ("sun_shadows", "sky", "scattering"):
+        if getattr(light.terms, term):
+            variants.append(("default", f"-{term}", dataclasses.replace(
+                light, terms=dataclasses.replace(light.terms, **{term: False})), None))
+    if light.terms.lamps:
+        variants.append(("default", "-lamps", dataclasses.replace(
+            light, terms=dataclasses.replace(light.terms, lamps=0)), None))
+    rows = []
+    for preset, terms, lt, water in variants:
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes())
+            times.append(time.perf_counter() - t0)
+        rows.append((preset, terms, encode_srgb8(res.image), statistics.median(times) * 1e3))
+    return rows
+
+
+def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: str | None, platform: str) -> dict:
+    from bench import pathtracer
+    from bench.throughput import machine_description
+    from worker.formation import encode_srgb8
+    from worker.pipeline import RenderSession
+
+    rows, pictures = [], []
+    with RenderSession(platform=platform) as session:
+        for name, text in configs.items():
+            water, light, depth = parse_config(text)
+            spec = config_spec(text)
+            pts = path_traced_scene(session, spec)
+            renders, pt_s = [], []
+            for seed in (0, 1):
+                t0 = time.perf_counter()
+                renders.append(pathtracer.render(pts, spp, seed=seed))
+                pt_s.append(time.perf_counter() - t0)
+            floor = psnr_db(encode_srgb8(renders[0]), encode_srgb8(renders[1]))
+            ref = encode_srgb8((renders[0] + renders[1]) / 2)
+            for preset, terms, image, ms in seasynth_rows(session, spec, repeats):
+                diff = np.abs(image.astype(np.int64) - ref.astype(np.int64))
+                row = {"config": name, "water": water, "light": light, "depth_m": depth, "preset": preset,
+                       "terms": terms, "psnr_db": round(psnr_db(image, ref), 2), "mae": round(float(diff.mean()), 3),
+                       "ms_per_frame": round(ms, 2), "path_tracer_s_per_frame": round(min(pt_s), 1),
+                       "noise_floor_db": round(floor, 2), "spec_sha256": spec_digest(spec)}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+                if preset == "default" and terms == "full":
+                    pictures.append((name, ref, image))
+    result = {"machine": machine or machine_description(), "gl_renderer": session.renderer_name,
+              "resolution": [WIDTH, HEIGHT], "path_tracer": f"Mitsuba 3 volpath, llvm_ad_rgb, {spp} spp x 2 seeds",
+              "repeats": repeats, "configs": configs, "rows": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fidelity.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / "fidelity.md").write_text(format_table(result) + "\n")
+    picture(pictures, out / "fidelity.png")
+    print(format_table(result))
+    return result
+
+
+def format_table(result: dict) -> str:
+    keys = ("psnr_db", "mae", "ms_per_frame", "path_tracer_s_per_frame", "noise_floor_db")
+    lines = [
+        f"# Fidelity against a path tracer ({result['resolution'][0]}x{result['resolution'][1]})",
+        "",
+        f"machine: {result['machine']}  ",
+        f"GL renderer: {result['gl_renderer']}  ",
+        f"path tracer: {result['path_tracer']} (reference: their mean; noise floor: their PSNR to each other)  ",
+        f"ms_per_frame: median of {result['repeats']} renders; PSNR and MAE on 8-bit sRGB",
+        "",
+        "| config | water | light | depth_m | preset | terms | " + " | ".join(keys) + " |",
+        "|---|---|---|---|---|---|" + "---|" * len(keys),
+    ]
+    for r in result["rows"]:
+        lines.append(f"| {r['config']} | {r['water']} | {r['light']} | {r['depth_m']} | {r['preset']} | {r['terms']} | "
+                     + " | ".join(str(r[k]) for k in keys) + " |")
+    return "\n".join(lines)
+
+
+def picture(pictures, path: Path) -> None:
+    """One row per configuration: path tracer | seasynth default | |error| x 4."""
+    from PIL import Image, ImageDraw
+
+    if not pictures:
+        return
+    h, w = pictures[0][1].shape[:2]
+    sheet = Image.new("RGB", (3 * w, len(pictures) * (h + 12)), "white")
+    draw = ImageDraw.Draw(sheet)
+    for i, (name, ref, img) in enumerate(pictures):
+        err = np.clip(np.abs(ref.astype(np.int64) - img.astype(np.int64)) * 4, 0, 255).astype(np.uint8)
+        y = i * (h + 12)
+        draw.text((2, y), f"{name}: path tracer | seasynth default | error x4", fill="black")
+        for k, a in enumerate((ref, img, err)):
+            sheet.paste(Image.fromarray(a), (k * w, y + 12))
+    sheet.save(path)
