@@ -67,6 +67,22 @@ float shadow_tap(sampler2DShadow map, vec3 p) {
     return (any(lessThan(p.xy, vec2(0.0))) || any(greaterThan(p.xy, vec2(1.0))) || p.z >= 1.0)
         ? 1.0 : texture(map, p);
 }
+#if LAMPS > 0
+// Sampler arrays take constant indices only (GLSL 1.30 and later).
+float lamp_visibility(int l, vec3 p) {
+    if (l == 0) return shadow_tap(u_lamp_shadow[0], p);
+#if LAMPS > 1
+    if (l == 1) return shadow_tap(u_lamp_shadow[1], p);
+#endif
+#if LAMPS > 2
+    if (l == 2) return shadow_tap(u_lamp_shadow[2], p);
+#endif
+#if LAMPS > 3
+    if (l == 3) return shadow_tap(u_lamp_shadow[3], p);
+#endif
+    return 0.0;
+}
+#endif
 void main() {
     float len = length(v_nrm);
     vec3 n = len > 1e-20 ? v_nrm / len : -normalize(v_pos);
@@ -105,7 +121,7 @@ void main() {
         float prof = lamp_profile(dot(wi, u_lamp_dir[l]), u_lamp_cone[l]);
         if (cos_n <= 0.0 || prof <= 0.0) continue;
         vec4 q = u_lamp_from_cam[l] * vec4(v_pos, 1.0);
-        float vis = q.w > 0.0 ? shadow_tap(u_lamp_shadow[l], q.xyz / q.w) : 0.0;
+        float vis = q.w > 0.0 ? lamp_visibility(l, q.xyz / q.w) : 0.0;
         E += u_lamp_I[l] * (prof * cos_n * vis / (d * d)) * exp_neg3(u_K * d);
     }
 #endif
