@@ -43,9 +43,9 @@ def sphere(key: str, centre, radius: float, rgb=(200, 80, 60)):
 
 
 def lamp(position, direction, beam_deg=20.0, cutoff_deg=35.0, intensity=(3.0, 2.5, 2.0)) -> Lamp:
-    d = np.asarray(direction, float) / np.linalg.norm(direction)
-    return Lamp(position_cam=np.asarray(position, float), direction_cam=d, cos_cutoff=math.cos(math.radians(cutoff_deg)),
-                cutoff_rad=math.radians(cutoff_deg), beam_rad=math.radians(beam_deg), intensity=np.array(intensity))
+    d, cut = np.asarray(direction, float) / np.linalg.norm(direction), math.radians(cutoff_deg)
+    return Lamp(position_cam=np.asarray(position, float), direction_cam=d, cos_cutoff=math.cos(cut), cutoff_rad=cut,
+                beam_rad=math.radians(beam_deg), intensity=np.array(intensity, float))
 
 
 def light(a, b, *, lamps=(), sun=True, sun_shadows=True, sky=True, surface_z=8.0, e0=None, sun_dir=None, esky=0.3,
@@ -123,6 +123,18 @@ def test_the_resolve_shader_is_its_float64_twin_to_one_code(renderer, name):
         assert np.all(got8[seen] > 0)
     else:
         assert np.all(got8[open_water, 1:] > 20)  # the in-scattered sun and sky light the open water
+
+
+def test_a_lamp_inside_the_sphere_lights_no_surface(renderer):
+    """Its shadow map sees the sphere's inside all round, and the sphere's outside faces away from it: every sample's
+    J is bit for bit the frame's without the lamp."""
+    J_inside, R_inside = renderer.samples(VIEW, SCENE, LAMP_CASES["lamp-inside-sphere"], ONE)
+    J_none, R_none = renderer.samples(VIEW, SCENE, light(CLEAR, SCATTERING), ONE)
+    np.testing.assert_array_equal(J_inside, J_none)
+    np.testing.assert_array_equal(R_inside, R_none)
+    # while the same lamp at the camera (same axis) lights most of what the frame sees, and darkens nothing
+    J_out, _ = renderer.samples(VIEW, SCENE, LAMP_CASES["lamp-at-camera"], ONE)
+    assert np.sum(J_out[..., 1] > J_none[..., 1] + 0.01) > 300 and np.all(J_out >= J_none)
 
 
 def test_a_lamp_pointing_away_from_the_scene_adds_exactly_nothing(renderer):

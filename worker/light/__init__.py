@@ -8,7 +8,7 @@ Each term has its own module (`sun`, `sky`, `lamps`), a GLSL part for the render
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -74,8 +74,6 @@ class PhysicalLight:
     sky_irradiance: np.ndarray  # (3,) sky's irradiance on a horizontal surface just below the surface
     lamps: tuple[Lamp, ...]
     terms: Terms
-    # Switched-off terms (benchmarks: what each term buys); never set by the pipeline.
-    disabled: tuple[str, ...] = field(default=())
 
     def coefficients(self) -> dict:
         """Every derived coefficient a frame uses, for meta."""
