@@ -232,12 +232,17 @@ def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platfo
               "reference": f"{REFERENCE_GRID}x{REFERENCE_GRID} samples, float64 water per sample", "repeats": repeats,
               # Each scene's whole spec, hashed: a table is comparable with another only where these agree.
               "scene_spec_sha256": {name: spec_digest(scene_spec(name)) for name in scenes}, "rows": rows}
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "accuracy.json").write_text(json.dumps(result, indent=1) + "\n")
-    (out / "accuracy.md").write_text(format_table(result) + "\n")
-    plot(result, out / "accuracy.png")
-    print(format_table(result))
+    write_results(out, "accuracy", result, format_table(result), lambda path: plot(result, path))
     return result
+
+
+def write_results(out: Path, stem: str, result: dict, table: str, draw) -> None:
+    """A bench's committed trio: STEM.json (result), STEM.md (table, also printed) and STEM.png (draw(path))."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / f"{stem}.md").write_text(table + "\n")
+    draw(out / f"{stem}.png")
+    print(table)
 
 
 def format_table(result: dict) -> str:

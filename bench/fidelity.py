@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.accuracy import EXAMPLE, psnr_db
+from bench.accuracy import EXAMPLE, psnr_db, write_results
 from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 WIDTH, HEIGHT = 160, 120
@@ -114,13 +114,12 @@ def path_traced_scene(session, spec: DatasetSpec):
 def paper_water(scene, view):
     """The deferred model's coefficients from the same water: beta_D = beta_B = c, and B_inf the physical model's
     open water looking horizontally at the camera's depth."""
-    from worker.light.volume import volume
+    from worker.light.volume import camera_depth, volume
     from worker.render import WaterParams
 
     light = scene.light
     w = np.array([[1.0, 0.0, 0.0]])
-    depth = light.medium.surface_z - float(scene.world_from_cam[2, 3])
-    b_inf = volume(np.zeros((1, 3)), np.array([np.inf]), w, w, depth, light)[0]
+    b_inf = volume(np.zeros((1, 3)), np.array([np.inf]), w, w, camera_depth(light, scene.world_from_cam), light)[0]
     c = light.medium.c
     return WaterParams(beta_D=c, beta_B=c, B_inf=b_inf)
 
@@ -187,11 +186,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
     result = {"machine": machine or machine_description(), "gl_renderer": session.renderer_name,
               "resolution": [WIDTH, HEIGHT], "path_tracer": f"Mitsuba 3 volpath, llvm_ad_rgb, {spp} spp x 2 seeds",
               "repeats": repeats, "configs": configs, "rows": rows}
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "fidelity.json").write_text(json.dumps(result, indent=1) + "\n")
-    (out / "fidelity.md").write_text(format_table(result) + "\n")
-    picture(pictures, out / "fidelity.png")
-    print(format_table(result))
+    write_results(out, "fidelity", result, format_table(result), lambda path: picture(pictures, path))
     return result
 
 

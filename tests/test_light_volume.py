@@ -24,7 +24,7 @@ def hg(mu, g):
 
 def lamp(position=(0.0, 0.0, 0.0), direction=(0.0, 0.0, 1.0), beam_deg=15.0, cutoff_deg=30.0, intensity=(3, 2, 1)):
     d, cut = np.asarray(direction, float) / np.linalg.norm(direction), math.radians(cutoff_deg)
-    return Lamp(position_cam=np.asarray(position, float), direction_cam=d, cos_cutoff=math.cos(cut), cutoff_rad=cut,
+    return Lamp(position_cam=np.asarray(position, float), direction_cam=d, cutoff_rad=cut,
                 beam_rad=math.radians(beam_deg), intensity=np.array(intensity, float))
 
 

@@ -44,7 +44,7 @@ def sphere(key: str, centre, radius: float, rgb=(200, 80, 60)):
 
 def lamp(position, direction, beam_deg=20.0, cutoff_deg=35.0, intensity=(3.0, 2.5, 2.0)) -> Lamp:
     d, cut = np.asarray(direction, float) / np.linalg.norm(direction), math.radians(cutoff_deg)
-    return Lamp(position_cam=np.asarray(position, float), direction_cam=d, cos_cutoff=math.cos(cut), cutoff_rad=cut,
+    return Lamp(position_cam=np.asarray(position, float), direction_cam=d, cutoff_rad=cut,
                 beam_rad=math.radians(beam_deg), intensity=np.array(intensity, float))
 
 

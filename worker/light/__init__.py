@@ -43,8 +43,7 @@ class Lamp:
 
     position_cam: np.ndarray  # (3,) float64
     direction_cam: np.ndarray  # (3,) float64, unit
-    cos_cutoff: float  # cos of the half angle where the light ends
-    cutoff_rad: float
+    cutoff_rad: float  # half angle where the light ends
     beam_rad: float  # half angle of full intensity
     intensity: np.ndarray  # (3,) float64, linear RGB, irradiance units x m^2 per steradian, on the axis
 

@@ -24,7 +24,6 @@ def lamp_from_spec(spec: LampSpec, intensity: float) -> Lamp:
     return Lamp(
         position_cam=np.asarray(spec.offset_m, dtype=np.float64),
         direction_cam=d / np.linalg.norm(d),
-        cos_cutoff=math.cos(math.radians(spec.cutoff_deg)),
         cutoff_rad=math.radians(spec.cutoff_deg),
         beam_rad=math.radians(spec.beam_width_deg),
         intensity=np.asarray(spec.colour, dtype=np.float64) * intensity,

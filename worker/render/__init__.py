@@ -44,6 +44,12 @@ class DrawItem:
     albedo_bias: np.ndarray  # (3,) float32
     instance_id: int  # 0 = terrain (unlabelled), else 1..65535
 
+    def bounding_sphere(self) -> tuple[np.ndarray, float]:
+        """(centre (3,) float64 world metres, radius metres) holding every vertex as placed."""
+        M = self.world_from_obj
+        scale = float(np.abs(np.linalg.svd(M[:3, :3], compute_uv=False)).max())
+        return M[:3, :3] @ self.mesh.centre + M[:3, 3], self.mesh.radius * scale
+
 
 @dataclass(frozen=True)
 class Lighting:

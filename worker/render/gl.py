@@ -346,9 +346,8 @@ class GLRenderer:
         cam_from_world = view.cam_from_world
         for item in items:
             cam_from_obj = cam_from_world @ item.world_from_obj
-            centre = cam_from_obj[:3, :3] @ item.mesh.centre + cam_from_obj[:3, 3]
-            scale = float(np.abs(np.linalg.svd(item.world_from_obj[:3, :3], compute_uv=False)).max())
-            radius = item.mesh.radius * scale
+            centre_world, radius = item.bounding_sphere()
+            centre = cam_from_world[:3, :3] @ centre_world + cam_from_world[:3, 3]
             if not sphere_in_view(view, centre, radius):
                 continue
             gpu = self._mesh(item.mesh)

@@ -3,14 +3,14 @@ passes (`worker.light.glsl`). Used by GLRenderer; only frames with water.model p
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from worker.light import PhysicalLight
 from worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
+from worker.light.volume import camera_depth
 from worker.render import DrawItem, View
 from worker.render import shadows
+from worker.render.shaders import VERTEX
 
 DEPTH_ONLY = """
 #version 330 core
@@ -28,15 +28,6 @@ def defines(light: PhysicalLight) -> dict[str, object]:
         "WITH_SCATTER": t.scattering,
         "LAMPS": t.lamps,
     }
-
-
-def _spheres(items: list[DrawItem]) -> list[tuple[np.ndarray, float]]:
-    out = []
-    for it in items:
-        M = it.world_from_obj
-        scale = float(np.abs(np.linalg.svd(M[:3, :3], compute_uv=False)).max())
-        out.append((M[:3, :3] @ it.mesh.centre + M[:3, 3], it.mesh.radius * scale))
-    return out
 
 
 def _shadow_target(r, size: int, slot: int):
@@ -68,7 +59,7 @@ def _draw_depth(r, clip_from_world: np.ndarray, items: list[DrawItem], size: int
     GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
     GL.glViewport(0, 0, size, size)
     GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-    prog, locs = r._program(r_vertex(), DEPTH_ONLY)
+    prog, locs = r._program(VERTEX, DEPTH_ONLY)
     GL.glUseProgram(prog)
     GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, np.eye(4, dtype=np.float32))
     GL.glEnable(GL.GL_POLYGON_OFFSET_FILL)
@@ -84,19 +75,14 @@ def _draw_depth(r, clip_from_world: np.ndarray, items: list[DrawItem], size: int
     return t.textures[0]
 
 
-def r_vertex() -> str:
-    from worker.render.shaders import VERTEX
-
-    return VERTEX
-
-
 def shadow_maps(r, view: View, items: list[DrawItem], light: PhysicalLight, log: list[str]) -> dict:
-    """Draw the shadow maps the frame's terms need: {"sun": (texture, map_from_cam), "lamps": [...]}."""
+    """Draw the shadow maps the frame's terms need: {"sun": (texture, map_from_cam, clip_from_world) or None,
+    "lamps": [(texture, map_from_cam), ...]} (map_from_cam: camera frame -> map coordinates, see shadows)."""
     out: dict = {"sun": None, "lamps": []}
     world_from_cam = np.linalg.inv(view.cam_from_world)
     t = light.terms
     if t.sun and t.sun_shadows:
-        clip = shadows.sun_clip_from_world(light.sun_dir_world, _spheres(items))
+        clip = shadows.sun_clip_from_world(light.sun_dir_world, [it.bounding_sphere() for it in items])
         tex = _draw_depth(r, clip, items, shadows.SUN_MAP_SIZE, 0)
         out["sun"] = (tex, shadows.texture_from_clip(clip) @ world_from_cam, clip)
         log.append("sun shadow")
@@ -117,7 +103,7 @@ def _vec3(GL, locs, name, v) -> None:
     _set(GL, locs, name, GL.glUniform3fv, 1, np.asarray(v, np.float32))
 
 
-def _common(GL, locs, view: View, light: PhysicalLight) -> None:
+def _common(GL, locs, light: PhysicalLight) -> None:
     m = light.medium
     _vec3(GL, locs, "u_c", m.c)
     _vec3(GL, locs, "u_K", m.k)
@@ -136,7 +122,7 @@ def _common(GL, locs, view: View, light: PhysicalLight) -> None:
 def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, maps: dict) -> None:
     GL = r._gl
     world_from_cam = np.linalg.inv(view.cam_from_world)
-    _common(GL, locs, view, light)
+    _common(GL, locs, light)
     row = world_from_cam[2].astype(np.float32)
     _set(GL, locs, "u_world_z", GL.glUniform4f, *row.tolist())
     _set(GL, locs, "u_surface_z", GL.glUniform1f, float(light.medium.surface_z))
@@ -163,17 +149,10 @@ def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, 
 def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -> None:
     GL = r._gl
     world_from_cam = np.linalg.inv(view.cam_from_world)
-    _common(GL, locs, view, light)
+    _common(GL, locs, light)
     _vec3(GL, locs, "u_sun_world", light.sun_dir_world)
-    depth = light.medium.surface_z - float(world_from_cam[2, 3])
-    _set(GL, locs, "u_cam_depth", GL.glUniform1f, max(depth, 0.0))
+    _set(GL, locs, "u_cam_depth", GL.glUniform1f, camera_depth(light, world_from_cam))
     _set(GL, locs, "u_K_inv", GL.glUniformMatrix3fv, 1, GL.GL_TRUE, np.linalg.inv(view.K).astype(np.float32))
     _set(GL, locs, "u_world_from_cam", GL.glUniformMatrix3fv, 1, GL.GL_TRUE,
          world_from_cam[:3, :3].astype(np.float32))
 
-
-def cam_depth(view: View, light: PhysicalLight) -> float:
-    return max(light.medium.surface_z - float(np.linalg.inv(view.cam_from_world)[2, 3]), 0.0)
-
-
-_ = math  # noqa: F401 (kept for callers' unit conversions)
