@@ -25,7 +25,7 @@ from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_dige
 
 WIDTH, HEIGHT = 160, 120
 SEED, FRAME = 7, 3
-PT_SPP = 1024
+REFERENCES = Path("bench/results/cpu/fidelity-references")
 LAMPS = [
     {"offset_m": [-0.35, 0.1, 0.0], "direction": [0.15, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
      "intensity": [3.0, 3.0]},
@@ -38,7 +38,7 @@ CONFIGS: dict[str, str] = {
     "coastal-sun": "1C:sun@6",
     "clear-lamps": "I:lamp@40",
     "turbid-lamps": "3C:lamp@40",
-    "ocean-sun+lamp": "II:sun+lamp@10",
+    "ocean-sun-lamp": "II:sun+lamp@10",
 }
 PRESET_NAMES = ("draft", "fast", "default", "high")
 
@@ -154,38 +154,74 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, s
     return rows
 
 
-def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: str | None, platform: str) -> dict:
+def export_scenes(out: Path, *, configs: dict[str, str], platform: str) -> list[Path]:
+    """Writes each configuration's path-tracer scene to OUT/NAME.scene.npz (for `python -m bench.reference`)."""
+    from bench.reference import SCENE_SUFFIX, save_scene
+    from worker.pipeline import RenderSession
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    with RenderSession(platform=platform) as session:
+        for name, text in configs.items():
+            paths.append(out / f"{name}{SCENE_SUFFIX}")
+            save_scene(path_traced_scene(session, config_spec(text)), paths[-1])
+    return paths
+
+
+def stored_reference(references: Path | None, name: str, pts):
+    """The stored reference of this configuration if one exists for exactly this scene, else None."""
+    from bench.reference import REF_SUFFIX, load_reference, scene_digest
+
+    path = references / f"{name}{REF_SUFFIX}" if references else None
+    if path is None or not path.exists():
+        return None
+    ref = load_reference(path)
+    if ref.scene_sha256 != scene_digest(pts):
+        raise SystemExit(f"{path}: rendered for another scene (sha256 {ref.scene_sha256[:12]}, this configuration's "
+                         f"is {scene_digest(pts)[:12]}); re-export the scenes and render it again")
+    return ref
+
+
+def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: str | None, platform: str,
+        references: Path | None = None, timing_spp: int = 64) -> dict:
+    """Scores every configuration. Its reference is the stored one in `references` when there is one for this exact
+    scene, else two renders of `spp` here. The path tracer's seconds per frame are always measured here, with
+    `timing_spp` samples per pixel (a stored reference's own host and seconds are recorded beside them)."""
     from bench import pathtracer
+    from bench.reference import render_reference
     from bench.throughput import machine_description
     from worker.formation import encode_srgb8
     from worker.pipeline import RenderSession
 
-    rows, pictures = [], []
+    rows, pictures, sources = [], [], {}
     with RenderSession(platform=platform) as session:
         for name, text in configs.items():
             water, light, depth = parse_config(text)
             spec = config_spec(text)
             pts = path_traced_scene(session, spec)
-            renders, pt_s = [], []
-            for seed in (0, 1):
-                t0 = time.perf_counter()
-                renders.append(pathtracer.render(pts, spp, seed=seed))
-                pt_s.append(time.perf_counter() - t0)
-            floor = psnr_db(encode_srgb8(renders[0]), encode_srgb8(renders[1]))
-            ref = encode_srgb8((renders[0] + renders[1]) / 2)
+            ref = stored_reference(references, name, pts) or render_reference(pts, spp, host="this machine")
+            sources[name] = {"spp_per_half": ref.spp, "variant": ref.variant, "seconds": round(ref.seconds, 1),
+                             "host": ref.host, "scene_sha256": ref.scene_sha256}
+            t0 = time.perf_counter()
+            pathtracer.render(pts, timing_spp, seed=2)
+            pt_s = time.perf_counter() - t0
+            floor = psnr_db(encode_srgb8(ref.halves[0]), encode_srgb8(ref.halves[1]))
+            target = encode_srgb8(ref.mean)
             for preset, terms, image, ms in seasynth_rows(session, spec, repeats):
-                diff = np.abs(image.astype(np.int64) - ref.astype(np.int64))
+                diff = np.abs(image.astype(np.int64) - target.astype(np.int64))
                 row = {"config": name, "water": water, "light": light, "depth_m": depth, "preset": preset,
-                       "terms": terms, "psnr_db": round(psnr_db(image, ref), 2), "mae": round(float(diff.mean()), 3),
-                       "ms_per_frame": round(ms, 2), "path_tracer_s_per_frame": round(min(pt_s), 1),
-                       "noise_floor_db": round(floor, 2), "spec_sha256": spec_digest(spec)}
+                       "terms": terms, "psnr_db": round(psnr_db(image, target), 2), "mae": round(float(diff.mean()), 3),
+                       "ms_per_frame": round(ms, 2), "path_tracer_s_per_frame": round(pt_s, 2),
+                       "path_tracer_spp": timing_spp, "noise_floor_db": round(floor, 2),
+                       "spec_sha256": spec_digest(spec)}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
                 if preset == "default" and terms == "full":
-                    pictures.append((name, ref, image))
+                    pictures.append((name, target, image))
     result = {"machine": machine or machine_description(), "gl_renderer": session.renderer_name,
-              "resolution": [WIDTH, HEIGHT], "path_tracer": f"Mitsuba 3 volpath, llvm_ad_rgb, {spp} spp x 2 seeds",
-              "repeats": repeats, "configs": configs, "rows": rows}
+              "resolution": [WIDTH, HEIGHT], "path_tracer": "Mitsuba 3 volpath (max depth 64)",
+              "timing": f"path tracer llvm_ad_rgb on this machine, {timing_spp} spp per frame",
+              "references": sources, "repeats": repeats, "configs": configs, "rows": rows}
     write_results(out, "fidelity", result, format_table(result), lambda path: picture(pictures, path))
     return result
 
@@ -197,8 +233,15 @@ def format_table(result: dict) -> str:
         "",
         f"machine: {result['machine']}  ",
         f"GL renderer: {result['gl_renderer']}  ",
-        f"path tracer: {result['path_tracer']} (reference: their mean; noise floor: their PSNR to each other)  ",
+        f"path tracer: {result['path_tracer']}; {result['timing']}  ",
+        "reference: the mean of two independent path-traced halves; noise floor: the halves' PSNR to each other "
+        "(the mean's own error is about 6 dB below it)  ",
         f"ms_per_frame: median of {result['repeats']} renders; PSNR and MAE on 8-bit sRGB",
+        "",
+        "| config | reference spp (x2) | variant | seconds | host |",
+        "|---|---|---|---|---|",
+        *(f"| {n} | {r['spp_per_half']} | {r['variant']} | {r['seconds']} | {r['host']} |"
+          for n, r in result["references"].items()),
         "",
         "| config | water | light | depth_m | preset | terms | " + " | ".join(keys) + " |",
         "|---|---|---|---|---|---|" + "---|" * len(keys),

@@ -32,7 +32,8 @@ LLVM_GLOBS = (
 BOX_MIN_HALF_M = 200.0  # the water box reaches at least this far horizontally from the camera
 BOX_DEPTH_M = 2000.0
 NEAR_CLIP_M = 1e-3
-MAX_SAMPLES_PER_CALL = 2**25  # one Mitsuba call renders all its samples in one wavefront: ~0.3 GB at this size
+# One Mitsuba call renders all its samples in one wavefront: ~0.3 GB of state per 2**25 samples.
+MAX_SAMPLES_PER_CALL = {"llvm_ad_rgb": 2**25, "cuda_ad_rgb": 2**27}
 ENV_ROWS, ENV_COLS = 8192, 8  # lat-long sky image (no azimuth dependence); the cone edge costs ~2/ENV_ROWS relative
 KITTI_FROM_MITSUBA_CAM = np.diag([-1.0, -1.0, 1.0, 1.0])  # Mitsuba's camera: x left, y up, z forward
 
@@ -113,12 +114,15 @@ def use_libllvm() -> str:
     return os.environ[LLVM_ENV]
 
 
-def load_mitsuba():
-    """The mitsuba module with the CPU variant set, after use_libllvm()."""
-    use_libllvm()
+def load_mitsuba(variant: str = VARIANT):
+    """The mitsuba module with `variant` set (llvm_ad_rgb: the CPU, after use_libllvm(); cuda_ad_rgb: an NVIDIA GPU)."""
+    if variant not in MAX_SAMPLES_PER_CALL:
+        raise ValueError(f"variant {variant!r}: use one of {', '.join(MAX_SAMPLES_PER_CALL)}")
+    if variant.startswith("llvm"):
+        use_libllvm()
     import mitsuba as mi
 
-    mi.set_variant(VARIANT)
+    mi.set_variant(variant)
     return mi
 
 
@@ -156,8 +160,9 @@ def _medium(scene: PTScene) -> dict:
     sigma_s = np.asarray(scene.sigma_s, dtype=np.float64)
     sigma_t = np.asarray(scene.sigma_a, dtype=np.float64) + sigma_s
     albedo = np.divide(sigma_s, sigma_t, out=np.zeros(3), where=sigma_t > 0)
+    scale = max(float(sigma_t.max()), 1.0)  # Mitsuba reads an rgb sigma_t as a reflectance: keep it in [0, 1]
     return {
-        "type": "homogeneous", "sigma_t": _rgb(sigma_t), "albedo": _rgb(albedo), "scale": 1.0,
+        "type": "homogeneous", "sigma_t": _rgb(sigma_t / scale), "albedo": _rgb(albedo), "scale": scale,
         "phase": {"type": "hg", "g": float(scene.g)},
     }
 
@@ -217,10 +222,10 @@ def _lamp(lamp: PTLamp, mi) -> dict:
     }
 
 
-def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5):
+def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, variant: str = VARIANT):
     """The mi.Scene for `scene`: water box, meshes (shape ids "mesh_0000", ... in order), sun, sky, lamps, camera."""
     _check(scene)
-    mi = load_mitsuba()
+    mi = load_mitsuba(variant)
     box, half = _water_box(scene, mi)
     d: dict = {
         "type": "scene", "water": _medium(scene), "water_box": box,
@@ -241,16 +246,17 @@ def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5):
     return mi.load_dict(d)
 
 
-def render(scene: PTScene, spp: int, seed: int = 0, max_depth: int = 64, rr_depth: int = 5) -> np.ndarray:
+def render(scene: PTScene, spp: int, seed: int = 0, max_depth: int = 64, rr_depth: int = 5,
+           variant: str = VARIANT) -> np.ndarray:
     """(h, w, 3) float32 linear radiance, the mean of `spp` box-filtered samples per pixel.
 
     Runs in calls of at most MAX_SAMPLES_PER_CALL samples in all (bounding memory), each seeded from (seed, call
     index) through np.random.SeedSequence, so different seeds give independent noise."""
     if spp < 1:
         raise ValueError(f"render: spp must be >= 1, got {spp}")
-    mi = load_mitsuba()
-    ms = mitsuba_scene(scene, max_depth=max_depth, rr_depth=rr_depth)
-    per_call = max(1, MAX_SAMPLES_PER_CALL // (scene.width * scene.height))
+    ms = mitsuba_scene(scene, max_depth=max_depth, rr_depth=rr_depth, variant=variant)
+    mi = load_mitsuba(variant)
+    per_call = max(1, MAX_SAMPLES_PER_CALL[variant] // (scene.width * scene.height))
     counts = [min(per_call, spp - start) for start in range(0, spp, per_call)]
     seeds = np.random.SeedSequence(seed).spawn(len(counts))
     total = np.zeros((scene.height, scene.width, 3), dtype=np.float64)

@@ -154,18 +154,25 @@ def bench_accuracy(
 
 @bench_app.command("fidelity")
 def bench_fidelity(
-    out: Annotated[Path, typer.Option("--out", help="Folder for fidelity.json, .md and .png.")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for fidelity.json, .md and .png.")] = None,
     config: Annotated[
         Optional[list[str]],
         typer.Option("--config", help="A pinned configuration's name, or NAME=WATER:LIGHT[@DEPTH] (repeatable)."),
     ] = None,
-    spp: Annotated[int, typer.Option("--spp", min=1, help="Path-traced samples per pixel, per render.")] = 1024,
+    spp: Annotated[int, typer.Option("--spp", min=1, help="Path-traced samples per pixel of each half of a "
+                                     "reference rendered here (when none is stored).")] = 1024,
+    references: Annotated[Path, typer.Option("--references", help="Stored references (NAME.ref.npz), used "
+                                             "where they match the scene.")] = Path("bench/results/cpu/fidelity-references"),
+    export_scenes: Annotated[Optional[Path], typer.Option("--export-scenes", help="Only write each configuration's "
+                             "path-tracer scene (NAME.scene.npz) here, for python -m bench.reference.")] = None,
+    timing_spp: Annotated[int, typer.Option("--timing-spp", min=1, help="Samples per pixel of the path tracer's "
+                                            "timed render on this machine.")] = 64,
     repeats: Annotated[int, typer.Option("--repeats", min=1)] = 5,
     machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
     gl: PlatformOpt = "egl",
 ) -> None:
     """seasynth's frames against a volumetric path tracer of the same scene: PSNR, MAE, time, per term."""
-    from bench.fidelity import CONFIGS, parse_config, run
+    from bench.fidelity import CONFIGS, export_scenes as export, parse_config, run
 
     chosen: dict[str, str] = {}
     for c in config or list(CONFIGS):
@@ -174,7 +181,14 @@ def bench_fidelity(
             raise typer.BadParameter(f"unknown configuration {name!r}; pinned: {', '.join(CONFIGS)}", param_hint="--config")
         chosen[name] = text or CONFIGS[name]
         parse_config(chosen[name])
-    run(out, configs=chosen, spp=spp, repeats=repeats, machine=machine, platform=gl)
+    if export_scenes is not None:
+        for path in export(export_scenes, configs=chosen, platform=gl):
+            typer.echo(str(path))
+        return
+    if out is None:
+        raise typer.BadParameter("give --out (or --export-scenes)", param_hint="--out")
+    run(out, configs=chosen, spp=spp, repeats=repeats, machine=machine, platform=gl, references=references,
+        timing_spp=timing_spp)
 
 
 @app.command()

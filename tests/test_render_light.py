@@ -125,6 +125,35 @@ def test_the_resolve_shader_is_its_float64_twin_to_one_code(renderer, name):
         assert np.all(got8[open_water, 1:] > 20)  # the in-scattered sun and sky light the open water
 
 
+def test_a_frame_with_no_light_at_all_is_black(renderer):
+    """Sun down and no lamps: the surface shader has nothing to shade (its normals compile out) and the water has
+    nothing to scatter, so every sample is exactly black, with or without scattering water."""
+    for b in (0.0, SCATTERING):
+        lt = light(CLEAR, b, sun=False, sun_shadows=False, sky=False, e0=np.zeros(3))
+        image = renderer.render(VIEW, SCENE, lt, None, ONE, Passes()).image
+        assert image.shape == (H, W, 3) and np.all(image == 0.0)
+
+
+def test_per_sample_shading_moves_where_a_lamp_is_shaded_not_how_much_light_arrives(renderer):
+    """Rough terrain under a lamp beside the camera. Shading each of 4 samples at its own position instead of once at
+    the pixel centre must leave the frame's mean lamp light as it was (within 1%): a sample shaded off the point where
+    the shadow map sampled its triangle must not shadow itself. (Before the lookups moved off the surface along the
+    normal, per-sample shading darkened such a frame by about 30%.)"""
+    from worker.assets.terrain import heightfield
+
+    terrain = heightfield(np.random.default_rng(3), "rock", 12.0, 96, 1.2)
+    items = [draw("test/render-light/rock", terrain.mesh, 0)]
+    view, _ = camera([0.0, -4.0, 2.0], [0.0, 1.0, 0.2], 60.0)
+    lt = light(CLEAR, 0.0, sun=False, sun_shadows=False, sky=False, e0=np.zeros(3),
+               lamps=(lamp((-0.35, 0.1, 0.0), (0.15, 0.35, 1.0), beam_deg=20.0, cutoff_deg=40.0),))
+    means = []
+    for per_sample in (False, True):
+        J, R = renderer.samples(view, items, lt, Sampling(msaa=4, supersample=1, per_sample_shading=per_sample))
+        assert np.isfinite(R).mean() > 0.7
+        means.append(J[np.isfinite(R)].mean(axis=0))
+    np.testing.assert_allclose(means[1], means[0], rtol=0.01)
+
+
 def test_a_lamp_inside_the_sphere_lights_no_surface(renderer):
     """Its shadow map sees the sphere's inside all round, and the sphere's outside faces away from it: every sample's
     J is bit for bit the frame's without the lamp."""

@@ -7,17 +7,25 @@ from worker.light.volume import MU_SKY
 
 MAX_LAMPS = 4
 SOFT_SHADOW_RADIUS_M = 0.05  # the forward-scattered sun arrives within a few degrees: its shadows blur by this
+# Shadow lookups start off the surface along its normal (normal-offset shadows), by this many map texels plus this
+# many camera pixels' footprints: a sample is shaded on its triangle's plane, which may lie up to a pixel beyond the
+# triangle (pixel-centre interpolation of a partly covered pixel; per-sample shading on llvmpipe), and there it can
+# sit under the neighbouring triangle that the map holds: it must not shadow itself.
+NORMAL_OFFSET_TEXELS = 1.5
+NORMAL_OFFSET_PIXELS = 0.5
 
 UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
-    "u_sun_shadow", "u_sun_from_cam", "u_soft_texels", "u_cam_depth", "u_world_from_cam", "u_K_inv",
-    *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "from_cam", "shadow") for i in range(MAX_LAMPS)),
+    "u_sun_shadow", "u_sun_from_cam", "u_soft_texels", "u_sun_texel_m", "u_pixel_angle", "u_cam_depth", "u_world_from_cam", "u_K_inv",
+    *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "from_cam", "shadow", "texel") for i in range(MAX_LAMPS)),
 )
 
 _COMMON = f"""
 const float PI = 3.14159265358979;
 const float X_MAX = 87.0;
 const float MU_SKY = {MU_SKY!r};
+const float NORMAL_OFFSET_TEXELS = {NORMAL_OFFSET_TEXELS!r};
+const float NORMAL_OFFSET_PIXELS = {NORMAL_OFFSET_PIXELS!r};
 const float SNELL_COS = 0.66131187;       // cos(48.6 deg)
 const float SNELL_SIN2 = 0.56266999;      // sin(48.6 deg)^2
 float exp_neg(float x) {{ return x >= X_MAX ? 0.0 : exp(-x); }}
@@ -48,6 +56,8 @@ uniform vec3 u_Esky;
 uniform sampler2DShadow u_sun_shadow;
 uniform mat4 u_sun_from_cam;   // shadow-map texture coordinates (xy) and depth (z) from the camera frame
 uniform float u_soft_texels;
+uniform float u_sun_texel_m;   // metres per sun-map texel
+uniform float u_pixel_angle;   // a camera pixel's width in metres per metre of range
 #if LAMPS > 0
 uniform vec3 u_lamp_pos[LAMPS];
 uniform vec3 u_lamp_dir[LAMPS];
@@ -55,6 +65,7 @@ uniform vec3 u_lamp_I[LAMPS];
 uniform vec2 u_lamp_cone[LAMPS];
 uniform mat4 u_lamp_from_cam[LAMPS];
 uniform sampler2DShadow u_lamp_shadow[LAMPS];
+uniform float u_lamp_texel[LAMPS];   // metres per lamp-map texel per metre from the lamp
 #endif
 layout(location = 0) out vec4 o_J;
 #ifdef WITH_RANGE
@@ -90,13 +101,14 @@ void main() {
     vec3 albedo = clamp(v_col * u_scale + u_bias, 0.0, 1.0);
     float depth = max(u_surface_z - (dot(u_world_z.xyz, v_pos) + u_world_z.w), 0.0);
     vec3 E = vec3(0.0);
+    float pixel_m = NORMAL_OFFSET_PIXELS * u_pixel_angle * length(v_pos);
 #ifdef WITH_SUN
     float cos_i = max(dot(n, u_sun_cam), 0.0);
     vec3 direct = exp_neg3(u_c * (depth / u_mu_w));
     vec3 total = exp_neg3(u_K * (depth / u_mu_w));
     float v_hard = 1.0, v_soft = 1.0;
 #ifdef WITH_SUN_SHADOW
-    vec4 q = u_sun_from_cam * vec4(v_pos, 1.0);
+    vec4 q = u_sun_from_cam * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_sun_texel_m + pixel_m), 1.0);
     v_hard = shadow_tap(u_sun_shadow, q.xyz);
     vec2 px = vec2(u_soft_texels) / vec2(textureSize(u_sun_shadow, 0));
     v_soft = v_hard;
@@ -120,7 +132,7 @@ void main() {
         float cos_n = max(dot(n, -wi), 0.0);
         float prof = lamp_profile(dot(wi, u_lamp_dir[l]), u_lamp_cone[l]);
         if (cos_n <= 0.0 || prof <= 0.0) continue;
-        vec4 q = u_lamp_from_cam[l] * vec4(v_pos, 1.0);
+        vec4 q = u_lamp_from_cam[l] * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_lamp_texel[l] * d + pixel_m), 1.0);
         float vis = q.w > 0.0 ? lamp_visibility(l, q.xyz / q.w) : 0.0;
         E += u_lamp_I[l] * (prof * cos_n * vis / (d * d)) * exp_neg3(u_K * d);
     }

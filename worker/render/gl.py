@@ -355,7 +355,7 @@ class GLRenderer:
                 dist = float(np.linalg.norm(centre))
                 GL.glUniform2f(locs["u_range_bounds"], max(dist - radius, 0.0), dist + radius)
             GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, cam_from_obj.astype(np.float32))
-            if lit:
+            if lit and "u_nrm_cam" in locs:  # a frame with no light at all (sun down, no lamps) shades nothing
                 nrm = np.linalg.inv(cam_from_obj[:3, :3]).T
                 GL.glUniformMatrix3fv(locs["u_nrm_cam"], 1, GL.GL_TRUE, nrm.astype(np.float32))
                 GL.glUniform3fv(locs["u_scale"], 1, item.albedo_scale.astype(np.float32))

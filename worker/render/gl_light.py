@@ -127,6 +127,7 @@ def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, 
     _set(GL, locs, "u_world_z", GL.glUniform4f, *row.tolist())
     _set(GL, locs, "u_surface_z", GL.glUniform1f, float(light.medium.surface_z))
     _vec3(GL, locs, "u_sun_cam", view.cam_from_world[:3, :3] @ light.sun_dir_world)
+    _set(GL, locs, "u_pixel_angle", GL.glUniform1f, float(1.0 / min(view.K[0, 0], view.K[1, 1])))
     units = []
     if maps["sun"] is not None:
         tex, map_from_cam, _ = maps["sun"]
@@ -136,9 +137,11 @@ def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, 
         clip = maps["sun"][2]
         texels = SOFT_SHADOW_RADIUS_M * 0.5 * clip[0, :3].dot(clip[0, :3]) ** 0.5 * shadows.SUN_MAP_SIZE
         _set(GL, locs, "u_soft_texels", GL.glUniform1f, float(texels))
+        _set(GL, locs, "u_sun_texel_m", GL.glUniform1f, float(2.0 / np.linalg.norm(clip[0, :3]) / shadows.SUN_MAP_SIZE))
     for i, (tex, map_from_cam) in enumerate(maps["lamps"]):
         units.append((f"u_lamp_shadow[{i}]", tex))
         _set(GL, locs, f"u_lamp_from_cam[{i}]", GL.glUniformMatrix4fv, 1, GL.GL_TRUE, map_from_cam.astype(np.float32))
+        _set(GL, locs, f"u_lamp_texel[{i}]", GL.glUniform1f, shadows.lamp_texel(light.lamps[i].cutoff_rad))
     for k, (name, tex) in enumerate(units):
         GL.glActiveTexture(GL.GL_TEXTURE0 + SHADOW_UNIT + k)
         GL.glBindTexture(GL.GL_TEXTURE_2D, tex)

@@ -68,10 +68,18 @@ def sun_clip_from_world(sun_dir_world: np.ndarray, spheres: list[tuple[np.ndarra
     return orthographic(lo, hi) @ view
 
 
+def _lamp_half_angle(cutoff_rad: float) -> float:
+    return min(cutoff_rad + math.radians(2.0), math.radians(85.0))
+
+
 def lamp_clip_from_cam(position_cam: np.ndarray, direction_cam: np.ndarray, cutoff_rad: float, far: float):
     """Perspective clip_from_cam of a spot light covering its cone."""
-    half = min(cutoff_rad + math.radians(2.0), math.radians(85.0))
-    return perspective(half, 0.01, far) @ frame_looking(direction_cam, position_cam)
+    return perspective(_lamp_half_angle(cutoff_rad), 0.01, far) @ frame_looking(direction_cam, position_cam)
+
+
+def lamp_texel(cutoff_rad: float) -> float:
+    """A lamp map texel's width in metres per metre from the lamp (on its axis)."""
+    return 2.0 * math.tan(_lamp_half_angle(cutoff_rad)) / LAMP_MAP_SIZE
 
 
 def texture_from_clip(clip_from_x: np.ndarray) -> np.ndarray:

@@ -1,0 +1,150 @@
+"""Converged path-traced references, kept apart from scoring.
+
+A multiply-scattering sun through metres of forward-scattering water (HG g ~ 0.9) converges slowly: at 160x120 a
+path-traced frame needs about 10^5 samples per pixel before its noise floor clears 40 dB, hours on two cores. So a
+reference is rendered once, anywhere Mitsuba runs (its `cuda_ad_rgb` variant on a GPU host, or `llvm_ad_rgb` on
+many cores), stored beside the fidelity table, and scored on any machine. A reference is tied to its exported scene
+by the scene's digest (`scene_digest`): change the scene and the stored reference no longer matches.
+
+This module needs only numpy and Mitsuba (not the rest of seasynth), so a render host needs nothing else:
+
+    python -m bench.reference DIR --spp 131072 --variant cuda_ad_rgb
+
+renders each DIR/NAME.scene.npz into DIR/NAME.ref.npz (two independent halves, their spp, variant, seconds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench import pathtracer
+from bench.pathtracer import PTLamp, PTMesh, PTScene
+
+SCENE_SUFFIX = ".scene.npz"
+REF_SUFFIX = ".ref.npz"
+
+
+def _scene_arrays(scene: PTScene) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for f in dataclasses.fields(PTScene):
+        value = getattr(scene, f.name)
+        if f.name == "meshes":
+            for i, m in enumerate(value):
+                out[f"mesh{i}_vertices"] = np.asarray(m.vertices, np.float32)
+                out[f"mesh{i}_faces"] = np.asarray(m.faces, np.uint32)
+                out[f"mesh{i}_albedo"] = np.asarray(m.albedo, np.float32)
+                out[f"mesh{i}_instance_id"] = np.asarray(m.instance_id, np.int64)
+        elif f.name == "lamps":
+            for i, lamp in enumerate(value):
+                for g in dataclasses.fields(PTLamp):
+                    out[f"lamp{i}_{g.name}"] = np.asarray(getattr(lamp, g.name), np.float64)
+        else:
+            out[f.name] = np.asarray(value, np.int64 if f.name in ("width", "height") else np.float64)
+    return out
+
+
+def scene_digest(scene: PTScene) -> str:
+    """sha256 over every array of the scene, in a fixed order (names, dtypes, shapes and bytes)."""
+    h = hashlib.sha256()
+    for name, a in sorted(_scene_arrays(scene).items()):
+        a = np.ascontiguousarray(a)
+        h.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_scene(scene: PTScene, path: Path) -> None:
+    np.savez_compressed(path, **_scene_arrays(scene))
+
+
+def load_scene(path: Path) -> PTScene:
+    with np.load(path) as z:
+        a = {k: z[k] for k in z.files}
+    meshes = tuple(PTMesh(a[f"mesh{i}_vertices"], a[f"mesh{i}_faces"], a[f"mesh{i}_albedo"],
+                          int(a[f"mesh{i}_instance_id"])) for i in range(sum(k.endswith("_faces") for k in a)))
+    lamps = tuple(PTLamp(**{g.name: (float(a[f"lamp{i}_{g.name}"]) if a[f"lamp{i}_{g.name}"].ndim == 0
+                                     else a[f"lamp{i}_{g.name}"]) for g in dataclasses.fields(PTLamp)})
+                  for i in range(sum(k.endswith("_intensity_rgb") for k in a)))
+    scalars = {"width": int, "height": int, "g": float, "surface_z": float, "sky_cone_deg": float}
+    rest = {f.name: (scalars[f.name](a[f.name]) if f.name in scalars else a[f.name])
+            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps")}
+    return PTScene(meshes=meshes, lamps=lamps, **rest)
+
+
+@dataclasses.dataclass(frozen=True)
+class Reference:
+    """Two independent path-traced halves (h, w, 3) float32 linear radiance, each of `spp` samples per pixel."""
+
+    halves: tuple[np.ndarray, np.ndarray]
+    spp: int
+    variant: str
+    seconds: float  # both halves together
+    host: str
+    scene_sha256: str
+
+    @property
+    def mean(self) -> np.ndarray:
+        return (self.halves[0] + self.halves[1]) / 2
+
+
+def render_reference(scene: PTScene, spp: int, variant: str = pathtracer.VARIANT, host: str = "") -> Reference:
+    halves, seconds = [], 0.0
+    for seed in (0, 1):
+        t0 = time.perf_counter()
+        halves.append(pathtracer.render(scene, spp, seed=seed, variant=variant))
+        seconds += time.perf_counter() - t0
+    return Reference(tuple(halves), spp, variant, seconds, host, scene_digest(scene))
+
+
+def budget_spp(scene: PTScene, seconds: float, variant: str) -> int:
+    """Samples per pixel per half that fill about `seconds` for both halves, from one timed call (whole calls)."""
+    per_call = max(1, pathtracer.MAX_SAMPLES_PER_CALL[variant] // (scene.width * scene.height))
+    pathtracer.render(scene, 1, seed=99, variant=variant)  # compiles the kernels
+    t0 = time.perf_counter()
+    pathtracer.render(scene, per_call, seed=98, variant=variant)
+    calls = int(seconds / 2 / max(time.perf_counter() - t0, 1e-3))
+    return per_call * max(1, calls)
+
+
+def save_reference(ref: Reference, path: Path) -> None:
+    meta = {"spp": ref.spp, "variant": ref.variant, "seconds": ref.seconds, "host": ref.host,
+            "scene_sha256": ref.scene_sha256}
+    np.savez_compressed(path, half0=ref.halves[0], half1=ref.halves[1], meta=np.array(json.dumps(meta)))
+
+
+def load_reference(path: Path) -> Reference:
+    with np.load(path) as z:
+        meta = json.loads(str(z["meta"]))
+        return Reference((z["half0"], z["half1"]), **meta)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description="Render DIR/*.scene.npz into DIR/*.ref.npz with Mitsuba 3.")
+    p.add_argument("dir", type=Path)
+    size = p.add_mutually_exclusive_group(required=True)
+    size.add_argument("--spp", type=int, help="samples per pixel of each of the two halves")
+    size.add_argument("--seconds", type=float, help="a time budget per scene: spp from a timed first call")
+    p.add_argument("--variant", default=pathtracer.VARIANT, help="llvm_ad_rgb (CPU) or cuda_ad_rgb (GPU)")
+    p.add_argument("--host", default="", help="a description of the machine, recorded with the reference")
+    p.add_argument("--out", type=Path, help="folder for the references (default: DIR)")
+    args = p.parse_args(argv)
+    out = args.out or args.dir
+    out.mkdir(parents=True, exist_ok=True)
+    for path in sorted(args.dir.glob(f"*{SCENE_SUFFIX}")):
+        name = path.name[: -len(SCENE_SUFFIX)]
+        scene = load_scene(path)
+        spp = args.spp or budget_spp(scene, args.seconds, args.variant)
+        ref = render_reference(scene, spp, args.variant, args.host)
+        save_reference(ref, out / f"{name}{REF_SUFFIX}")
+        print(json.dumps({"config": name, "spp": ref.spp, "seconds": round(ref.seconds, 2)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
