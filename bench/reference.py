@@ -88,19 +88,36 @@ class Reference:
     seconds: float  # both halves together
     host: str
     scene_sha256: str
+    seed_bases: tuple[int, ...] = (0,)  # half k of base s was seeded with 2 s + k
 
     @property
     def mean(self) -> np.ndarray:
         return (self.halves[0] + self.halves[1]) / 2
 
 
-def render_reference(scene: PTScene, spp: int, variant: str = pathtracer.VARIANT, host: str = "") -> Reference:
+def render_reference(scene: PTScene, spp: int, variant: str = pathtracer.VARIANT, host: str = "",
+                     seed_base: int = 0) -> Reference:
     halves, seconds = [], 0.0
-    for seed in (0, 1):
+    for k in (0, 1):
         t0 = time.perf_counter()
-        halves.append(pathtracer.render(scene, spp, seed=seed, variant=variant))
+        halves.append(pathtracer.render(scene, spp, seed=2 * seed_base + k, variant=variant))
         seconds += time.perf_counter() - t0
-    return Reference(tuple(halves), spp, variant, seconds, host, scene_digest(scene))
+    return Reference(tuple(halves), spp, variant, seconds, host, scene_digest(scene), (seed_base,))
+
+
+def merge(a: Reference, b: Reference) -> Reference:
+    """One reference of both renders' samples (each half the spp-weighted mean); they must share the scene and
+    have been seeded apart."""
+    if a.scene_sha256 != b.scene_sha256:
+        raise ValueError("merge: the references were rendered for different scenes")
+    if set(a.seed_bases) & set(b.seed_bases):
+        raise ValueError(f"merge: both used seed bases {sorted(set(a.seed_bases) & set(b.seed_bases))}")
+    n = a.spp + b.spp
+    halves = tuple(((a.spp * x.astype(np.float64) + b.spp * y) / n).astype(np.float32)
+                   for x, y in zip(a.halves, b.halves))
+    variant = a.variant if a.variant == b.variant else f"{a.variant}+{b.variant}"
+    host = a.host if a.host == b.host else f"{a.host}; {b.host}"
+    return Reference(halves, n, variant, a.seconds + b.seconds, host, a.scene_sha256, a.seed_bases + b.seed_bases)
 
 
 def budget_spp(scene: PTScene, seconds: float, variant: str) -> int:
@@ -115,13 +132,14 @@ def budget_spp(scene: PTScene, seconds: float, variant: str) -> int:
 
 def save_reference(ref: Reference, path: Path) -> None:
     meta = {"spp": ref.spp, "variant": ref.variant, "seconds": ref.seconds, "host": ref.host,
-            "scene_sha256": ref.scene_sha256}
+            "scene_sha256": ref.scene_sha256, "seed_bases": list(ref.seed_bases)}
     np.savez_compressed(path, half0=ref.halves[0], half1=ref.halves[1], meta=np.array(json.dumps(meta)))
 
 
 def load_reference(path: Path) -> Reference:
     with np.load(path) as z:
         meta = json.loads(str(z["meta"]))
+        meta["seed_bases"] = tuple(meta.get("seed_bases", (0,)))
         return Reference((z["half0"], z["half1"]), **meta)
 
 
@@ -134,6 +152,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--variant", default=pathtracer.VARIANT, help="llvm_ad_rgb (CPU) or cuda_ad_rgb (GPU)")
     p.add_argument("--host", default="", help="a description of the machine, recorded with the reference")
     p.add_argument("--out", type=Path, help="folder for the references (default: DIR)")
+    p.add_argument("--seed-base", type=int, default=0, help="halves are seeded 2 BASE and 2 BASE + 1")
+    p.add_argument("--merge-with", type=Path, help="a folder of references: each one found is merged in")
     args = p.parse_args(argv)
     out = args.out or args.dir
     out.mkdir(parents=True, exist_ok=True)
@@ -141,9 +161,13 @@ def main(argv: list[str] | None = None) -> None:
         name = path.name[: -len(SCENE_SUFFIX)]
         scene = load_scene(path)
         spp = args.spp or budget_spp(scene, args.seconds, args.variant)
-        ref = render_reference(scene, spp, args.variant, args.host)
+        ref = render_reference(scene, spp, args.variant, args.host, args.seed_base)
+        earlier = args.merge_with / f"{name}{REF_SUFFIX}" if args.merge_with else None
+        if earlier is not None and earlier.exists():
+            ref = merge(load_reference(earlier), ref)
         save_reference(ref, out / f"{name}{REF_SUFFIX}")
-        print(json.dumps({"config": name, "spp": ref.spp, "seconds": round(ref.seconds, 2)}), flush=True)
+        print(json.dumps({"config": name, "spp": ref.spp, "seconds": round(ref.seconds, 2),
+                          "seed_bases": list(ref.seed_bases)}), flush=True)
 
 
 if __name__ == "__main__":

@@ -30,3 +30,34 @@ def test_committed_accuracy_tables_are_of_the_current_scenes_and_meet_the_target
                     and rows[(scene, p)]["psnr_db"] >= default["psnr_db"]], scene
     table = (RESULTS / machine / "accuracy.md").read_text()
     assert all(f"| {s} | {p} | {rows[(s, p)]['ms_per_frame']} | {rows[(s, p)]['psnr_db']} |" in table for s, p in rows)
+
+
+def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stored_references():
+    from bench import fidelity
+    from bench.accuracy import psnr_db
+    from bench.reference import REF_SUFFIX, load_reference
+    from worker.formation import encode_srgb8
+
+    result = json.loads((RESULTS / "cpu" / "fidelity.json").read_text())
+    assert result["configs"] == fidelity.CONFIGS and result["resolution"] == [fidelity.WIDTH, fidelity.HEIGHT]
+    rows = result["rows"]
+    keys = {"config", "water", "light", "preset", "terms", "psnr_db", "mae", "ms_per_frame",
+            "path_tracer_s_per_frame", "noise_floor_db"}
+    assert all(keys <= set(r) for r in rows)
+    table = (RESULTS / "cpu" / "fidelity.md").read_text()
+    for name, text in fidelity.CONFIGS.items():
+        mine = [r for r in rows if r["config"] == name]
+        # Re-run `seasynth bench fidelity` when a configuration's scene changes: the digests must match.
+        assert {r["spec_sha256"] for r in mine} == {spec_digest(fidelity.config_spec(text))}, name
+        assert {(r["preset"], r["terms"]) for r in mine} >= {(p, "full") for p in fidelity.PRESET_NAMES} | {
+            ("default", "paper")}
+        by = {(r["preset"], r["terms"]): r for r in mine}
+        assert by[("default", "full")]["psnr_db"] > by[("default", "paper")]["psnr_db"] + 5, name
+        # The table scored against the stored reference: same render, same noise floor.
+        ref = load_reference(RESULTS / "cpu" / "fidelity-references" / f"{name}{REF_SUFFIX}")
+        assert result["references"][name]["scene_sha256"] == ref.scene_sha256
+        assert result["references"][name]["spp_per_half"] == ref.spp
+        floor = psnr_db(encode_srgb8(ref.halves[0]), encode_srgb8(ref.halves[1]))
+        assert {r["noise_floor_db"] for r in mine} == {round(floor, 2)}, name
+        assert all(f"| {name} | {r['water']} | {r['light']} | {r['depth_m']} | {r['preset']} | {r['terms']} | "
+                   f"{r['psnr_db']} |" in table for r in mine)

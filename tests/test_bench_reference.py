@@ -1,0 +1,55 @@
+"""Stored path-traced references: scenes round-trip through their files with their digest, and merging renders
+weights each by its samples and refuses what cannot be merged."""
+
+import numpy as np
+import pytest
+
+from bench.pathtracer import PTLamp, PTMesh, PTScene
+from bench.reference import Reference, load_reference, load_scene, merge, save_reference, save_scene, scene_digest
+
+
+def scene(**change) -> PTScene:
+    rng = np.random.default_rng(0)
+    mesh = PTMesh(rng.random((5, 3), dtype=np.float32), np.array([[0, 1, 2], [2, 3, 4]], np.uint32),
+                  rng.random((5, 3), dtype=np.float32), 3)
+    lamp = PTLamp(np.array([0.1, 0.2, -1.0]), np.array([0.0, 0.0, -1.0]), 40.0, 20.0, np.array([3.0, 2.0, 1.0]))
+    fields = dict(meshes=(mesh, mesh), K=np.array([[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]]), width=16, height=12,
+                  world_from_cam=np.eye(4), sigma_a=np.array([0.3, 0.05, 0.02]), sigma_s=np.array([0.3, 0.4, 0.5]),
+                  g=0.92, surface_z=10.0, sun_dir_world=np.array([0.0, 0.0, 1.0]),
+                  sun_irradiance_rgb=np.array([1.0, 1.0, 1.0]), sky_radiance_rgb=np.array([0.1, 0.2, 0.3]),
+                  lamps=(lamp,))
+    return PTScene(**{**fields, **change})
+
+
+def test_a_scene_round_trips_through_its_file_with_its_digest(tmp_path):
+    s = scene()
+    save_scene(s, tmp_path / "a.scene.npz")
+    back = load_scene(tmp_path / "a.scene.npz")
+    assert scene_digest(back) == scene_digest(s)
+    assert len(back.meshes) == 2 and back.meshes[1].instance_id == 3 and len(back.lamps) == 1
+    assert back.lamps[0].cutoff_deg == 40.0 and back.width == 16 and back.g == 0.92
+    assert scene_digest(scene(g=0.9)) != scene_digest(s)  # any change of the scene changes its digest
+    assert scene_digest(scene(lamps=())) != scene_digest(s)
+
+
+def ref(value: float, spp: int, seeds, digest="x") -> Reference:
+    h = np.full((2, 2, 3), value, np.float32)
+    return Reference((h, h + 1), spp, "cuda_ad_rgb", 2.0, "gpu", digest, tuple(seeds))
+
+
+def test_merging_weights_each_render_by_its_samples(tmp_path):
+    m = merge(ref(1.0, 100, [0]), ref(4.0, 300, [1]))
+    assert m.spp == 400 and m.seed_bases == (0, 1) and m.seconds == 4.0
+    np.testing.assert_allclose(m.halves[0], 3.25)
+    np.testing.assert_allclose(m.halves[1], 4.25)
+    save_reference(m, tmp_path / "m.ref.npz")
+    back = load_reference(tmp_path / "m.ref.npz")
+    assert back.seed_bases == (0, 1) and back.spp == 400 and back.scene_sha256 == "x"
+    np.testing.assert_array_equal(back.mean, m.mean)
+
+
+def test_merging_refuses_reused_seeds_and_other_scenes():
+    with pytest.raises(ValueError, match="seed bases"):
+        merge(ref(1.0, 10, [0, 2]), ref(1.0, 10, [2]))
+    with pytest.raises(ValueError, match="different scenes"):
+        merge(ref(1.0, 10, [0]), ref(1.0, 10, [1], digest="y"))
