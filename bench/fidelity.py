@@ -25,7 +25,6 @@ from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_dige
 
 WIDTH, HEIGHT = 160, 120
 SEED, FRAME = 7, 3
-REFERENCES = Path("bench/results/cpu/fidelity-references")
 LAMPS = [
     {"offset_m": [-0.35, 0.1, 0.0], "direction": [0.15, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
      "intensity": [3.0, 3.0]},

@@ -161,8 +161,9 @@ def bench_fidelity(
     ] = None,
     spp: Annotated[int, typer.Option("--spp", min=1, help="Path-traced samples per pixel of each half of a "
                                      "reference rendered here (when none is stored).")] = 1024,
-    references: Annotated[Path, typer.Option("--references", help="Stored references (NAME.ref.npz), used "
-                                             "where they match the scene.")] = Path("bench/results/cpu/fidelity-references"),
+    references: Annotated[Path, typer.Option(
+        "--references", help="Stored references (NAME.ref.npz), used where they match the scene.",
+    )] = Path("bench/results/cpu/fidelity-references"),
     export_scenes: Annotated[Optional[Path], typer.Option("--export-scenes", help="Only write each configuration's "
                              "path-tracer scene (NAME.scene.npz) here, for python -m bench.reference.")] = None,
     timing_spp: Annotated[int, typer.Option("--timing-spp", min=1, help="Samples per pixel of the path tracer's "
@@ -178,7 +179,8 @@ def bench_fidelity(
     for c in config or list(CONFIGS):
         name, _, text = c.partition("=")
         if not text and name not in CONFIGS:
-            raise typer.BadParameter(f"unknown configuration {name!r}; pinned: {', '.join(CONFIGS)}", param_hint="--config")
+            raise typer.BadParameter(f"unknown configuration {name!r}; pinned: {', '.join(CONFIGS)}",
+                                     param_hint="--config")
         chosen[name] = text or CONFIGS[name]
         parse_config(chosen[name])
     if export_scenes is not None:
