@@ -117,7 +117,8 @@ def test_the_resolve_shader_is_its_float64_twin_to_one_code(renderer, name):
     open_water, seen = ~np.isfinite(R), np.isfinite(R)
     assert open_water.sum() > 100 and seen.sum() > 1000  # both kinds of sample are in the frame
     if name.startswith("optical-depth"):
-        assert np.all(got8[..., 0] == 0) and np.all(got8[seen, 2] > 20)  # red is gone, blue shows the scene
+        # red is gone; blue shows the scene (its darkest samples, in the sun's shadow, get the sky alone)
+        assert np.all(got8[..., 0] == 0) and np.all(got8[seen, 2] > 10)
     elif name == "zero-scattering":
         assert np.all(image[open_water] == 0.0)  # nothing scattered and no sky in view: open water is black
         assert np.all(got8[seen] > 0)
@@ -204,7 +205,7 @@ def test_the_floor_below_a_ball_loses_the_sun_and_only_there(renderer, b):
     with sun_shadows off, it is lit: albedo E0 exp(-K D) exp(-K range), to J's half-float storage (2^-10)."""
     a = np.array([1e-3, 2e-3, 4e-3])
     albedo = FLOOR.mesh.albedo[0].astype(np.float64)
-    K = a + 0.1 * b
+    K = overhead_sun(a, b, shadows=True).medium.k
     image, R, r = floor_pixels(renderer, overhead_sun(a, b, shadows=True))
     open_image, _, _ = floor_pixels(renderer, overhead_sun(a, b, shadows=False))
     under, away = r < 0.4, (r > 1.0) & np.isfinite(r)

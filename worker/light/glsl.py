@@ -3,6 +3,7 @@ rays (`VOLUME`, the twin of `worker.light.volume`). Terms are compiled in or out
 WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
 
 from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M
+from worker.light.sky import SKY_PHASE_NODES
 from worker.light.volume import MU_SKY
 
 MAX_LAMPS = 4
@@ -17,7 +18,7 @@ NORMAL_OFFSET_PIXELS = 0.5
 UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
     "u_sun_shadow", "u_sun_from_cam", "u_soft_texels", "u_sun_texel_m", "u_pixel_angle", "u_cam_depth",
-    "u_world_from_cam", "u_K_inv",
+    "u_world_from_cam", "u_K_inv", "u_sky_phase",
     *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "from_cam", "shadow", "texel")
       for i in range(MAX_LAMPS)),
 )
@@ -161,6 +162,7 @@ uniform float u_mu_w;
 uniform vec3 u_E0;
 uniform vec3 u_Esky;
 uniform float u_cam_depth;
+uniform float u_sky_phase[{SKY_PHASE_NODES}];   // sky.sky_phase_table
 #if LAMPS > 0
 uniform vec3 u_lamp_pos[LAMPS];
 uniform vec3 u_lamp_dir[LAMPS];
@@ -194,7 +196,10 @@ vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
 #ifdef WITH_SKY
     vec3 L = u_Esky / SNELL_SIN2;
 #ifdef WITH_SCATTER
-    I += u_b * (L * (0.5 * (1.0 - SNELL_COS))) * segment3(u_K / MU_SKY * u_cam_depth, u_K - u_K / MU_SKY * w.z, zs);
+    float xs = (w.z + 1.0) * {0.5 * (SKY_PHASE_NODES - 1)!r};
+    int js = clamp(int(floor(xs)), 0, {SKY_PHASE_NODES - 2});
+    float p_sky = mix(u_sky_phase[js], u_sky_phase[js + 1], xs - float(js));
+    I += u_b * (L * p_sky) * segment3(u_K / MU_SKY * u_cam_depth, u_K - u_K / MU_SKY * w.z, zs);
 #endif
     if (isinf(z) && w.z > SNELL_COS) I += L * exp_neg3(u_K * to_surface);
 #endif

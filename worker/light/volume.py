@@ -4,6 +4,8 @@ Per sample and channel, with K the diffuse attenuation (see `Medium.k`):
 
     I = J exp(-K z) + b * sum_terms P_term E_term integral_0^z' exp(-K t) exp(-k_term depth(t)) dt  + lamps + window
 
+(the sky's P_term is its phase function integrated over Snell's window, `sky.sky_phase`)
+
 depth(t) = D_c - t w_z (camera depth D_c, ray direction w, z up), z' = z cut at the water surface. Each term's
 integral is closed-form (`segment`); a lamp's single scattering is integrated numerically (`lamps.BACKSCATTER_NODES`
 nodes in the equiangular variable).
@@ -17,6 +19,7 @@ import numpy as np
 
 from worker.light import SNELL_CONE_DEG, PhysicalLight
 from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M, profile
+from worker.light.sky import sky_phase, sky_phase_table, window_radiance
 
 MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
 _SMALL = 1e-2  # |alpha z| below this: the series of (1 - exp(-x)) / x to x^3 (truncation < 1e-10)
@@ -66,12 +69,12 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
         total = segment(K / mu_w * cam_depth, K - K / mu_w * w, zs)
         out = out + b * e * (hg(mu_s, m.g) * direct + hg(mu_s, m.g * m.g) * (total - direct))
     if t.scattering and t.sky:
-        L = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
-        scalar = 2 * math.pi * L * (1 - math.cos(math.radians(SNELL_CONE_DEG)))
-        out = out + b * scalar / (4 * math.pi) * segment(K / MU_SKY * cam_depth, K - K / MU_SKY * w, zs)
+        P = sky_phase(wz, sky_phase_table(m.g))[..., None]
+        out = out + b * window_radiance(light.sky_irradiance) * P * segment(
+            K / MU_SKY * cam_depth, K - K / MU_SKY * w, zs)
     if t.sky:
         # Open water looking up through Snell's window sees the sky itself.
-        L = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
+        L = window_radiance(light.sky_irradiance)
         window = (~np.isfinite(z) & (wz > math.cos(math.radians(SNELL_CONE_DEG))))[..., None]
         with np.errstate(divide="ignore", over="ignore"):
             out = out + np.where(window, L * np.exp(-K * np.where(window, to_surface[..., None], 0.0)), 0.0)

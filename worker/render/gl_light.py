@@ -7,6 +7,7 @@ import numpy as np
 
 from worker.light import PhysicalLight
 from worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
+from worker.light.sky import sky_phase_table
 from worker.light.volume import camera_depth
 from worker.render import DrawItem, View
 from worker.render import shadows
@@ -155,6 +156,9 @@ def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -
     _common(GL, locs, light)
     _vec3(GL, locs, "u_sun_world", light.sun_dir_world)
     _set(GL, locs, "u_cam_depth", GL.glUniform1f, camera_depth(light, world_from_cam))
+    if light.terms.sky and light.terms.scattering:
+        table = sky_phase_table(light.medium.g).astype(np.float32)
+        _set(GL, locs, "u_sky_phase", GL.glUniform1fv, len(table), table)
     _set(GL, locs, "u_K_inv", GL.glUniformMatrix3fv, 1, GL.GL_TRUE, np.linalg.inv(view.K).astype(np.float32))
     _set(GL, locs, "u_world_from_cam", GL.glUniformMatrix3fv, 1, GL.GL_TRUE,
          world_from_cam[:3, :3].astype(np.float32))
