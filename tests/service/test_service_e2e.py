@@ -166,6 +166,34 @@ def test_single_frame_equals_the_file_in_its_shard(stack: Stack, client, service
     assert client.get(f"/datasets/{dataset_id}/frames/0", params={"part": "depth"}).status_code == 404
 
 
+PHYSICAL_WATER = {"model": "physical", "jerlov": ["II", "1C"], "depth_m": [6.0, 15.0]}
+TWO_LAMPS = [{"offset_m": [x, 0.1, 0.0], "direction": [-x / 2, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
+              "intensity": [2.5, 4.0]} for x in (-0.4, 0.4)]
+
+
+@pytest.mark.parametrize("lamps", [False, True], ids=["sun", "lamps"])
+def test_physical_light_datasets_equal_local_generate_frame_for_frame(stack: Stack, client, services, tmp_path,
+                                                                     lamps):
+    """The physical model through the service, lit by the sun through the water column or by two lamps on the
+    vehicle (per-sample shading, shadow maps): the fetched dataset is byte for byte a local generate, and a frame
+    served alone is its file in the shard."""
+    lighting = {"sun_intensity": [0.0, 0.0], "ambient": [0.0, 0.0], "lamps": TWO_LAMPS} if lamps else {}
+    spec = tiny_spec(frames=4, shard_size=2, quality="default", water=PHYSICAL_WATER,
+                     **({"lighting": lighting} if lamps else {}))
+    dataset_id = post(client, spec)
+    final = wait_state(client, dataset_id, {"succeeded", "failed"})
+    assert final["state"] == "succeeded", final
+    fetched = tmp_path / "fetched"
+    fetch_dataset(stack.api_url, dataset_id, fetched, progress=False)
+    got = tree(fetched)
+    assert len(got) == 4 * 4 and got == local_generate(spec, tmp_path / "local")
+    meta = json.loads(got["meta/000003.json"])
+    assert meta["water"]["model"] == "physical"
+    assert ("lamp0" in meta["water"]["terms"]) == lamps and ("sun" in meta["water"]["terms"]) != lamps
+    r = client.get(f"/datasets/{dataset_id}/frames/3", params={"part": "image"})
+    assert r.status_code == 200 and r.content == got["image_2/000003.png"]
+
+
 def test_killed_pool_process_reruns_its_shard_exactly_once(stack: Stack, client, services, tmp_path):
     # Larger frames so a shard renders for long enough to be caught mid-way.
     spec = tiny_spec(frames=6, shard_size=3, quality="high", camera={"width": 160, "height": 120},
