@@ -136,8 +136,8 @@ def test_zero_range_is_the_surface_radiance_exactly():
     np.testing.assert_array_equal(volume(J, np.zeros(len(DIRS_CAM)), dw, dc, 10.0, lt), J)
 
 
-def brute_force(J, z, w_world, depth, lt, steps=200_000):
-    """Midpoint integral along one ray of the docstring's formula: J's term, the sun's direct and forward-scattered
+def brute_force(J, z, w_world, depth, lt, steps=400_000):
+    """Midpoint integral along one ray of the docstring's formula: J's term, the sun's (beam and forward-scattered)
     in-scatter, the sky's in-scatter, and the sky seen through Snell's window. (3,) float64."""
     m = lt.medium
     c, K, b = m.a + m.b, m.k, m.b
@@ -152,7 +152,7 @@ def brute_force(J, z, w_world, depth, lt, steps=200_000):
     d = depth - t * w_world[2]
     mu, mu_w = float(w_world @ lt.sun_dir_world), lt.sun_dir_world[2]
     e = math.pi * lt.sun_irradiance
-    sun = e * (hg(mu, m.g) * np.exp(-c * d / mu_w) + hg(mu, m.g**2) * (np.exp(-K * d / mu_w) - np.exp(-c * d / mu_w)))
+    sun = e * hg(mu, m.g) * np.exp(-K * d / mu_w)  # the beam and its forward-scattered light alike
     # the window's light scattered into the ray: the model's tabulated phase integral (checked on its own below)
     sky = L * sky_phase(w_world[2], sky_phase_table(m.g)) * np.exp(-K * d / MU_SKY)
     out = b * ((sun + sky) * np.exp(-K * t)).sum(axis=0) * h

@@ -153,7 +153,6 @@ void main() {
 VOLUME = (
     _COMMON
     + f"""
-uniform vec3 u_c;
 uniform vec3 u_K;
 uniform vec3 u_b;
 uniform float u_g;
@@ -189,9 +188,8 @@ vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
     float zs = min(z, to_surface);
 #if defined(WITH_SCATTER) && defined(WITH_SUN)
     float mu_s = dot(w, u_sun_world);
-    vec3 direct = segment3(u_c / u_mu_w * u_cam_depth, u_K - u_c / u_mu_w * w.z, zs);
     vec3 total = segment3(u_K / u_mu_w * u_cam_depth, u_K - u_K / u_mu_w * w.z, zs);
-    I += u_b * (PI * u_E0) * (hg(mu_s, u_g) * direct + hg(mu_s, u_g * u_g) * (total - direct));
+    I += u_b * (PI * u_E0) * hg(mu_s, u_g) * total;
 #endif
 #ifdef WITH_SKY
     vec3 L = u_Esky / SNELL_SIN2;

@@ -65,9 +65,10 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
         mu_s = np.dot(dirs_world, s)[..., None]
         mu_w = s[2]
         e = math.pi * light.sun_irradiance
-        direct = segment(c / mu_w * cam_depth, K - c / mu_w * w, zs)
+        # The beam and its forward-scattered light (small-angle: still along the sun's refracted direction) scatter
+        # into the ray alike: the whole downwelling sun, attenuated by K, with the phase function's value.
         total = segment(K / mu_w * cam_depth, K - K / mu_w * w, zs)
-        out = out + b * e * (hg(mu_s, m.g) * direct + hg(mu_s, m.g * m.g) * (total - direct))
+        out = out + b * e * hg(mu_s, m.g) * total
     if t.scattering and t.sky:
         P = sky_phase(wz, sky_phase_table(m.g))[..., None]
         out = out + b * window_radiance(light.sky_irradiance) * P * segment(
