@@ -31,6 +31,9 @@ const float NORMAL_OFFSET_TEXELS = {NORMAL_OFFSET_TEXELS!r};
 const float NORMAL_OFFSET_PIXELS = {NORMAL_OFFSET_PIXELS!r};
 const float SNELL_COS = 0.66131187;       // cos(48.6 deg)
 const float SNELL_SIN2 = 0.56266999;      // sin(48.6 deg)^2
+const vec2 SOFT_RING[8] = vec2[8](vec2(1.0, 0.0), vec2(0.70710678, 0.70710678), vec2(0.0, 1.0),
+    vec2(-0.70710678, 0.70710678), vec2(-1.0, 0.0), vec2(-0.70710678, -0.70710678), vec2(0.0, -1.0),
+    vec2(0.70710678, -0.70710678));   // the soft shadow's eight taps round the centre, unit radius
 float exp_neg(float x) {{ return x >= X_MAX ? 0.0 : exp(-x); }}
 vec3 exp_neg3(vec3 x) {{ return vec3(exp_neg(x.x), exp_neg(x.y), exp_neg(x.z)); }}
 float lamp_profile(float cos_axis, vec2 cone) {{   // cone: (beam, cutoff) half angles, radians
@@ -107,21 +110,20 @@ void main() {
     float pixel_m = NORMAL_OFFSET_PIXELS * u_pixel_angle * length(v_pos);
 #ifdef WITH_SUN
     float cos_i = max(dot(n, u_sun_cam), 0.0);
-    vec3 direct = exp_neg3(u_c * (depth / u_mu_w));
     vec3 total = exp_neg3(u_K * (depth / u_mu_w));
-    float v_hard = 1.0, v_soft = 1.0;
 #ifdef WITH_SUN_SHADOW
+    // the unscattered beam's share is shadowed sharply, the forward-scattered rest softly
+    vec3 direct = exp_neg3(u_c * (depth / u_mu_w));
     vec4 q = u_sun_from_cam * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_sun_texel_m + pixel_m), 1.0);
-    v_hard = shadow_tap(u_sun_shadow, q.xyz);
+    float v_hard = shadow_tap(u_sun_shadow, q.xyz);
     vec2 px = vec2(u_soft_texels) / vec2(textureSize(u_sun_shadow, 0));
-    v_soft = v_hard;
-    for (int k = 0; k < 8; ++k) {
-        float ang = 0.785398 * float(k);
-        v_soft += shadow_tap(u_sun_shadow, vec3(q.xy + px * vec2(cos(ang), sin(ang)), q.z));
-    }
+    float v_soft = v_hard;
+    for (int k = 0; k < 8; ++k) v_soft += shadow_tap(u_sun_shadow, vec3(q.xy + px * SOFT_RING[k], q.z));
     v_soft /= 9.0;
-#endif
     E += u_E0 * cos_i * (direct * v_hard + (total - direct) * v_soft);
+#else
+    E += u_E0 * cos_i * total;
+#endif
 #endif
 #ifdef WITH_SKY
     float up = dot(u_world_z.xyz, n);   // world z of the normal
