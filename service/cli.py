@@ -122,6 +122,56 @@ def reproduce(
         typer.echo(str(out / rel))
 
 
+@app.command()
+def export(
+    ctx: typer.Context,
+    dataset: Annotated[Path, typer.Argument(help="A local dataset folder (from generate or fetch).")],
+    fmt: Annotated[str, typer.Option("--format", help="coco or yolo (Ultralytics layout).")],
+    out: Annotated[Path, typer.Option("--out", help="Export folder: new, empty, or an earlier export of the "
+                                      "same format (replaced).")],
+    split: Annotated[str, typer.Option("--split", help="train,val,test fractions (>= 0, summing to 1); a "
+                                       "frame's split is drawn from (dataset seed, frame index) alone.")]
+    = "0.8,0.1,0.1",
+    partial: Annotated[bool, typer.Option("--partial", help="Export the complete frames of an incomplete "
+                                          "dataset.")] = False,
+    distractors: Annotated[bool, typer.Option("--distractors", help="Also label visible distractors "
+                                              "(class 'distractor').")] = False,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Convert a local dataset to COCO or YOLO, split into train/val/test. COCO's masks come from instance/, or
+    are re-rendered (and checked against the dataset's images) when the dataset has none."""
+    from worker.export import FORMATS, parse_split, plan_export, run_export
+
+    if fmt not in FORMATS:
+        raise _bad_option(ctx, "fmt", f"{fmt!r} is not one of {', '.join(FORMATS)}")
+    try:
+        fractions = parse_split(split)
+    except SeasynthError as err:
+        raise _bad_option(ctx, "split", str(err)) from None
+    plan = plan_export(dataset, fmt, fractions, partial=partial, distractors=distractors)
+    if plan.skipped:
+        typer.echo(f"{dataset}: {plan.skipped} incomplete frame(s) skipped (--partial)")
+    if plan.renders_masks:
+        typer.echo(f"{dataset}: no instance/ (or meta/) outputs: re-rendering each frame for its instance masks, "
+                   "checked byte for byte against the dataset's image and labels")
+    try:
+        with _progress(plan.frames, "frames") as bar:
+            task = bar.add_task("export", total=plan.frames)
+            r = run_export(plan, out, on_frames=lambda n: bar.advance(task, n), platform=gl)
+    except KeyboardInterrupt:
+        raise Interrupted(f"{out}: unfinished export (seasynth-export.json says incomplete); the same command "
+                          "completes it") from None
+    per_split = ", ".join(f"{k} {v}" for k, v in r.frames.items())
+    typer.echo(f"{out}: {fmt} export of {sum(r.frames.values())} frames ({per_split}), "
+               f"{r.skipped} incomplete frame(s) skipped")
+
+
+def _bad_option(ctx: typer.Context, name: str, message: str) -> typer.BadParameter:
+    """A usage error naming the option of parameter `name` as click names it ("Invalid value for '--split'")."""
+    param = next(p for p in ctx.command.params if p.name == name)
+    return typer.BadParameter(message, ctx=ctx, param=param)
+
+
 @bench_app.command("throughput")
 def bench_throughput(
     spec: Annotated[Path, typer.Option("--spec", help="Scene spec.")] = Path("examples/urchins.yaml"),

@@ -17,6 +17,11 @@ class OutputError(SeasynthError):
     """An output folder or object that cannot be written; the message names it."""
 
 
+class ExportError(SeasynthError):
+    """A dataset that cannot be exported as asked (missing, incomplete or inconsistent files, a bad split) or an
+    export folder that cannot be written; the message names the file, frame or option at fault."""
+
+
 class RenderError(SeasynthError):
     """The renderer could not start or render; the message says which backend and why."""
 

@@ -1,0 +1,263 @@
+"""Export a local dataset (a `generate` or `fetch` folder) to detector formats: split rule, Exporter protocol, driver.
+
+A format is one module with one Exporter class, registered in FORMATS. The driver reads the dataset's frames one
+at a time (worker.export.dataset), gives each to the exporter with its split, and owns the export folder's record
+and the removal of files an earlier export left that this one does not write.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from service.errors import ExportError
+from service.seeds import frame_rng
+from worker.export.dataset import (
+    DISTRACTOR,
+    DISTRACTOR_NAME,
+    TARGET,
+    Frame,
+    FrameObject,
+    FrameReader,
+    LocalDataset,
+    incompleteness,
+    open_local_dataset,
+    scan_frames,
+)
+from worker.export.files import EXPORT_RECORD, json_bytes, open_export_folder, write_atomic
+
+__all__ = [
+    "DISTRACTOR", "FORMATS", "SPLITS", "STREAM_SPLIT", "TARGET", "ExportInfo", "ExportPlan", "ExportReport",
+    "Exporter", "Frame", "FrameObject", "FrameReader", "LocalDataset", "exporter_for", "open_local_dataset",
+    "parse_split", "plan_export", "run_export", "split_of",
+]
+
+SPLITS = ("train", "val", "test")
+# The split's own stream of SeedSequence([dataset seed, frame index, stream]); far from the frame's streams
+# (service.seeds: 0 scene, 1 noise) so no stream added there later draws the same numbers. ASCII "splt".
+STREAM_SPLIT = 0x73706C74
+SPLIT_SUM_TOLERANCE = 1e-9
+
+FORMATS = ("coco", "yolo")
+
+
+def parse_split(text: str) -> tuple[float, float, float]:
+    """"0.8,0.1,0.1" -> (train, val, test) fractions: three finite numbers >= 0 summing to 1 (within 1e-9)."""
+    parts = [p.strip() for p in str(text).split(",")]
+    if len(parts) != len(SPLITS):
+        raise ExportError(f"split {text!r}: give 3 comma-separated fractions for train,val,test, got {len(parts)}")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        raise ExportError(f"split {text!r}: fractions must be numbers") from None
+    if not all(math.isfinite(v) and v >= 0 for v in values):
+        raise ExportError(f"split {text!r}: fractions must be finite and >= 0")
+    if abs(math.fsum(values) - 1.0) > SPLIT_SUM_TOLERANCE:
+        raise ExportError(f"split {text!r}: fractions must sum to 1, they sum to {math.fsum(values):g}")
+    return values  # type: ignore[return-value]
+
+
+def split_bounds(fractions: tuple[float, float, float]) -> tuple[float, float, float]:
+    """Upper bounds of u for train, val, test: the cumulative fractions, the last nonzero one set to exactly 1.
+
+    So u in [0, 1) always lands in a split of nonzero fraction, whatever the rounding of the sums.
+    """
+    bounds = list(np.cumsum(fractions, dtype=np.float64))
+    last = max(k for k, f in enumerate(fractions) if f > 0)
+    for k in range(last, len(bounds)):
+        bounds[k] = 1.0
+    return tuple(float(b) for b in bounds)  # type: ignore[return-value]
+
+
+def split_of(dataset_seed: int, frame_index: int, fractions: tuple[float, float, float]) -> int:
+    """Index into SPLITS of frame `frame_index`: a pure function of (dataset seed, frame index, fractions).
+
+    u = Generator(PCG64(SeedSequence([dataset_seed, frame_index, STREAM_SPLIT]))).random(), uniform in [0, 1);
+    the frame goes to the first split whose cumulative fraction exceeds u (split_bounds). Nothing else (the
+    shard layout, worker count, other frames, --partial) enters, so a frame's split never changes with them.
+    """
+    u = frame_rng(dataset_seed, frame_index, STREAM_SPLIT).random()
+    return next(k for k, bound in enumerate(split_bounds(fractions)) if u < bound)
+
+
+@dataclass(frozen=True)
+class ExportInfo:
+    """What every exporter is told before the first frame."""
+
+    out: Path  # absolute
+    categories: tuple[str, ...]  # category index -> name: the spec's target class, then "distractor" if asked
+    width: int  # px, every frame's
+    height: int  # px
+    dataset_seed: int
+    spec_sha256: str
+    code_version: str | None  # the dataset's
+    fractions: tuple[float, float, float]  # train, val, test
+
+
+class Exporter(Protocol):
+    """One output format. `add` gets frames in ascending index, each with its split; `finish` writes what
+    spans frames. Every file is written under a temporary name and renamed (worker.export.files)."""
+
+    needs_masks: bool  # whether `add` reads Frame.instance and the objects' pixel counts
+
+    def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
+        """Relative paths (under the export folder) written for frame `name` ("000123") in `split`."""
+        ...
+
+    def begin(self, info: ExportInfo) -> None: ...
+
+    def add(self, frame: Frame, split: str) -> None: ...
+
+    def finish(self) -> None:
+        """Write the files that span frames (COCO's instances_*.json, YOLO's data.yaml)."""
+        ...
+
+    def abort(self) -> None:
+        """Remove the temporary files of an export that stopped early (frame files already placed stay)."""
+        ...
+
+
+def exporter_for(fmt: str) -> Exporter:
+    if fmt == "coco":
+        from worker.export.coco import CocoExporter
+
+        return CocoExporter()
+    if fmt == "yolo":
+        from worker.export.yolo import YoloExporter
+
+        return YoloExporter()
+    raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
+
+
+@dataclass(frozen=True)
+class ExportPlan:
+    """What `run_export` will do: the dataset, the format, and each frame's split."""
+
+    dataset: LocalDataset
+    format: str
+    fractions: tuple[float, float, float]
+    distractors: bool
+    assignment: np.ndarray  # (frames,) int8: index into SPLITS, -1 for a frame left out (incomplete)
+    skipped: int  # incomplete frames left out (only with partial)
+    uses_masks: bool  # the format or --distractors needs instance masks
+    renders_masks: bool  # ... and the dataset has no instance/ (or meta/): they are re-rendered
+
+    @property
+    def frames(self) -> int:
+        return int((self.assignment >= 0).sum())
+
+    @property
+    def categories(self) -> tuple[str, ...]:
+        names = [self.dataset.spec.targets.class_name]
+        return (*names, DISTRACTOR_NAME) if self.distractors else tuple(names)
+
+
+@dataclass(frozen=True)
+class ExportReport:
+    out: Path
+    format: str
+    frames: dict[str, int]  # split -> frames exported
+    skipped: int
+    renders_masks: bool
+
+
+def plan_export(root: Path, fmt: str, fractions: tuple[float, float, float], *, partial: bool = False,
+                distractors: bool = False) -> ExportPlan:
+    """Check the dataset and decide every frame's split; ExportError naming what is missing if it is not whole
+    (unless `partial`: then incomplete frames are left out)."""
+    if fmt not in FORMATS:
+        raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
+    ds = open_local_dataset(Path(root))
+    if distractors and ds.spec.targets.class_name == DISTRACTOR_NAME:
+        raise ExportError(f"{ds.root}: targets.class_name is {DISTRACTOR_NAME!r}, the name distractors get with "
+                          "--distractors; export without --distractors")
+    scan = scan_frames(ds)
+    why = incompleteness(ds, scan)
+    if why is not None and not partial:
+        raise ExportError(f"{why}; pass --partial to export the {scan.frames_complete} complete frames only")
+    assignment = np.full(ds.spec.frames, -1, dtype=np.int8)
+    for i in range(ds.spec.frames):
+        if scan.complete[i]:
+            assignment[i] = split_of(ds.spec.seed, i, fractions)
+    o = ds.spec.outputs
+    needs = exporter_for(fmt).needs_masks or distractors
+    return ExportPlan(dataset=ds, format=fmt, fractions=fractions, distractors=distractors, assignment=assignment,
+                      skipped=ds.spec.frames - scan.frames_complete, uses_masks=needs,
+                      renders_masks=needs and not (o.instance and o.meta))
+
+
+def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] | None = None,
+               platform: str = "egl") -> ExportReport:
+    """Write the export into `out` (absent, empty, or an earlier export of the same format, which it replaces).
+
+    Running it twice writes the same bytes. The record seasynth-export.json says "incomplete" until the end.
+    """
+    out = Path(out).absolute()
+    on_frames = on_frames or (lambda n: None)
+    exporter = exporter_for(plan.format)
+    ds = plan.dataset
+    open_export_folder(out, plan.format)
+    info = ExportInfo(out=out, categories=plan.categories, width=ds.spec.camera.width,
+                      height=ds.spec.camera.height, dataset_seed=ds.spec.seed, spec_sha256=ds.spec_sha256,
+                      code_version=ds.code_version, fractions=plan.fractions)
+    counts = dict.fromkeys(SPLITS, 0)
+    with FrameReader(ds, masks=exporter.needs_masks, distractors=plan.distractors, platform=platform) as reader:
+        exporter.begin(info)
+        try:
+            for index in range(ds.spec.frames):  # not a list of indices: memory stays flat in the frame count
+                k = int(plan.assignment[index])
+                if k < 0:
+                    continue
+                exporter.add(reader.read(index), SPLITS[k])
+                counts[SPLITS[k]] += 1
+                on_frames(1)
+            exporter.finish()
+        except BaseException:
+            exporter.abort()
+            raise
+    remove_stale(out, exporter, plan)
+    write_atomic(out / EXPORT_RECORD, json_bytes({
+        "format": plan.format,
+        "state": "complete",
+        "split": dict(zip(SPLITS, plan.fractions)),
+        "split_rule": "SeedSequence([dataset seed, frame index, STREAM_SPLIT]) uniform vs cumulative fractions",
+        "split_stream": STREAM_SPLIT,
+        "frames": counts,
+        "frames_skipped": plan.skipped,
+        "categories": list(plan.categories),
+        "masks": "re-rendered" if plan.renders_masks else "instance/" if plan.uses_masks else None,
+        "dataset": {"seed": ds.spec.seed, "spec_sha256": ds.spec_sha256, "code_version": ds.code_version,
+                    "renderer": ds.renderer, "record": ds.record_file},
+    }))
+    return ExportReport(out=out, format=plan.format, frames=counts, skipped=plan.skipped,
+                        renders_masks=plan.renders_masks)
+
+
+def remove_stale(out: Path, exporter: Exporter, plan: ExportPlan) -> None:
+    """Delete files in the per-frame folders that this export did not write (an earlier export's other split,
+    frames now left out, temporary files): the folder then holds exactly this export."""
+    frames = plan.dataset.spec.frames
+    for k, split in enumerate(SPLITS):
+        for folder in sorted({Path(p).parent for p in exporter.frame_outputs(split, "000000")}):
+            if not (out / folder).is_dir():
+                continue
+            try:
+                with os.scandir(out / folder) as entries:
+                    for entry in entries:
+                        if entry.is_dir(follow_symlinks=False):
+                            continue  # not something an export writes: left to its owner
+                        stem = entry.name.split(".", 1)[0]
+                        keep = (len(stem) == 6 and stem.isdigit() and int(stem) < frames
+                                and plan.assignment[int(stem)] == k
+                                and f"{folder.as_posix()}/{entry.name}" in exporter.frame_outputs(split, stem))
+                        if not keep:
+                            os.unlink(entry.path)
+            except OSError as err:
+                raise ExportError(f"{out / folder}: cannot remove files of an earlier export "
+                                  f"({err.strerror or err})") from None

@@ -1,0 +1,327 @@
+"""Reading a local dataset for export: its record, which frames are complete, each frame's labels and masks."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from service.errors import AssetError, ExportError, SpecError
+from service.shards import frame_name
+from service.spec import DatasetSpec, parse_spec, spec_digest
+
+LOCAL_RECORD = "seasynth.json"  # written by `seasynth generate` (worker.generate.RECORD)
+FETCHED_RECORD = "manifest.json"  # written by `seasynth fetch`
+MISSING_NAMED = 10  # missing files named in an error; the rest are counted
+
+TARGET, DISTRACTOR = 0, 1  # category indices: the spec's target class, then (with distractors) "distractor"
+DISTRACTOR_NAME = "distractor"
+
+
+@dataclass(frozen=True)
+class LocalDataset:
+    """A dataset folder and what its record says: the spec its frames were made from, and whether it is whole."""
+
+    root: Path
+    spec: DatasetSpec
+    record_file: str  # LOCAL_RECORD or FETCHED_RECORD
+    complete: bool  # the record's claim; the files are checked by scan_frames
+    state: str  # the record's state ("complete", "incomplete", or a service state such as "running")
+    code_version: str | None
+    renderer: str | None
+
+    @property
+    def spec_sha256(self) -> str:
+        return spec_digest(self.spec)
+
+
+def open_local_dataset(root: Path) -> LocalDataset:
+    """The dataset in `root`: a `seasynth generate` folder (seasynth.json) or a fetched one (manifest.json)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ExportError(f"{root}: no such dataset folder")
+    if (root / LOCAL_RECORD).is_file():
+        name = LOCAL_RECORD
+        record = _read_json(root / name)
+        complete = record.get("state") == "complete"
+    elif (root / FETCHED_RECORD).is_file():
+        name = FETCHED_RECORD
+        record = _read_json(root / name)
+        complete = record.get("complete") is True
+    else:
+        raise ExportError(f"{root}: not a seasynth dataset (neither {LOCAL_RECORD} nor {FETCHED_RECORD} is there)")
+    if not isinstance(record.get("spec"), dict):
+        raise ExportError(f"{root / name}: field 'spec' is missing or not a mapping")
+    try:
+        spec = parse_spec(record["spec"], source=f"{root / name}: spec")
+    except SpecError as err:
+        raise ExportError(str(err)) from None
+    if not spec.outputs.labels:
+        raise ExportError(f"{root / name}: spec.outputs.labels is false, so the dataset has no label_2/ to export")
+    return LocalDataset(root=root, spec=spec, record_file=name, complete=complete,
+                        state=str(record.get("state")), code_version=record.get("code_version"),
+                        renderer=record.get("renderer"))
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ExportError(f"{path}: unreadable ({err})") from None
+    if not isinstance(data, dict):
+        raise ExportError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+@dataclass(frozen=True)
+class FrameScan:
+    """Which frames have every file their spec's outputs call for."""
+
+    complete: np.ndarray  # (frames,) bool, one byte per frame (1 MB at the 10^6-frame cap)
+    missing_files: int  # files absent over all frames
+    missing_named: tuple[str, ...]  # the first MISSING_NAMED of them, relative paths in frame order
+
+    @property
+    def frames_complete(self) -> int:
+        return int(self.complete.sum())
+
+
+def scan_frames(ds: LocalDataset) -> FrameScan:
+    """Check every frame's files exist (the rule `generate --resume` uses: a file exists only once whole)."""
+    from worker.pipeline import frame_paths
+
+    complete = np.ones(ds.spec.frames, dtype=bool)
+    missing, named = 0, []
+    for i in range(ds.spec.frames):
+        for rel in frame_paths(ds.spec, i):
+            if not (ds.root / rel).is_file():
+                complete[i] = False
+                missing += 1
+                if len(named) < MISSING_NAMED:
+                    named.append(rel)
+    return FrameScan(complete=complete, missing_files=missing, missing_named=tuple(named))
+
+
+def incompleteness(ds: LocalDataset, scan: FrameScan) -> str | None:
+    """Why the dataset is not whole (what its record says, which files are absent), or None if it is."""
+    absent = ds.spec.frames - scan.frames_complete
+    if ds.complete and absent == 0:
+        return None
+    said = "" if ds.complete else f"{ds.record_file} says it is incomplete (state {ds.state!r})"
+    if absent == 0:
+        return f"{ds.root}: {said}, though every frame's files are there (is a run still writing it?)"
+    more = scan.missing_files - len(scan.missing_named)
+    files = ", ".join(scan.missing_named) + (f" and {more} more" if more else "")
+    return (f"{ds.root}: {said + '; ' if said else ''}{absent} of {ds.spec.frames} frames lack files "
+            f"({scan.missing_files} missing: {files})")
+
+
+@dataclass(frozen=True)
+class FrameObject:
+    """One exported object. box: (left, top, right, bottom), inclusive 0-based pixel indices (KITTI's label_2
+    box, whose pixel i covers [i - 0.5, i + 0.5] in KITTI's centre convention)."""
+
+    category: int  # TARGET or DISTRACTOR
+    box: tuple[int, int, int, int]
+    instance_id: int | None  # the id in the instance image; None when masks were not read
+    pixels: int | None  # visible pixels (the instance id's pixel count); None when masks were not read
+    truncated: float | None  # KITTI's, from the label line; None for distractors (no label line)
+    occluded: int | None  # KITTI's 0..2; None for distractors
+    label_line: int | None  # 0-based line in label_2; None for distractors
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One complete frame, ready for an exporter. Objects: label lines in file order, then distractors (when
+    asked) by ascending instance id."""
+
+    index: int
+    name: str  # KITTI's six-digit stem, "000123"
+    image: Path  # the dataset's image_2 PNG (8-bit sRGB RGB)
+    width: int  # px
+    height: int  # px
+    objects: tuple[FrameObject, ...]
+    instance: np.ndarray | None  # (height, width) uint16 instance ids, 0 = terrain or water; None without masks
+
+
+class FrameReader:
+    """Reads frames of a dataset; with masks, instance ids come from instance/ + meta/, else by re-rendering.
+
+    Re-rendering (a dataset without instance/ or meta/) renders each frame again with outputs.instance and
+    outputs.meta on, in one GL session of this process, and refuses a frame whose re-rendered image_2 PNG or
+    label_2 text differs by one byte from the dataset's (another code version, renderer or user file).
+    """
+
+    def __init__(self, ds: LocalDataset, *, masks: bool, distractors: bool, platform: str = "egl") -> None:
+        self.ds = ds
+        self.masks = masks or distractors  # distractors have no label line: their boxes come from the masks
+        self.distractors = distractors
+        self._platform = platform
+        self._session = None
+        self._stack = contextlib.ExitStack()
+        o = ds.spec.outputs
+        self.renders = self.masks and not (o.instance and o.meta)
+        self._render_spec = ds.spec.model_copy(
+            update={"outputs": o.model_copy(update={"instance": True, "meta": True, "labels": True})}
+        )
+
+    def __enter__(self) -> FrameReader:
+        if self.renders:
+            self._open_session()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._session = None
+        self._stack.close()
+
+    def _open_session(self) -> None:
+        uploaded = [field for field, ref in self.ds.spec.file_refs() if ref.asset_id is not None]
+        if uploaded:
+            raise ExportError(f"{self.ds.root}: no instance/ to take masks from, and its spec names uploaded "
+                              f"assets ({', '.join(uploaded)}) that cannot be re-rendered here; generate it with "
+                              "outputs.instance on")
+        from worker.generate import check_assets
+        from worker.pipeline import RenderSession
+
+        try:
+            check_assets(self.ds.spec)
+        except AssetError as err:
+            raise ExportError(f"{self.ds.root}: cannot re-render its instance masks: {err}") from None
+        self._session = self._stack.enter_context(RenderSession(platform=self._platform))
+
+    def read(self, index: int) -> Frame:
+        """Frame `index` (which must be complete); ExportError naming the file at fault if it is inconsistent."""
+        spec, root, n = self.ds.spec, self.ds.root, frame_name(index)
+        label_path = root / f"label_2/{n}.txt"
+        label_bytes = _read_bytes(label_path)
+        try:
+            label_text = label_bytes.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise ExportError(f"{label_path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+        objects = _label_objects(label_path, label_text, spec.targets.class_name)
+        instance = None
+        if self.masks:
+            if self.renders:
+                instance, meta = self._render(index, label_bytes)
+                where = f"re-rendered instance/{n}.png"
+            else:
+                where = str(root / f"instance/{n}.png")
+                instance, meta = _read_instance(Path(where)), _read_json(root / f"meta/{n}.json")
+            if instance.shape != (spec.camera.height, spec.camera.width):
+                raise ExportError(f"{where}: shape {instance.shape}, the spec says "
+                                  f"{spec.camera.height}x{spec.camera.width} (height x width)")
+            objects = _with_masks(objects, instance, meta, where, label_path, self.distractors)
+        return Frame(index=index, name=n, image=root / f"image_2/{n}.png", width=spec.camera.width,
+                     height=spec.camera.height, objects=tuple(objects), instance=instance)
+
+    def _render(self, index: int, label_bytes: bytes) -> tuple[np.ndarray, dict]:
+        """(instance ids (h, w) uint16, meta) of frame `index` rendered again, once its image and labels are
+        checked to be the dataset's bytes."""
+        n = frame_name(index)
+        try:
+            files = self._session.frame_files(self._render_spec, index)
+        except OSError as err:  # an asset file the session cannot read
+            raise ExportError(f"{self.ds.root}: cannot re-render frame {index}: {err}") from None
+        image = _read_bytes(self.ds.root / f"image_2/{n}.png")
+        for rel, theirs in ((f"image_2/{n}.png", image), (f"label_2/{n}.txt", label_bytes)):
+            if files[rel] != theirs:
+                raise ExportError(
+                    f"{self.ds.root / rel}: the frame re-rendered to obtain its instance masks differs from the "
+                    f"dataset's file, so masks drawn now need not match its pixels (dataset: code version "
+                    f"{self.ds.code_version}, renderer {self.ds.renderer!r}; here: code version "
+                    f"{_code_version()}, renderer {self._session.renderer_name!r}); export it where it was made, "
+                    "or generate it with outputs.instance on"
+                )
+        instance = _decode_instance(files[f"instance/{n}.png"], f"re-rendered instance/{n}.png")
+        return instance, json.loads(files[f"meta/{n}.json"])
+
+
+def _code_version() -> str:
+    import service
+
+    return service.__version__
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as err:
+        raise ExportError(f"{path}: unreadable ({err.strerror or err})") from None
+
+
+def _read_instance(path: Path) -> np.ndarray:
+    return _decode_instance(_read_bytes(path), str(path))
+
+
+def _decode_instance(data: bytes, where: str) -> np.ndarray:
+    """(h, w) uint16 instance ids of a 16-bit greyscale PNG."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            if img.mode != "I;16":
+                raise ExportError(f"{where}: PNG mode {img.mode}, expected 16-bit greyscale (I;16) instance ids")
+            ids = np.asarray(img)
+    except (OSError, UnidentifiedImageError) as err:
+        raise ExportError(f"{where}: cannot decode ({err})") from None
+    return ids.astype(np.uint16, copy=False)
+
+
+def _label_objects(path: Path, text: str, class_name: str) -> list[FrameObject]:
+    """The label_2 lines as objects (no masks yet); boxes must be whole pixel indices of the target class."""
+    from worker.kitti import parse_label_file
+
+    try:
+        parsed = parse_label_file(text)
+    except ValueError as err:
+        raise ExportError(f"{path}: {err}") from None
+    objects = []
+    for k, lab in enumerate(parsed):
+        if lab["type"] != class_name:
+            raise ExportError(f"{path}: line {k + 1} has type {lab['type']!r}, the spec's targets.class_name is "
+                              f"{class_name!r}")
+        box = tuple(int(round(v)) for v in lab["bbox"])
+        if any(b != v for b, v in zip(box, lab["bbox"])) or not (box[0] <= box[2] and box[1] <= box[3]):
+            raise ExportError(f"{path}: line {k + 1} box {lab['bbox']} is not an inclusive box of whole pixels")
+        objects.append(FrameObject(category=TARGET, box=box, instance_id=None, pixels=None,
+                                   truncated=lab["truncated"], occluded=lab["occluded"], label_line=k))
+    return objects
+
+
+def _with_masks(objects: list[FrameObject], instance: np.ndarray, meta: dict, where: str, label_path: Path,
+                distractors: bool) -> list[FrameObject]:
+    """Give each label line its instance id (meta's objects[].label_line) and pixel count, checking that the
+    tight box of that id's pixels is the line's box; then add the visible distractors when asked."""
+    from worker.labels import tight_box_arrays
+
+    ids, boxes, counts = tight_box_arrays(instance)
+    present = {int(i): (tuple(int(v) for v in b), int(c)) for i, b, c in zip(ids, boxes, counts)}
+    try:
+        records = [(int(o["instance_id"]), o["role"], o["label_line"]) for o in meta["objects"]]
+    except (KeyError, TypeError, ValueError) as err:
+        raise ExportError(f"meta/{label_path.stem}.json of {where}: objects lack instance_id, role or "
+                          f"label_line ({err})") from None
+    id_of_line = {line: iid for iid, _, line in records if line is not None}
+    if sorted(id_of_line) != list(range(len(objects))):
+        raise ExportError(f"{label_path}: {len(objects)} lines, but meta's objects name label lines "
+                          f"{sorted(id_of_line)}")
+    out = []
+    for obj in objects:
+        iid = id_of_line[obj.label_line]
+        box, pixels = present.get(iid, (None, 0))
+        if box != obj.box:
+            raise ExportError(f"{label_path}: line {obj.label_line + 1} box {obj.box} is not the tight box "
+                              f"{box} of instance id {iid} in {where}")
+        out.append(FrameObject(category=obj.category, box=obj.box, instance_id=iid, pixels=pixels,
+                               truncated=obj.truncated, occluded=obj.occluded, label_line=obj.label_line))
+    if distractors:
+        for iid, role, _ in sorted(records):
+            if role == "distractor" and iid in present:
+                box, pixels = present[iid]
+                out.append(FrameObject(category=DISTRACTOR, box=box, instance_id=iid, pixels=pixels,
+                                       truncated=None, occluded=None, label_line=None))
+    return out
