@@ -126,7 +126,8 @@ def reproduce(
 def export(
     ctx: typer.Context,
     dataset: Annotated[Path, typer.Argument(help="A local dataset folder (from generate or fetch).")],
-    fmt: Annotated[str, typer.Option("--format", help="coco or yolo (Ultralytics layout).")],
+    fmt: Annotated[str, typer.Option("--format", help="coco, yolo (Ultralytics layout) or mcap (ROS 2 bags; "
+                                     "needs the export extra).")],
     out: Annotated[Path, typer.Option("--out", help="Export folder: new, empty, or an earlier export of the "
                                       "same format (replaced).")],
     split: Annotated[str, typer.Option("--split", help="train,val,test fractions (>= 0, summing to 1); a "

@@ -495,6 +495,7 @@ COMMANDS_OF_OTHER_IMAGES = {
         ("service/cli.py", "bench_fidelity"): {"bench"},
     },
     "worker": {
+        ("worker/export/mcap.py", "_require_mcap"): {"mcap_ros2"},  # the export extra, not in the image
         ("service/cli.py", "serve"): {"api"},
         ("service/cli.py", "reconcile"): {"api"},
         ("service/cli.py", "bench_throughput"): {"bench"},

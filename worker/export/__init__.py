@@ -44,7 +44,7 @@ SPLITS = ("train", "val", "test")
 STREAM_SPLIT = 0x73706C74
 SPLIT_SUM_TOLERANCE = 1e-9
 
-FORMATS = ("coco", "yolo")
+FORMATS = ("coco", "yolo", "mcap")
 
 
 def parse_split(text: str) -> tuple[float, float, float]:
@@ -132,6 +132,10 @@ def exporter_for(fmt: str) -> Exporter:
         from worker.export.yolo import YoloExporter
 
         return YoloExporter()
+    if fmt == "mcap":
+        from worker.export.mcap import McapExporter
+
+        return McapExporter()
     raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
 
 

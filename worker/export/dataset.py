@@ -146,6 +146,11 @@ class Frame:
     height: int  # px
     objects: tuple[FrameObject, ...]
     instance: np.ndarray | None  # (height, width) uint16 instance ids, 0 = terrain or water; None without masks
+    # The frame's other files, for formats that carry the camera or depth (read with camera_projection,
+    # camera_pose, depth_metres); None where the dataset does not have that output.
+    calib: Path | None = None  # calib/{name}.txt
+    meta: Path | None = None  # meta/{name}.json
+    depth: Path | None = None  # depth/{name}.png
 
 
 class FrameReader:
@@ -215,8 +220,11 @@ class FrameReader:
                 raise ExportError(f"{where}: shape {instance.shape}, the spec says "
                                   f"{spec.camera.height}x{spec.camera.width} (height x width)")
             objects = _with_masks(objects, instance, meta, where, label_path, self.distractors)
+        o = spec.outputs
         return Frame(index=index, name=n, image=root / f"image_2/{n}.png", width=spec.camera.width,
-                     height=spec.camera.height, objects=tuple(objects), instance=instance)
+                     height=spec.camera.height, objects=tuple(objects), instance=instance,
+                     calib=root / f"calib/{n}.txt", meta=root / f"meta/{n}.json" if o.meta else None,
+                     depth=root / f"depth/{n}.png" if o.depth else None)
 
     def _render(self, index: int, label_bytes: bytes) -> tuple[np.ndarray, dict]:
         """(instance ids (h, w) uint16, meta) of frame `index` rendered again, once its image and labels are
@@ -238,6 +246,51 @@ class FrameReader:
                 )
         instance = _decode_instance(files[f"instance/{n}.png"], f"re-rendered instance/{n}.png")
         return instance, json.loads(files[f"meta/{n}.json"])
+
+
+def camera_projection(path: Path) -> np.ndarray:
+    """(3, 4) float64 P2 of a calib file: K [I | 0] of the frame's camera, pixels."""
+    from worker.kitti import parse_calib
+
+    try:
+        text = _read_bytes(path).decode("utf-8")
+        p2 = parse_calib(text).get("P2")
+    except (UnicodeDecodeError, ValueError) as err:
+        raise ExportError(f"{path}: not a KITTI calib file ({err})") from None
+    if p2 is None or p2.shape != (3, 4) or not np.isfinite(p2).all():
+        raise ExportError(f"{path}: no finite 12-number P2 line")
+    return p2
+
+
+def camera_pose(path: Path) -> np.ndarray:
+    """(4, 4) float64 world_from_camera (KITTI camera axes: x right, y down, z forward) of a meta file."""
+    try:
+        pose = np.array(_read_json(path)["camera"]["pose_world_from_camera"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ExportError(f"{path}: no camera.pose_world_from_camera ({err})") from None
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise ExportError(f"{path}: camera.pose_world_from_camera is not a finite 4x4 matrix")
+    return pose
+
+
+def depth_metres(path: Path, width: int, height: int) -> np.ndarray:
+    """(height, width) float32 z-depth in metres of a KITTI depth PNG (uint16 metres * 256); NaN where 0."""
+    from PIL import Image, UnidentifiedImageError
+
+    from worker.pipeline import DEPTH_SCALE
+
+    try:
+        with Image.open(io.BytesIO(_read_bytes(path))) as img:
+            if img.mode != "I;16":
+                raise ExportError(f"{path}: PNG mode {img.mode}, expected 16-bit greyscale (I;16) depth")
+            raw = np.asarray(img).astype(np.uint16, copy=False)
+    except (OSError, UnidentifiedImageError) as err:
+        raise ExportError(f"{path}: cannot decode ({err})") from None
+    if raw.shape != (height, width):
+        raise ExportError(f"{path}: shape {raw.shape}, the spec says {height}x{width} (height x width)")
+    depth = raw.astype(np.float32) / np.float32(DEPTH_SCALE)  # exact: 16-bit integers / 2^8
+    depth[raw == 0] = np.nan
+    return depth
 
 
 def _code_version() -> str:

@@ -1,0 +1,281 @@
+"""ROS 2 bag export in MCAP: one OUT/{split}.mcap per split, for replay in Foxglove, rviz2 or `ros2 bag play`.
+
+Written with the PyPI packages mcap and mcap-ros2-support (no ROS install): profile "ros2", CDR messages,
+schemas as ros2msg text (the type's .msg, then each type it uses after a line of 80 "=" and "MSG: pkg/Type",
+as rosbag2 writes them), zstd chunks. Frames come in ascending index; frame i is stamped i / FRAME_RATE_HZ s
+(from 0, the epoch), in every message's header.stamp and as the record's log and publish time. Topics:
+
+  /camera/image/compressed  sensor_msgs/msg/CompressedImage  format "png": the image_2 PNG's bytes as they are
+  /camera/camera_info       sensor_msgs/msg/CameraInfo       K and P (= [K | 0]) from calib's P2, R = I, no
+                                                             distortion (d empty, "plumb_bob")
+  /detections               vision_msgs/msg/Detection2DArray one Detection2D per label line (then distractors):
+                                                             bbox centre and size in pixel-edge coordinates of
+                                                             the KITTI box, one hypothesis (class name, 1.0)
+  /tf                       tf2_msgs/msg/TFMessage           world -> camera, meta's pose_world_from_camera
+                                                             (only when the dataset has meta/)
+  /camera/depth             sensor_msgs/msg/Image            "32FC1" z-depth in metres, NaN where none (only
+                                                             when the dataset has depth/)
+
+Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
+frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate, the split
+and the dataset's seed, spec digest and code version. The same dataset exports to the same bytes (with the same
+mcap and mcap-ros2-support versions, which the file's header names).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.errors import ExportError
+from worker.export import SPLITS, ExportInfo, Frame
+from worker.export.dataset import camera_pose, camera_projection, depth_metres
+from worker.export.files import make_dirs, tmp_name
+
+FRAME_RATE_HZ = 10  # frame i is stamped i / 10 s: frames are independent scenes, so the rate is nominal
+NS_PER_S = 1_000_000_000
+CAMERA_FRAME = "camera"  # optical: x right, y down, z forward (KITTI's camera axes)
+WORLD_FRAME = "world"
+INSTALL_HINT = "pip install -e '.[export]'"
+
+SEPARATOR = "=" * 80
+
+_DEFS = {
+    "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
+    "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
+    "sensor_msgs/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n",
+    "sensor_msgs/Image": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
+                          "uint8 is_bigendian\nuint32 step\nuint8[] data\n"),
+    "sensor_msgs/RegionOfInterest": ("uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\n"
+                                     "bool do_rectify\n"),
+    "sensor_msgs/CameraInfo": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
+                               "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"
+                               "uint32 binning_y\nsensor_msgs/RegionOfInterest roi\n"),
+    "geometry_msgs/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/Point": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/Quaternion": "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n",
+    "geometry_msgs/Pose": "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation\n",
+    "geometry_msgs/PoseWithCovariance": "geometry_msgs/Pose pose\nfloat64[36] covariance\n",
+    "geometry_msgs/Transform": "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation\n",
+    "geometry_msgs/TransformStamped": ("std_msgs/Header header\nstring child_frame_id\n"
+                                       "geometry_msgs/Transform transform\n"),
+    "tf2_msgs/TFMessage": "geometry_msgs/TransformStamped[] transforms\n",
+    "vision_msgs/Point2D": "float64 x\nfloat64 y\n",
+    "vision_msgs/Pose2D": "vision_msgs/Point2D position\nfloat64 theta\n",
+    "vision_msgs/BoundingBox2D": "vision_msgs/Pose2D center\nfloat64 size_x\nfloat64 size_y\n",
+    "vision_msgs/ObjectHypothesis": "string class_id\nfloat64 score\n",
+    "vision_msgs/ObjectHypothesisWithPose": ("vision_msgs/ObjectHypothesis hypothesis\n"
+                                             "geometry_msgs/PoseWithCovariance pose\n"),
+    "vision_msgs/Detection2D": ("std_msgs/Header header\nvision_msgs/ObjectHypothesisWithPose[] results\n"
+                                "vision_msgs/BoundingBox2D bbox\nstring id\n"),
+    "vision_msgs/Detection2DArray": "std_msgs/Header header\nvision_msgs/Detection2D[] detections\n",
+}
+
+
+def _uses(name: str) -> list[str]:
+    """The message types `name`'s definition names, in order of first use, depth first (rosbag2's order)."""
+    out: list[str] = []
+
+    def visit(n: str) -> None:
+        for line in _DEFS[n].splitlines():
+            t = line.split()[0].split("[")[0]
+            if "/" in t and t not in out:
+                out.append(t)
+                visit(t)
+
+    visit(name)
+    return out
+
+
+def msgdef(datatype: str) -> str:
+    """The ros2msg schema text of "pkg/msg/Type": its definition, then every type it uses."""
+    pkg, _, name = datatype.split("/")
+    short = f"{pkg}/{name}"
+    return _DEFS[short] + "".join(f"{SEPARATOR}\nMSG: {t}\n{_DEFS[t]}" for t in _uses(short))
+
+
+# topic -> message type
+IMAGE_TOPIC, INFO_TOPIC, DETECTIONS_TOPIC, TF_TOPIC, DEPTH_TOPIC = (
+    "/camera/image/compressed", "/camera/camera_info", "/detections", "/tf", "/camera/depth")
+TOPICS = {
+    IMAGE_TOPIC: "sensor_msgs/msg/CompressedImage",
+    INFO_TOPIC: "sensor_msgs/msg/CameraInfo",
+    DETECTIONS_TOPIC: "vision_msgs/msg/Detection2DArray",
+    TF_TOPIC: "tf2_msgs/msg/TFMessage",
+    DEPTH_TOPIC: "sensor_msgs/msg/Image",
+}
+
+
+def stamp_ns(index: int) -> int:
+    """Frame `index`'s time in ns: index / FRAME_RATE_HZ s, exactly."""
+    return index * NS_PER_S // FRAME_RATE_HZ
+
+
+def detection_box(box: tuple[int, int, int, int]) -> tuple[float, float, float, float]:
+    """(cx, cy, size_x, size_y) in pixel-edge coordinates (pixel u covers [u, u + 1]) of a KITTI box (left, top,
+    right, bottom) of inclusive pixel indices: cx = (left + right + 1) / 2, size_x = right - left + 1."""
+    left, top, right, bottom = box
+    return ((left + right + 1) / 2, (top + bottom + 1) / 2, float(right - left + 1), float(bottom - top + 1))
+
+
+def rotation_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) unit quaternion of a rotation matrix (Shepperd's method), w >= 0."""
+    r = np.asarray(r, dtype=np.float64)
+    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    k = int(np.argmax([trace, r[0, 0], r[1, 1], r[2, 2]]))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+    elif k == 1:
+        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+    elif k == 2:
+        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
+    q = np.array(q) / np.linalg.norm(q)
+    if q[3] < 0:
+        q = -q
+    return tuple(float(v) + 0.0 for v in q)  # type: ignore[return-value]
+
+
+def _header(ns: int, frame_id: str = CAMERA_FRAME) -> dict:
+    return {"stamp": {"sec": ns // NS_PER_S, "nanosec": ns % NS_PER_S}, "frame_id": frame_id}
+
+
+def _require_mcap() -> Any:
+    try:
+        from mcap_ros2.writer import Writer
+    except ImportError as err:
+        raise ExportError(f"the mcap format needs the packages mcap and mcap-ros2-support ({err}); install them "
+                          f"with: {INSTALL_HINT}") from None
+    return Writer
+
+
+class McapExporter:
+    """Every split gets its bag, with no messages if no frame fell in it."""
+
+    needs_masks = False  # boxes come from label_2 (distractors' from the masks, which the reader adds then)
+
+    def __init__(self) -> None:
+        self._writer_class = _require_mcap()  # here, so a missing package stops the export before it starts
+        self._info: ExportInfo | None = None
+        self._files: dict[str, Any] = {}
+        self._bags: dict[str, Any] = {}
+        self._schemas: dict[str, dict[str, Any]] = {}
+        self._frames: dict[str, int] = {}
+
+    def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
+        return ()  # no per-frame files: every frame goes into OUT/{split}.mcap
+
+    def bag_path(self, split: str) -> Path:
+        return self._info.out / f"{split}.mcap"
+
+    def begin(self, info: ExportInfo) -> None:
+        self._info = info
+        make_dirs(info.out)
+        for split in SPLITS:
+            path = tmp_name(self.bag_path(split))
+            try:
+                f = self._files[split] = open(path, "wb")
+            except OSError as err:
+                self.abort()
+                raise ExportError(f"{path}: cannot write ({err.strerror or err})") from None
+            self._bags[split] = self._writer_class(f)
+            self._schemas[split] = {}
+            self._frames[split] = 0
+
+    def _write(self, split: str, topic: str, message: dict, ns: int, sequence: int) -> None:
+        schemas = self._schemas[split]
+        if topic not in schemas:
+            schemas[topic] = self._bags[split].register_msgdef(TOPICS[topic], msgdef(TOPICS[topic]))
+        self._bags[split].write_message(topic, schemas[topic], message, log_time=ns, publish_time=ns,
+                                        sequence=sequence)
+
+    def add(self, frame: Frame, split: str) -> None:
+        ns, seq = stamp_ns(frame.index), frame.index
+        try:
+            image = frame.image.read_bytes()
+        except OSError as err:
+            raise ExportError(f"{frame.image}: unreadable ({err.strerror or err})") from None
+        self._write(split, IMAGE_TOPIC, {"header": _header(ns), "format": "png", "data": image}, ns, seq)
+
+        p = camera_projection(frame.calib)
+        self._write(split, INFO_TOPIC, {
+            "header": _header(ns), "height": frame.height, "width": frame.width, "distortion_model": "plumb_bob",
+            "d": [], "k": p[:, :3].ravel().tolist(), "r": np.eye(3).ravel().tolist(), "p": p.ravel().tolist(),
+            "binning_x": 0, "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
+        }, ns, seq)
+
+        detections = []
+        for obj in frame.objects:
+            cx, cy, sx, sy = detection_box(obj.box)
+            detections.append({
+                "header": _header(ns),
+                "results": [{"hypothesis": {"class_id": self._info.categories[obj.category], "score": 1.0},
+                             "pose": {"pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                               "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                                      "covariance": [0.0] * 36}}],
+                "bbox": {"center": {"position": {"x": cx, "y": cy}, "theta": 0.0}, "size_x": sx, "size_y": sy},
+                "id": str(obj.instance_id if obj.instance_id is not None else obj.label_line),
+            })
+        self._write(split, DETECTIONS_TOPIC, {"header": _header(ns), "detections": detections}, ns, seq)
+
+        if frame.meta is not None:
+            pose = camera_pose(frame.meta)
+            qx, qy, qz, qw = rotation_quaternion(pose[:3, :3])
+            tx, ty, tz = (float(v) for v in pose[:3, 3])
+            self._write(split, TF_TOPIC, {"transforms": [{
+                "header": _header(ns, WORLD_FRAME), "child_frame_id": CAMERA_FRAME,
+                "transform": {"translation": {"x": tx, "y": ty, "z": tz},
+                              "rotation": {"x": qx, "y": qy, "z": qz, "w": qw}},
+            }]}, ns, seq)
+
+        if frame.depth is not None:
+            depth = depth_metres(frame.depth, frame.width, frame.height)
+            self._write(split, DEPTH_TOPIC, {
+                "header": _header(ns), "height": frame.height, "width": frame.width, "encoding": "32FC1",
+                "is_bigendian": 0, "step": frame.width * 4, "data": depth.astype("<f4").tobytes(),
+            }, ns, seq)
+        self._frames[split] += 1
+
+    def finish(self) -> None:
+        info = self._info
+        for split in SPLITS:
+            bag = self._bags[split]
+            bag.add_metadata("seasynth", {
+                "format": "seasynth KITTI frames as a ROS 2 bag",
+                "frame_rate_hz": str(FRAME_RATE_HZ),
+                "stamp_rule": "frame index / frame_rate_hz seconds from 0",
+                "split": split,
+                "split_fractions": ",".join(repr(float(f)) for f in info.fractions),
+                "frames": str(self._frames[split]),
+                "categories": ",".join(info.categories),
+                "dataset_seed": str(info.dataset_seed),
+                "spec_sha256": info.spec_sha256,
+                "code_version": str(info.code_version),
+                "camera_frame": f"{CAMERA_FRAME} (optical: x right, y down, z forward)",
+            })
+            bag.finish()
+            path = self.bag_path(split)
+            try:
+                self._files.pop(split).close()
+                os.replace(tmp_name(path), path)
+            except OSError as err:
+                raise ExportError(f"{path}: cannot write ({err.strerror or err})") from None
+        self.abort()
+
+    def abort(self) -> None:
+        for f in self._files.values():
+            f.close()
+        self._files.clear()
+        self._bags.clear()
+        if self._info is not None:
+            for split in SPLITS:
+                tmp_name(self.bag_path(split)).unlink(missing_ok=True)
