@@ -121,3 +121,27 @@ def test_sigint_to_group_while_pool_children_start(tmp_path):
     assert not (out / "image_2").exists() or not list((out / "image_2").iterdir())
     stdout, stderr = interrupt(proc, to_group=True)
     assert_interrupted(proc, out, stdout, stderr)
+
+
+def test_a_sigint_while_workers_start_is_not_lost_to_another_thread():
+    """While the pool starts, this thread blocks SIGINT so the workers inherit it blocked. A Ctrl-C then goes to
+    another thread of the process (here a waiting one, like a queue's feeder or the progress bar's): it must still
+    become a KeyboardInterrupt, not be discarded as it was while the disposition was SIG_IGN."""
+    import threading
+
+    from worker.generate import _sigint_blocked_for_children
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # the runner may ignore SIGINT
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _sigint_blocked_for_children():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.2)
+            time.sleep(0.2)  # or it is delivered on leaving
+    finally:
+        stop.set()
+        other.join()
+        signal.signal(signal.SIGINT, previous)

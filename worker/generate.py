@@ -274,7 +274,7 @@ def _run_pool(spec, out, todo, workers, on_frames, platform, pinned, pin) -> str
              for _ in range(workers)]
     renderer, done, finished = "", 0, 0
     try:
-        with _sigint_ignored_by_children():
+        with _sigint_blocked_for_children():
             for p in procs:
                 p.start()
         while finished < workers:
@@ -315,26 +315,33 @@ def _run_pool(spec, out, todo, workers, on_frames, platform, pinned, pin) -> str
 
 
 @contextlib.contextmanager
-def _sigint_ignored_by_children() -> Iterator[None]:
-    """Processes started inside ignore SIGINT from their first instruction, imports included.
+def _sigint_blocked_for_children() -> Iterator[None]:
+    """Processes started inside begin with SIGINT blocked, imports included (a signal mask survives fork and exec),
+    and `_pool_main` ignores it before unblocking: Ctrl-C reaches the whole process group, but only this process
+    acts on it, and it stops the workers.
 
-    Ctrl-C reaches the whole process group; only this process acts on it, and it stops the workers. An ignored
-    disposition survives exec (Python then installs no handler of its own); SIGINT is blocked meanwhile, so one
-    meant for this process is delivered on leaving, not lost.
+    Only this thread's mask changes. Setting SIGINT's disposition to SIG_IGN here instead would lose a Ctrl-C that
+    came meanwhile: another thread of this process (a queue's feeder, the progress bar) would take it and discard
+    it. Blocked, it waits for this thread or is handled by another, and Python raises it in the main thread.
     """
     if threading.current_thread() is not threading.main_thread():  # signals are the main thread's business
         yield
         return
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
+def _ignore_sigint() -> None:
+    """In a pool worker (started with SIGINT blocked): ignore it from now on; a pending one is dropped."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _pool_main(payload: str, out: str, tasks, results, platform: str, pinned: str | None) -> None:
+    _ignore_sigint()
     spec = DatasetSpec.model_validate_json(payload)
     try:
         with RenderSession(platform=platform) as session:
