@@ -167,6 +167,25 @@ def export(
                f"{r.skipped} incomplete frame(s) skipped")
 
 
+@app.command()
+def preview(
+    dataset: Annotated[Path, typer.Argument(help="A local dataset folder (from generate or fetch).")],
+    out: Annotated[Path, typer.Option("--out", help="Contact sheet PNG; the summary table goes next to it "
+                                      "(.md).")],
+    frames: Annotated[int, typer.Option("--frames", min=1, help="Frames on the sheet (the first complete "
+                                        "ones); the summary covers all.")] = 12,
+) -> None:
+    """A contact sheet of the first frames (boxes, depth, instances) and a label summary over every frame."""
+    from worker.preview import make_preview, markdown
+
+    with _progress(0, "frames") as bar:
+        task = bar.add_task("preview", total=None)
+        p = make_preview(dataset, out, frames, on_frames=lambda n: bar.advance(task, n),
+                         on_total=lambda n: bar.update(task, total=n))
+    typer.echo(markdown(p.summary), nl=False)
+    typer.echo(f"{p.sheet}: {p.tiles} of {p.summary.frames} complete frames; summary in {p.table}")
+
+
 def _bad_option(ctx: typer.Context, name: str, message: str) -> typer.BadParameter:
     """A usage error naming the option of parameter `name` as click names it ("Invalid value for '--split'")."""
     param = next(p for p in ctx.command.params if p.name == name)

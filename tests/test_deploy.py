@@ -489,6 +489,7 @@ COMMANDS_OF_OTHER_IMAGES = {
         ("service/cli.py", "generate"): {"worker"},
         ("service/cli.py", "reproduce"): {"worker"},
         ("service/cli.py", "export"): {"worker"},
+        ("service/cli.py", "preview"): {"worker"},
         ("service/cli.py", "worker"): {"worker"},
         ("service/cli.py", "bench_throughput"): {"bench"},
         ("service/cli.py", "bench_accuracy"): {"bench"},
