@@ -7,17 +7,15 @@ import json
 import math
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 from PIL import Image
+from local_datasets import generate_variants, seasynth, tree
 
 from service.errors import ExportError
-from service.spec import load_spec
 from worker import kitti
 from worker.export import (
     SPLITS,
@@ -33,7 +31,7 @@ from worker.export import (
 from worker.export.coco import coco_bbox, instance_runs, rle_counts, rle_string
 from worker.export.files import EXPORT_RECORD
 from worker.export.yolo import YoloExporter
-from worker.generate import RECORD, generate
+from worker.generate import RECORD
 from worker.labels import tight_boxes
 
 pycocotools = pytest.importorskip("pycocotools")
@@ -43,30 +41,17 @@ from pycocotools.coco import COCO  # noqa: E402
 # pycocotools 2.0.11's decode trips numpy 2's copy-keyword deprecation; its output is unaffected.
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation doesn't accept a copy keyword")
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SMALL = {"camera.width": 64, "camera.height": 48, "frames": 8}
 WITH_MASKS = {"outputs.instance": True}
 FRACTIONS = (0.5, 0.25, 0.25)
 SPLIT = "0.5,0.25,0.25"
 
 
-def tree(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
-def seasynth(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True)
-
-
 @pytest.fixture(scope="module")
 def datasets(tmp_path_factory) -> dict[str, Path]:
     """The same frames three ways: with instance/ by one worker, by two workers, and without instance/."""
-    root = tmp_path_factory.mktemp("datasets")
-    made = {}
-    for name, overrides, workers in (("masks", WITH_MASKS, 1), ("masks2", WITH_MASKS, 2), ("plain", {}, 1)):
-        made[name] = root / name
-        generate(load_spec(EXAMPLE, {**SMALL, **overrides}), made[name], workers=workers)
-    return made
+    return generate_variants(tmp_path_factory.mktemp("datasets"), SMALL,
+                             {"masks": (WITH_MASKS, 1), "masks2": (WITH_MASKS, 2), "plain": ({}, 1)})
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -15,11 +14,10 @@ import pytest
 from PIL import Image
 
 from service.errors import ExportError
-from service.spec import load_spec
 from worker import kitti
 from worker.export import SPLITS, plan_export, run_export, split_of
 from worker.export.files import EXPORT_RECORD
-from worker.generate import RECORD, generate
+from worker.generate import RECORD
 
 pytest.importorskip("mcap")
 pytest.importorskip("mcap_ros2")
@@ -27,8 +25,8 @@ from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
 from worker.export.mcap import FRAME_RATE_HZ, detection_box  # noqa: E402
+from local_datasets import generate_variants, seasynth, tree  # noqa: E402
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SMALL = {"camera.width": 64, "camera.height": 48, "frames": 8}
 FRACTIONS = (0.5, 0.25, 0.25)
 TOPICS = {
@@ -40,19 +38,11 @@ TOPICS = {
 }
 
 
-def tree(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
 @pytest.fixture(scope="module")
 def datasets(tmp_path_factory) -> dict[str, Path]:
     """The same frames with depth/ and without."""
-    root = tmp_path_factory.mktemp("datasets")
-    made = {}
-    for name, overrides in (("depth", {"outputs.depth": True}), ("plain", {})):
-        made[name] = root / name
-        generate(load_spec(EXAMPLE, {**SMALL, **overrides}), made[name], workers=1)
-    return made
+    return generate_variants(tmp_path_factory.mktemp("datasets"), SMALL,
+                             {"depth": ({"outputs.depth": True}, 1), "plain": ({}, 1)})
 
 
 @pytest.fixture(scope="module")
@@ -243,8 +233,7 @@ def test_missing_packages_are_named_with_the_install_command(datasets, tmp_path,
 
 
 def test_cli_exports_mcap(datasets, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "service.cli", "export", str(datasets["plain"]), "--format", "mcap",
-                        "--out", str(tmp_path / "cli"), "--split", "0.5,0.25,0.25"], capture_output=True, text=True)
+    r = seasynth("export", datasets["plain"], "--format", "mcap", "--out", tmp_path / "cli", "--split", "0.5,0.25,0.25")
     assert r.returncode == 0, r.stderr
     assert "mcap export of 8 frames" in r.stdout
     check_bags(datasets["plain"], tmp_path / "cli", depth=False)

@@ -140,10 +140,9 @@ def brute_force(J, z, w_world, depth, lt, steps=400_000):
     """Midpoint integral along one ray of the docstring's formula: J's term, the sun's (beam and forward-scattered)
     in-scatter, the sky's in-scatter, and the sky seen through Snell's window. (3,) float64."""
     m = lt.medium
-    c, K, b = m.a + m.b, m.k, m.b
+    K, b = m.k, m.b
     cone = math.radians(SNELL_CONE_DEG)
     cos_area = quad(lambda th: 2 * math.pi * math.sin(th) * math.cos(th), 0, cone)[0]
-    area = quad(lambda th: 2 * math.pi * math.sin(th), 0, cone)[0]
     L = math.pi * lt.sky_irradiance / cos_area  # the window's radiance x pi (J's units) giving that irradiance
     to_surface = depth / w_world[2] if w_world[2] > 0 else math.inf
     end = min(z, to_surface, 60.0 / K.min())

@@ -4,18 +4,15 @@ counts taken again from label_2 and meta/."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
+from local_datasets import generate_variants, seasynth
 
 from service.errors import ExportError
-from service.spec import load_spec
 from worker import kitti
-from worker.generate import generate
 from worker.preview import (
     BOX_COLOURS,
     COLUMNS,
@@ -30,23 +27,15 @@ from worker.preview import (
     tile_origin,
 )
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 W, H, FRAMES = 48, 36, 5
-
-
-def seasynth(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True)
 
 
 @pytest.fixture(scope="module")
 def datasets(tmp_path_factory) -> dict[str, Path]:
     """The same frames with depth/ and instance/, and without."""
-    root = tmp_path_factory.mktemp("datasets")
-    made = {}
-    for name, extra in (("full", {"outputs.depth": True, "outputs.instance": True}), ("plain", {})):
-        made[name] = root / name
-        generate(load_spec(EXAMPLE, {"camera.width": W, "camera.height": H, "frames": FRAMES, **extra}), made[name])
-    return made
+    return generate_variants(tmp_path_factory.mktemp("datasets"), {"camera.width": W, "camera.height": H,
+                                                                    "frames": FRAMES},
+                             {"full": ({"outputs.depth": True, "outputs.instance": True}, 1), "plain": ({}, 1)})
 
 
 def label_truth(ds: Path) -> list[list[dict]]:

@@ -50,7 +50,7 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
     """I for samples: J (..., 3) linear, z (...) metres (+inf: no surface), dirs_world/dirs_cam (..., 3) unit view
     directions in the world (z up) and camera frames. Returns (..., 3) float64."""
     m = light.medium
-    K, c, b = m.k, m.c, m.b
+    K, b = m.k, m.b
     z = np.asarray(z, dtype=np.float64)
     wz = dirs_world[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
