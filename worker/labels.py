@@ -204,14 +204,18 @@ def yaw_matrix(rotation_y: float) -> np.ndarray:
 
 def _length_direction(xz: np.ndarray) -> np.ndarray:
     """Unit (2,) (x, z) direction of the long side of the minimum-area rectangle around xz (n, 2)."""
+    # Centred and scaled to a unit extent: a direction does not depend on scale, and at tiny scales (1e-200 m)
+    # squared edge lengths would underflow to 0.
+    centred = xz - xz.mean(axis=0)
+    extent = np.abs(centred).max()
+    if not extent > 0:
+        return np.array([1.0, 0.0])  # the points coincide
+    xz = centred / extent
     try:
         hull = xz[ConvexHull(xz).vertices]
     except QhullError:
-        # Collinear or a single point: the line's direction (x if the points coincide).
-        centred = xz - xz.mean(axis=0)
-        if not np.any(centred):
-            return np.array([1.0, 0.0])
-        return np.linalg.svd(centred, full_matrices=False)[2][0]
+        # Collinear: the line's direction.
+        return np.linalg.svd(xz, full_matrices=False)[2][0]
     edges = np.roll(hull, -1, axis=0) - hull
     dirs = edges / np.linalg.norm(edges, axis=1, keepdims=True)  # hull vertices are distinct
     normals = np.stack([-dirs[:, 1], dirs[:, 0]], axis=1)
