@@ -201,7 +201,7 @@ def floor_pixels(renderer, lt):
 def test_the_floor_below_a_ball_loses_the_sun_and_only_there(renderer, b):
     """Sun straight above, no sky, no in-scattering. Under the ball (0.1 m inside the umbra's 0.5 m edge, past the
     forward-scattered part's 0.05 m blur) the floor is black: both parts of the sun are shadowed, the unscattered
-    exactly, the forward-scattered one (0 anyway when b = 0) by all nine taps. Away from the ball, and everywhere
+    exactly, the forward-scattered one (0 anyway when b = 0) by the coarse map's filtered tap. Away from the ball, and everywhere
     with sun_shadows off, it is lit: albedo E0 exp(-K D) exp(-K range), to J's half-float storage (2^-10)."""
     a = np.array([1e-3, 2e-3, 4e-3])
     albedo = FLOOR.mesh.albedo[0].astype(np.float64)

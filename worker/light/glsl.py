@@ -17,7 +17,7 @@ NORMAL_OFFSET_PIXELS = 0.5
 
 UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
-    "u_sun_shadow", "u_sun_from_cam", "u_soft_texels", "u_sun_texel_m", "u_pixel_angle", "u_cam_depth",
+    "u_sun_shadow", "u_sun_soft", "u_sun_from_cam", "u_sun_texel_m", "u_sun_soft_texel_m", "u_pixel_angle", "u_cam_depth",
     "u_world_from_cam", "u_K_inv", "u_sky_phase",
     *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "from_cam", "shadow", "texel")
       for i in range(MAX_LAMPS)),
@@ -31,9 +31,6 @@ const float NORMAL_OFFSET_TEXELS = {NORMAL_OFFSET_TEXELS!r};
 const float NORMAL_OFFSET_PIXELS = {NORMAL_OFFSET_PIXELS!r};
 const float SNELL_COS = 0.66131187;       // cos(48.6 deg)
 const float SNELL_SIN2 = 0.56266999;      // sin(48.6 deg)^2
-const vec2 SOFT_RING[8] = vec2[8](vec2(1.0, 0.0), vec2(0.70710678, 0.70710678), vec2(0.0, 1.0),
-    vec2(-0.70710678, 0.70710678), vec2(-1.0, 0.0), vec2(-0.70710678, -0.70710678), vec2(0.0, -1.0),
-    vec2(0.70710678, -0.70710678));   // the soft shadow's eight taps round the centre, unit radius
 float exp_neg(float x) {{ return x >= X_MAX ? 0.0 : exp(-x); }}
 vec3 exp_neg3(vec3 x) {{ return vec3(exp_neg(x.x), exp_neg(x.y), exp_neg(x.z)); }}
 float lamp_profile(float cos_axis, vec2 cone) {{   // cone: (beam, cutoff) half angles, radians
@@ -60,9 +57,10 @@ uniform float u_mu_w;          // its cosine to the vertical
 uniform vec3 u_E0;
 uniform vec3 u_Esky;
 uniform sampler2DShadow u_sun_shadow;
-uniform mat4 u_sun_from_cam;   // shadow-map texture coordinates (xy) and depth (z) from the camera frame
-uniform float u_soft_texels;
+uniform sampler2DShadow u_sun_soft;   // the same view of the sun at a texel of about SOFT_SHADOW_RADIUS_M
+uniform mat4 u_sun_from_cam;   // shadow-map texture coordinates (xy) and depth (z) from the camera frame (both maps)
 uniform float u_sun_texel_m;   // metres per sun-map texel
+uniform float u_sun_soft_texel_m;
 uniform float u_pixel_angle;   // a camera pixel's width in metres per metre of range
 #if LAMPS > 0
 uniform vec3 u_lamp_pos[LAMPS];
@@ -116,10 +114,9 @@ void main() {
     vec3 direct = exp_neg3(u_c * (depth / u_mu_w));
     vec4 q = u_sun_from_cam * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_sun_texel_m + pixel_m), 1.0);
     float v_hard = shadow_tap(u_sun_shadow, q.xyz);
-    vec2 px = vec2(u_soft_texels) / vec2(textureSize(u_sun_shadow, 0));
-    float v_soft = v_hard;
-    for (int k = 0; k < 8; ++k) v_soft += shadow_tap(u_sun_shadow, vec3(q.xy + px * SOFT_RING[k], q.z));
-    v_soft /= 9.0;
+    // one filtered tap of the coarse map: its 2x2 texels' comparisons blend over about a texel's radius
+    vec4 qs = u_sun_from_cam * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_sun_soft_texel_m + pixel_m), 1.0);
+    float v_soft = shadow_tap(u_sun_soft, qs.xyz);
     E += u_E0 * cos_i * (direct * v_hard + (total - direct) * v_soft);
 #else
     E += u_E0 * cos_i * total;
@@ -150,8 +147,9 @@ void main() {
 """
 )
 
-# The resolve shader's per-sample water for the physical model: defines `vec3 water(vec3 J, float z, vec3 w_world,
-# vec3 w_cam)` (z = +inf where no surface).
+# The resolve shader's water for the physical model: defines `void water_pixel(vec3 w_world)`, called once per pixel
+# with its centre's ray, then `vec3 water(vec3 J, float z, vec3 w_world, vec3 w_cam)` per sample (z = +inf where no
+# surface).
 VOLUME = (
     _COMMON
     + f"""
@@ -174,34 +172,55 @@ float hg(float mu, float g) {{
     float d = max(1.0 + g * g - 2.0 * g * mu, 1e-12);
     return (1.0 - g * g) / (4.0 * PI * d * sqrt(d));
 }}
-// integral_0^z exp(-x1 - alpha t) dt, x1 >= 0 and x1 + alpha z >= 0; z = +inf needs alpha > 0.
-float segment(float x1, float alpha, float z) {{
-    if (isinf(z)) return alpha > 0.0 ? exp_neg(x1) / alpha : 0.0;
+// integral_0^z exp(-x1 - alpha t) dt given e1 = exp(-x1), x1 >= 0 and x1 + alpha z >= 0; z = +inf needs alpha > 0.
+float segment(float e1, float x1, float alpha, float z) {{
+    if (isinf(z)) return alpha > 0.0 ? e1 / alpha : 0.0;
     float y = alpha * z;
-    if (abs(y) < 1e-2) return z * exp_neg(x1) * (1.0 - y * (0.5 - y * (1.0 / 6.0 - y * (1.0 / 24.0))));
-    return (exp_neg(x1) - exp_neg(x1 + y)) / alpha;
+    if (abs(y) < 1e-2) return z * e1 * (1.0 - y * (0.5 - y * (1.0 / 6.0 - y * (1.0 / 24.0))));
+    return (e1 - exp_neg(x1 + y)) / alpha;
 }}
-vec3 segment3(vec3 x1, vec3 alpha, float z) {{
-    return vec3(segment(x1.x, alpha.x, z), segment(x1.y, alpha.y, z), segment(x1.z, alpha.z, z));
+// A term scattered into the ray: amp * integral_0^z exp(-x1 - alpha t) dt per channel; all but z are the pixel's.
+struct Inscatter {{ vec3 amp; vec3 x1; vec3 e1; vec3 alpha; }};
+Inscatter inscatter(vec3 amp, float path_cos, float wz) {{
+    vec3 x1 = u_K / path_cos * u_cam_depth;
+    return Inscatter(amp, x1, exp_neg3(x1), u_K - u_K / path_cos * wz);
 }}
-vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
-    vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(u_K * z);
-    float to_surface = w.z > 0.0 ? u_cam_depth / w.z : uintBitsToFloat(0x7F800000u);
-    float zs = min(z, to_surface);
+vec3 inscattered(Inscatter s, float z) {{
+    return s.amp * vec3(segment(s.e1.x, s.x1.x, s.alpha.x, z), segment(s.e1.y, s.x1.y, s.alpha.y, z),
+                        segment(s.e1.z, s.x1.z, s.alpha.z, z));
+}}
+// What water() needs of the pixel's view ray (every sample of a pixel looks along the pixel centre's ray).
+float g_to_surface;
 #if defined(WITH_SCATTER) && defined(WITH_SUN)
-    float mu_s = dot(w, u_sun_world);
-    vec3 total = segment3(u_K / u_mu_w * u_cam_depth, u_K - u_K / u_mu_w * w.z, zs);
-    I += u_b * (PI * u_E0) * hg(mu_s, u_g) * total;
+Inscatter g_sun;
 #endif
-#ifdef WITH_SKY
-    vec3 L = u_Esky / SNELL_SIN2;
-#ifdef WITH_SCATTER
+#if defined(WITH_SCATTER) && defined(WITH_SKY)
+Inscatter g_sky;
+#endif
+void water_pixel(vec3 w) {{
+    g_to_surface = w.z > 0.0 ? u_cam_depth / w.z : uintBitsToFloat(0x7F800000u);
+#if defined(WITH_SCATTER) && defined(WITH_SUN)
+    // the beam and its forward-scattered light scatter into the ray alike (one segment, the beam's phase function)
+    g_sun = inscatter(u_b * (PI * u_E0) * hg(dot(w, u_sun_world), u_g), u_mu_w, w.z);
+#endif
+#if defined(WITH_SCATTER) && defined(WITH_SKY)
     float xs = (w.z + 1.0) * {0.5 * (SKY_PHASE_NODES - 1)!r};
     int js = clamp(int(floor(xs)), 0, {SKY_PHASE_NODES - 2});
     float p_sky = mix(u_sky_phase[js], u_sky_phase[js + 1], xs - float(js));
-    I += u_b * (L * p_sky) * segment3(u_K / MU_SKY * u_cam_depth, u_K - u_K / MU_SKY * w.z, zs);
+    g_sky = inscatter(u_b * (u_Esky / SNELL_SIN2 * p_sky), MU_SKY, w.z);
 #endif
-    if (isinf(z) && w.z > SNELL_COS) I += L * exp_neg3(u_K * to_surface);
+}}
+vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
+    vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(u_K * z);
+    float zs = min(z, g_to_surface);
+#if defined(WITH_SCATTER) && defined(WITH_SUN)
+    I += inscattered(g_sun, zs);
+#endif
+#if defined(WITH_SCATTER) && defined(WITH_SKY)
+    I += inscattered(g_sky, zs);
+#endif
+#ifdef WITH_SKY
+    if (isinf(z) && w.z > SNELL_COS) I += u_Esky / SNELL_SIN2 * exp_neg3(u_K * g_to_surface);
 #endif
 #if defined(WITH_SCATTER) && LAMPS > 0
     float kmin = 1e30;

@@ -77,7 +77,8 @@ def _draw_depth(r, clip_from_world: np.ndarray, items: list[DrawItem], size: int
 
 
 def shadow_maps(r, view: View, items: list[DrawItem], light: PhysicalLight, log: list[str]) -> dict:
-    """Draw the shadow maps the frame's terms need: {"sun": (texture, map_from_cam, clip_from_world) or None,
+    """Draw the shadow maps the frame's terms need: {"sun": (texture, map_from_cam, clip_from_world, coarse
+    texture, its size) or None,
     "lamps": [(texture, map_from_cam), ...]} (map_from_cam: camera frame -> map coordinates, see shadows)."""
     out: dict = {"sun": None, "lamps": []}
     world_from_cam = np.linalg.inv(view.cam_from_world)
@@ -85,7 +86,9 @@ def shadow_maps(r, view: View, items: list[DrawItem], light: PhysicalLight, log:
     if t.sun and t.sun_shadows:
         clip = shadows.sun_clip_from_world(light.sun_dir_world, [it.bounding_sphere() for it in items])
         tex = _draw_depth(r, clip, items, shadows.SUN_MAP_SIZE, 0)
-        out["sun"] = (tex, shadows.texture_from_clip(clip) @ world_from_cam, clip)
+        soft_size = shadows.soft_map_size(clip, SOFT_SHADOW_RADIUS_M)
+        soft = _draw_depth(r, clip, items, soft_size, MAX_LAMPS + 1)
+        out["sun"] = (tex, shadows.texture_from_clip(clip) @ world_from_cam, clip, soft, soft_size)
         log.append("sun shadow")
     for i, lamp in enumerate(light.lamps[: t.lamps]):
         clip_cam = shadows.lamp_clip_from_cam(lamp.position_cam, lamp.direction_cam, lamp.cutoff_rad, view.far)
@@ -131,14 +134,12 @@ def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, 
     _set(GL, locs, "u_pixel_angle", GL.glUniform1f, float(1.0 / min(view.K[0, 0], view.K[1, 1])))
     units = []
     if maps["sun"] is not None:
-        tex, map_from_cam, _ = maps["sun"]
-        units.append(("u_sun_shadow", tex))
+        tex, map_from_cam, clip, soft, soft_size = maps["sun"]
+        units += [("u_sun_shadow", tex), ("u_sun_soft", soft)]
         _set(GL, locs, "u_sun_from_cam", GL.glUniformMatrix4fv, 1, GL.GL_TRUE, map_from_cam.astype(np.float32))
-        # The forward-scattered sun blurs shadows by SOFT_SHADOW_RADIUS_M: that many metres in map texels.
-        clip = maps["sun"][2]
-        texels = SOFT_SHADOW_RADIUS_M * 0.5 * clip[0, :3].dot(clip[0, :3]) ** 0.5 * shadows.SUN_MAP_SIZE
-        _set(GL, locs, "u_soft_texels", GL.glUniform1f, float(texels))
-        _set(GL, locs, "u_sun_texel_m", GL.glUniform1f, float(2.0 / np.linalg.norm(clip[0, :3]) / shadows.SUN_MAP_SIZE))
+        _set(GL, locs, "u_sun_texel_m", GL.glUniform1f, shadows.sun_texel_m(clip, shadows.SUN_MAP_SIZE))
+        # The forward-scattered sun blurs shadows by about SOFT_SHADOW_RADIUS_M, the coarse map's texel.
+        _set(GL, locs, "u_sun_soft_texel_m", GL.glUniform1f, shadows.sun_texel_m(clip, soft_size))
     for i, (tex, map_from_cam) in enumerate(maps["lamps"]):
         units.append((f"u_lamp_shadow[{i}]", tex))
         _set(GL, locs, f"u_lamp_from_cam[{i}]", GL.glUniformMatrix4fv, 1, GL.GL_TRUE, map_from_cam.astype(np.float32))

@@ -138,6 +138,7 @@ void main() {
     // The view ray through the pixel centre (pixel centres at integer coordinates, rows already in image order).
     vec3 w_cam = normalize(u_K_inv * vec3(vec2(px), 1.0));
     vec3 w_world = u_world_from_cam * w_cam;
+    water_pixel(w_world);
 #endif
     for (int dy = 0; dy < SUPERSAMPLE; ++dy) {
         for (int dx = 0; dx < SUPERSAMPLE; ++dx) {

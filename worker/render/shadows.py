@@ -68,6 +68,19 @@ def sun_clip_from_world(sun_dir_world: np.ndarray, spheres: list[tuple[np.ndarra
     return orthographic(lo, hi) @ view
 
 
+def sun_texel_m(clip_from_world: np.ndarray, size: int) -> float:
+    """Metres per texel of a sun map of `size` texels a side drawn with this orthographic clip (the larger side)."""
+    extent = 2.0 / np.linalg.norm(clip_from_world[:2, :3], axis=1)
+    return float(extent.max()) / size
+
+
+def soft_map_size(clip_from_world: np.ndarray, radius_m: float) -> int:
+    """Texels a side of the sun's coarse map, whose filtered tap blurs over about one texel: the power of two whose
+    texel is at most radius_m (at least 16, at most SUN_MAP_SIZE; powers of two keep few targets alive)."""
+    texels = sun_texel_m(clip_from_world, 1) / radius_m
+    return int(min(max(16, 2 ** math.ceil(math.log2(max(texels, 1.0)))), SUN_MAP_SIZE))
+
+
 def _lamp_half_angle(cutoff_rad: float) -> float:
     return min(cutoff_rad + math.radians(2.0), math.radians(85.0))
 
