@@ -246,6 +246,15 @@ class Lamp(_Model):
         return self
 
 
+class Caustics(_Model):
+    """The sun's beam focused by surface waves (water.model physical; worker/light/caustics.py states the model).
+    Off by default. The waves' wavelength (m) and rms slope are drawn per frame."""
+
+    enabled: StrictBool = False
+    wavelength_m: PositiveInterval = (0.3, 1.0)
+    slope: Annotated[PositiveInterval, AfterValidator(lambda v: _in(v, 0, 1))] = (0.05, 0.15)
+
+
 class Lighting(_Model):
     # Elevation above the horizon, in air; at or below 0 the sun is down and its term is not rendered.
     sun_elevation_deg: Annotated[Interval, AfterValidator(lambda v: _in(v, -90, 90))] = (45.0, 85.0)
@@ -256,6 +265,7 @@ class Lighting(_Model):
     ambient: NonNegInterval = (0.15, 0.35)
     # Sun shadows (a shadow map) with water.model physical; lamps always cast shadows there.
     shadows: StrictBool = True
+    caustics: Caustics = Caustics()
     lamps: list[Lamp] = Field(default_factory=list, max_length=MAX_LAMPS)
 
 
@@ -394,6 +404,14 @@ class DatasetSpec(_Model):
                 f"water.depth_m: min {w.depth_m[0]} m puts the surface at or below the top of workspaces.camera "
                 f"(z = {self.workspaces.camera.max[2]} m): the camera must stay under water"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _caustics_need_physical_light(self) -> DatasetSpec:
+        w = self.water
+        if self.lighting.caustics.enabled and not (w.enabled and w.resolved_model == "physical"):
+            raise ValueError("lighting.caustics.enabled: caustics are part of the physical light model; set "
+                             "water.model: physical (with water.enabled: true)")
         return self
 
     @model_validator(mode="after")

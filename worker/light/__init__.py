@@ -70,9 +70,11 @@ class Terms:
     sky: bool  # sky light through Snell's window
     scattering: bool  # in-scattering along view rays (b > 0)
     lamps: int  # lamps rendered (shadowed by their own shadow maps)
+    caustics: bool = False  # the sun's unscattered beam focused by surface waves (lighting.caustics)
 
     def names(self) -> list[str]:
-        out = ["sun"] * self.sun + ["sun_shadows"] * self.sun_shadows + ["sky"] * self.sky
+        out = ["sun"] * self.sun + ["sun_shadows"] * self.sun_shadows + ["caustics"] * self.caustics
+        out += ["sky"] * self.sky
         return out + ["scattering"] * self.scattering + [f"lamp{i}" for i in range(self.lamps)]
 
 
@@ -86,6 +88,7 @@ class PhysicalLight:
     sky_irradiance: np.ndarray  # (3,) sky's irradiance on a horizontal surface just below the surface
     lamps: tuple[Lamp, ...]
     terms: Terms
+    caustics: object = None  # worker.light.caustics.Caustics when terms.caustics
 
     def coefficients(self) -> dict:
         """Every derived coefficient a frame uses, for meta."""
@@ -111,4 +114,5 @@ class PhysicalLight:
                 for lp in self.lamps
             ],
             "terms": self.terms.names(),
+            "caustics": self.caustics.record() if self.terms.caustics else None,
         }

@@ -8,6 +8,7 @@ import numpy as np
 from service.spec import DatasetSpec
 from service.water import jerlov_absorption, jerlov_scattering
 from worker.light import Medium, PhysicalLight, Terms
+from worker.light.caustics import sample_caustics
 from worker.light.lamps import lamp_from_spec
 from worker.light.sun import shadow_worthwhile, sun_in_water
 from worker.render import Lighting
@@ -40,14 +41,23 @@ def sample_physical(
     lamps = tuple(lamp_from_spec(lp, i) for lp, i in zip(spec.lighting.lamps, intensities) if i > 0
                   and max(lp.colour) > 0)
     sun_on = bool(e0.max() > 0)
+    beam_seen = sun_on and shadow_worthwhile(medium.c, depth - top_z, sun_dir[2])  # the unscattered beam matters
+    caustics = None
+    if spec.lighting.caustics.enabled and beam_seen:
+        # Their own stream (a child of the frame's generator, which spawning does not advance): switching caustics
+        # on changes no other draw.
+        crng = rng.spawn(1)[0]
+        cs = spec.lighting.caustics
+        caustics = sample_caustics(crng, float(crng.uniform(*cs.wavelength_m)), float(crng.uniform(*cs.slope)))
     terms = Terms(
         sun=sun_on,
-        sun_shadows=sun_on and spec.lighting.shadows and shadow_worthwhile(medium.c, depth - top_z, sun_dir[2]),
+        sun_shadows=beam_seen and spec.lighting.shadows,
+        caustics=caustics is not None,
         sky=bool(sky.max() > 0),
         scattering=bool(b.max() > 0),
         lamps=len(lamps),
     )
     light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
-                          lamps=lamps, terms=terms)
+                          lamps=lamps, terms=terms, caustics=caustics)
     used = w.absorption is None or w.scattering is None
     return light, kind if used else None

@@ -2,6 +2,7 @@
 rays (`VOLUME`, the twin of `worker.light.volume`). Terms are compiled in or out by defines: WITH_SUN,
 WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
 
+from worker.light import caustics
 from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M
 from worker.light.sky import SKY_PHASE_NODES
 from worker.light.volume import MU_SKY
@@ -18,7 +19,7 @@ NORMAL_OFFSET_PIXELS = 0.5
 UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
     "u_sun_shadow", "u_sun_soft", "u_sun_from_cam", "u_sun_texel_m", "u_sun_soft_texel_m", "u_pixel_angle", "u_cam_depth",
-    "u_world_from_cam", "u_K_inv", "u_sky_phase",
+    "u_world_from_cam", "u_K_inv", "u_sky_phase", "u_world_x", "u_world_y", *caustics.UNIFORMS,
     *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "from_cam", "shadow", "texel")
       for i in range(MAX_LAMPS)),
 )
@@ -78,6 +79,13 @@ layout(location = 1) out float o_range;
 """
     + _COMMON
     + """
+#ifdef WITH_CAUSTICS
+uniform vec4 u_world_x;        // rows x and y of world_from_cam
+uniform vec4 u_world_y;
+"""
+    + caustics.GLSL
+    + """
+#endif
 float shadow_tap(sampler2DShadow map, vec3 p) {
     return (any(lessThan(p.xy, vec2(0.0))) || any(greaterThan(p.xy, vec2(1.0))) || p.z >= 1.0)
         ? 1.0 : texture(map, p);
@@ -109,15 +117,25 @@ void main() {
 #ifdef WITH_SUN
     float cos_i = max(dot(n, u_sun_cam), 0.0);
     vec3 total = exp_neg3(u_K * (depth / u_mu_w));
+#if defined(WITH_SUN_SHADOW) || defined(WITH_CAUSTICS)
+    vec3 direct = exp_neg3(u_c * (depth / u_mu_w));   // the unscattered beam's share
+#endif
+#ifdef WITH_CAUSTICS
+    float focus = caustic_factor(vec3(dot(u_world_x.xyz, v_pos) + u_world_x.w, dot(u_world_y.xyz, v_pos) + u_world_y.w,
+                                      0.0), depth);
+#else
+    float focus = 1.0;
+#endif
 #ifdef WITH_SUN_SHADOW
     // the unscattered beam's share is shadowed sharply, the forward-scattered rest softly
-    vec3 direct = exp_neg3(u_c * (depth / u_mu_w));
     vec4 q = u_sun_from_cam * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_sun_texel_m + pixel_m), 1.0);
     float v_hard = shadow_tap(u_sun_shadow, q.xyz);
     // one filtered tap of the coarse map: its 2x2 texels' comparisons blend over about a texel's radius
     vec4 qs = u_sun_from_cam * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_sun_soft_texel_m + pixel_m), 1.0);
     float v_soft = shadow_tap(u_sun_soft, qs.xyz);
-    E += u_E0 * cos_i * (direct * v_hard + (total - direct) * v_soft);
+    E += u_E0 * cos_i * (direct * (v_hard * focus) + (total - direct) * v_soft);
+#elif defined(WITH_CAUSTICS)
+    E += u_E0 * cos_i * (total + direct * (focus - 1.0));
 #else
     E += u_E0 * cos_i * total;
 #endif

@@ -25,6 +25,7 @@ def defines(light: PhysicalLight) -> dict[str, object]:
     return {
         "WITH_SUN": t.sun,
         "WITH_SUN_SHADOW": t.sun and t.sun_shadows,
+        "WITH_CAUSTICS": t.sun and t.caustics,
         "WITH_SKY": t.sky,
         "WITH_SCATTER": t.scattering,
         "LAMPS": t.lamps,
@@ -131,6 +132,8 @@ def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, 
     _set(GL, locs, "u_world_z", GL.glUniform4f, *row.tolist())
     _set(GL, locs, "u_surface_z", GL.glUniform1f, float(light.medium.surface_z))
     _vec3(GL, locs, "u_sun_cam", view.cam_from_world[:3, :3] @ light.sun_dir_world)
+    if light.terms.caustics:
+        _caustic_uniforms(GL, locs, light, world_from_cam)
     _set(GL, locs, "u_pixel_angle", GL.glUniform1f, float(1.0 / min(view.K[0, 0], view.K[1, 1])))
     units = []
     if maps["sun"] is not None:
@@ -149,6 +152,20 @@ def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, 
         GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
         _set(GL, locs, name, GL.glUniform1i, SHADOW_UNIT + k)
     GL.glActiveTexture(GL.GL_TEXTURE0)
+
+
+def _caustic_uniforms(GL, locs: dict[str, int], light: PhysicalLight, world_from_cam: np.ndarray) -> None:
+    c = light.caustics
+    for name, row in (("u_world_x", 0), ("u_world_y", 1)):
+        _set(GL, locs, name, GL.glUniform4f, *world_from_cam[row].astype(np.float32).tolist())
+    _vec3(GL, locs, "u_sun_world", light.sun_dir_world)
+    for i in range(len(c.phase)):
+        _set(GL, locs, f"u_caustic_k[{i}]", GL.glUniform2f, *c.k[i].astype(np.float32).tolist())
+        _set(GL, locs, f"u_caustic_phase[{i}]", GL.glUniform1f, float(c.phase[i]))
+        _set(GL, locs, f"u_caustic_amp[{i}]", GL.glUniform1f, float(c.amplitude[i]))
+    for name, value in (("u_caustic_norm", c.norm), ("u_caustic_focal", c.focal_depth_m),
+                        ("u_caustic_blur", c.blur_per_m2)):
+        _set(GL, locs, name, GL.glUniform1f, float(value))
 
 
 def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -> None:
