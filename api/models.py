@@ -64,6 +64,13 @@ class DatasetList(BaseModel):
     next: str | None
 
 
+class ManifestExportPart(BaseModel):
+    key: str = Field(description="Object key in the bucket: an uncompressed tar")
+    sha256: str = Field(description="Lowercase hex sha256 of the whole object")
+    bytes: int
+    url: str = Field(description="Presigned GET URL (expires)")
+
+
 class ManifestShard(BaseModel):
     index: int
     key: str = Field(description="Object key in the bucket")
@@ -73,6 +80,11 @@ class ManifestShard(BaseModel):
     bytes: int
     renderer: str
     url: str = Field(description="Presigned GET URL (expires)")
+    exports: dict[str, ManifestExportPart] = Field(
+        default_factory=dict,
+        description="The shard's part of each export format its spec switches on (outputs.coco, yolo, mcap): "
+        "that format's files for the shard's frames, which `seasynth fetch --format` merges",
+    )
 
 
 class ManifestPublic(BaseModel):

@@ -93,8 +93,8 @@ def shard_over_time_limit(spec: DatasetSpec, budget: float) -> str | None:
     terms = spec_cost_terms(spec)
     what = (f"shard_size: {size} frames of {spec.camera.width}x{spec.camera.height} at quality {spec.quality!r} "
             f"(up to {terms['objects']} objects, {terms['terrain_cells']} terrain cells a side, "
-            f"{terms['terrain_builds']} terrains, {terms['extra_outputs']} of clean/range/depth/instance) are estimated "
-            f"at {need:.0f} s per shard, over the limit of {budget} s (the soft task time limit, "
+            f"{terms['terrain_builds']} terrains, {terms['extra_outputs']} of clean/range/depth/instance/coco/yolo/"
+            f"mcap) are estimated at {need:.0f} s per shard, over the limit of {budget} s (the soft task time limit, "
             f"SEASYNTH_TASK_TIME_LIMIT_S)")
     fits = largest_shard_size(spec, budget, below=size)
     if fits == 0:

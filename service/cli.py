@@ -81,7 +81,9 @@ def generate(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the dataset in OUT.")] = False,
     gl: PlatformOpt = "egl",
 ) -> None:
-    """Generate a dataset locally (no servers): image_2/, label_2/, calib/, meta/ and optional outputs."""
+    """Generate a dataset locally (no servers): image_2/, label_2/, calib/, meta/ and optional outputs. The spec's
+    outputs.coco, yolo and mcap are then exported into OUT/export/{format}/ with outputs.split (COCO without
+    outputs.instance renders each frame again for its masks)."""
     if resume and overwrite:
         raise SpecError("--resume and --overwrite exclude each other")
     s = _load(spec, frames, seed, width, height, quality)  # before the renderer's imports: bad specs fail fast
@@ -100,6 +102,18 @@ def generate(
         f"{out}: {report.frames_total} frames ({report.frames_rendered} rendered, "
         f"{report.frames_skipped} already complete) on {report.renderer or 'no renderer needed'}"
     )
+    if s.outputs.exports:
+        from worker.export import export_generated
+
+        try:
+            with _progress(s.frames * len(s.outputs.exports), "export") as bar:
+                task = bar.add_task("export", total=s.frames * len(s.outputs.exports))
+                exports = export_generated(out, on_frames=lambda n: bar.advance(task, n), platform=gl)
+        except KeyboardInterrupt:
+            raise Interrupted(f"{out}: the frames are complete, an export is not; the same command with --resume "
+                              "exports again") from None
+        for r in exports:
+            typer.echo(f"{r.out}: {r.format} export ({', '.join(f'{k} {v}' for k, v in r.frames.items())})")
 
 
 @app.command()
@@ -130,9 +144,10 @@ def export(
                                      "needs the export extra).")],
     out: Annotated[Path, typer.Option("--out", help="Export folder: new, empty, or an earlier export of the "
                                       "same format (replaced).")],
-    split: Annotated[str, typer.Option("--split", help="train,val,test fractions (>= 0, summing to 1); a "
-                                       "frame's split is drawn from (dataset seed, frame index) alone.")]
-    = "0.8,0.1,0.1",
+    split: Annotated[Optional[str], typer.Option("--split", help="train,val,test fractions (>= 0, summing to 1; "
+                                                 "default: the spec's outputs.split, 0.8,0.1,0.1 unless set); a "
+                                                 "frame's split is drawn from (dataset seed, frame index) alone.")]
+    = None,
     partial: Annotated[bool, typer.Option("--partial", help="Export the complete frames of an incomplete "
                                           "dataset.")] = False,
     distractors: Annotated[bool, typer.Option("--distractors", help="Also label visible distractors "
@@ -146,7 +161,7 @@ def export(
     if fmt not in FORMATS:
         raise _bad_option(ctx, "fmt", f"{fmt!r} is not one of {', '.join(FORMATS)}")
     try:
-        fractions = parse_split(split)
+        fractions = None if split is None else parse_split(split)
     except SeasynthError as err:
         raise _bad_option(ctx, "split", str(err)) from None
     plan = plan_export(dataset, fmt, fractions, partial=partial, distractors=distractors)
@@ -174,6 +189,9 @@ def preview(
                                       "(.md).")],
     frames: Annotated[int, typer.Option("--frames", min=1, help="Frames on the sheet (the first complete "
                                         "ones); the summary covers all.")] = 12,
+    tile_width: Annotated[Optional[int], typer.Option("--tile-width", min=1, help="Widest image panel, px "
+                                                      "(default 320): wider frames are scaled down, boxes with "
+                                                      "them.")] = None,
 ) -> None:
     """A contact sheet of the first frames (boxes, depth, instances) and a label summary over every frame."""
     from worker.preview import make_preview, markdown
@@ -181,7 +199,7 @@ def preview(
     with _progress(0, "frames") as bar:
         task = bar.add_task("preview", total=None)
         p = make_preview(dataset, out, frames, on_frames=lambda n: bar.advance(task, n),
-                         on_total=lambda n: bar.update(task, total=n))
+                         on_total=lambda n: bar.update(task, total=n), tile_width=tile_width)
     typer.echo(markdown(p.summary), nl=False)
     typer.echo(f"{p.sheet}: {p.tiles} of {p.summary.frames} complete frames; summary in {p.table}")
 
@@ -205,6 +223,31 @@ def bench_throughput(
     from bench.throughput import run
 
     run(spec, frames=frames, width=width, height=height, out=out, platform=gl)
+
+
+@bench_app.command("scale")
+def bench_scale(
+    spec: Annotated[Path, typer.Option("--spec", help="Scene spec.")] = Path("examples/urchins.yaml"),
+    resolution: Annotated[Optional[list[str]], typer.Option("--resolution", help="WIDTHxHEIGHT (repeatable).")] = None,
+    workers: Annotated[str, typer.Option("--workers", help="Comma-separated worker counts.")] = "1,2",
+    frames_per_worker: Annotated[int, typer.Option("--frames-per-worker", min=4)] = 20,
+    preset: Annotated[str, typer.Option("--preset")] = "default",
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for scale.json, .md and .png.")] = None,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Frames per second against worker processes and resolution through generate, with CPU and GPU utilisation."""
+    from bench.scale import run
+
+    try:
+        sizes = [tuple(int(v) for v in r.lower().split("x")) for r in (resolution or ["640x480"])]
+        counts = [int(v) for v in workers.split(",")]
+    except ValueError:
+        raise typer.BadParameter("--resolution takes WIDTHxHEIGHT and --workers comma-separated integers") from None
+    if any(len(s) != 2 or min(s) < 1 for s in sizes) or min(counts) < 1:
+        raise typer.BadParameter("--resolution takes WIDTHxHEIGHT and --workers counts >= 1")
+    run(spec, resolutions=sizes, workers=counts, frames_per_worker=frames_per_worker, preset=preset, out=out,
+        platform=gl, machine=machine)
 
 
 @bench_app.command("accuracy")
@@ -339,21 +382,36 @@ def reconcile(
 
 @app.command()
 def fetch(
+    ctx: typer.Context,
     dataset_id: Annotated[str, typer.Argument(help="Dataset id (from POST /datasets).")],
     out: Annotated[Path, typer.Option("--out", help="Folder to assemble the KITTI tree in.")],
     api: Annotated[Optional[str], typer.Option("--api", help="API URL [env SEASYNTH_API_URL].")] = None,
     api_key: Annotated[Optional[str], typer.Option("--api-key", help="API key [env SEASYNTH_API_KEY].")] = None,
     parallel: Annotated[int, typer.Option("--parallel", min=1, help="Shards downloaded at once.")] = 4,
     partial: Annotated[bool, typer.Option("--partial", help="Fetch the shards committed so far.")] = False,
+    fmt: Annotated[Optional[str], typer.Option("--format", help="coco, yolo or mcap: merge the shards' parts of "
+                                               "that format (the dataset needs outputs.FORMAT) into one export in "
+                                               "OUT, as `seasynth export` writes it; MCAP: one bag per shard and "
+                                               "split, SPLIT-SHARD.mcap.")] = None,
 ) -> None:
-    """Download a dataset's shards, verify sha256, resume after interruption, and assemble one KITTI tree."""
+    """Download a dataset's shards, verify sha256, resume after interruption, and assemble one KITTI tree (or, with
+    --format, one export of that format)."""
     from service.fetch import fetch_dataset
     from service.settings import Settings
+    from service.spec import EXPORT_FORMATS
 
+    merger = None
+    if fmt is not None:
+        if fmt not in EXPORT_FORMATS:
+            raise _bad_option(ctx, "fmt", f"{fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
+        from worker.export.merge import PartMerger
+
+        merger = PartMerger(fmt)
     s = Settings()
     r = fetch_dataset(api or s.api_url, dataset_id, out, api_key=api_key or s.api_key, parallel=parallel,
-                      partial=partial)
-    typer.echo(f"{out}: {r.shards_total} shards ({r.shards_fetched} fetched, {r.shards_skipped} already "
+                      partial=partial, merger=merger)
+    what = "shards" if fmt is None else f"{fmt} parts"
+    typer.echo(f"{out}: {r.shards_total} {what} ({r.shards_fetched} fetched, {r.shards_skipped} already "
                f"complete), {r.files} files written")
 
 

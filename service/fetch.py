@@ -1,4 +1,5 @@
-"""`seasynth fetch`: download a dataset's shards in parallel, verify sha256, resume, assemble one KITTI tree."""
+"""`seasynth fetch`: download a dataset's shards in parallel, verify sha256, resume, assemble one KITTI tree (or
+merge the shards' parts of an export format into one export)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from service.errors import Conflict, NotFound, OutputError, SeasynthError, Unauthorized, Unavailable
 
@@ -79,14 +80,16 @@ def get_manifest_page(client, url: str, api_url: str, dataset_id: str) -> dict[s
     return r.json()
 
 
-def url_refresher(client, api_url: str, dataset_id: str) -> Callable[[dict[str, Any]], str]:
-    """refresh(shard) -> a new URL for a manifest shard, from the one-shard manifest page at its index."""
+def url_refresher(client, api_url: str, dataset_id: str, fmt: str | None = None) -> Callable[[dict[str, Any]], str]:
+    """refresh(shard) -> a new URL for a manifest shard (or its part of export format `fmt`), from the one-shard
+    manifest page at its index."""
 
     def refresh(shard: dict[str, Any]) -> str:
         url = f"{manifest_url(api_url, dataset_id)}?start={shard['index']}&limit=1"
         for s in get_manifest_page(client, url, api_url, dataset_id)["shards"]:
-            if s["index"] == shard["index"] and s["sha256"] == shard["sha256"]:
-                return s["url"]
+            entry = s if fmt is None else (s.get("exports") or {}).get(fmt, {})
+            if s["index"] == shard["index"] and entry.get("sha256") == shard["sha256"]:
+                return entry["url"]
         raise Unavailable(f"{shard['key']}: no longer in the manifest of {dataset_id} at {api_url}")
 
     return refresh
@@ -163,15 +166,21 @@ def fetch_shard(
     out: Path,
     on_bytes: Callable[[int], None],
     refresh: Callable[[dict[str, Any]], str] | None = None,
+    state: Path | None = None,
+    replace: bool = False,
 ) -> tuple[bool, int]:
-    """Fetch, verify and extract one shard unless its .done marker says so; return (fetched, files).
+    """Fetch, verify and extract one shard (or export part: any object with index, key, url, sha256 and bytes)
+    into `out` unless its .done marker says so; return (fetched, files).
 
     refresh(shard): a new URL for the shard, asked for when the store refuses its URL (presigned URLs expire, and
-    a long download can outlast them); the part already downloaded is kept and continued.
+    a long download can outlast them); the part already downloaded is kept and continued. state: the folder of
+    its .part download and .done marker (default out/STATE_DIR). replace: `out` is this object's alone: what an
+    earlier object left there is removed before extracting.
     """
     import httpx
 
-    state = out / STATE_DIR
+    state = out / STATE_DIR if state is None else state
+    state.mkdir(parents=True, exist_ok=True)
     name = Path(shard["key"]).name
     done = state / f"{name}.done"
     if done.exists() and done.read_text().strip() == shard["sha256"]:
@@ -197,10 +206,27 @@ def fetch_shard(
             part.unlink(missing_ok=True)  # a bad or stale part never gets resumed
             if attempt == ATTEMPTS:
                 raise err if isinstance(err, SeasynthError) else Unavailable(f"{shard['key']}: {err}") from err
+    if replace:
+        shutil.rmtree(out, ignore_errors=True)
     files = extract(part, out)
     done.write_text(shard["sha256"] + "\n")
     part.unlink()
     return True, files
+
+
+class ExportMerger(Protocol):
+    """Turns the fetched export parts of one format into one export folder (worker.export.merge.PartMerger; the
+    CLI passes it, so this module imports no worker code)."""
+
+    format: str
+
+    def prepare(self, out: Path) -> None:
+        """Check `out` may receive the export (before anything is downloaded) and mark it unfinished."""
+        ...
+
+    def merge(self, manifest: dict[str, Any], parts: list[tuple[dict[str, Any], Path]], out: Path) -> int:
+        """Merge (shard entry, folder its part was extracted into) in shard order into `out`; files written."""
+        ...
 
 
 def fetch_dataset(
@@ -212,48 +238,101 @@ def fetch_dataset(
     parallel: int = 4,
     partial: bool = False,
     progress: bool = True,
+    merger: ExportMerger | None = None,
 ) -> FetchReport:
-    """Fetch a finished dataset (or, with partial, the shards committed so far) into `out`."""
+    """Fetch a finished dataset (or, with partial, the shards committed so far) into `out`: its KITTI tree, or
+    with `merger`, the shards' parts of that export format merged into one export (see fetch_export)."""
     import httpx
 
     headers = {"X-API-Key": api_key} if api_key else {}
     with httpx.Client(headers=headers, timeout=httpx.Timeout(60.0, connect=10.0), follow_redirects=True) as api:
-        return _fetch(api, api_url, dataset_id, Path(out), parallel=parallel, partial=partial, progress=progress)
+        man = get_manifest(api, api_url, dataset_id)
+        if not man["complete"] and not partial:
+            raise Conflict(
+                f"dataset {dataset_id} is {man['state']} with {len(man['shards'])} of {man['shards_total']} "
+                "shards committed; wait for it to finish or pass --partial"
+            )
+        if merger is not None:
+            return fetch_export(api, api_url, dataset_id, man, Path(out), merger, parallel=parallel,
+                                progress=progress)
+        return _fetch(api, api_url, dataset_id, man, Path(out), parallel=parallel, progress=progress)
 
 
-def _fetch(api, api_url: str, dataset_id: str, out: Path, *, parallel: int, partial: bool, progress: bool
+def _fetch(api, api_url: str, dataset_id: str, man: dict[str, Any], out: Path, *, parallel: int, progress: bool
            ) -> FetchReport:
-    """fetch_dataset with its API client (kept open: expired shard URLs are asked for again)."""
+    """The KITTI tree, with its API client (kept open: expired shard URLs are asked for again)."""
+    _make_state(out / STATE_DIR)
+    shards = man["shards"]
+    fetched, skipped, files, downloaded = _download_all(api, api_url, dataset_id, shards, out, None,
+                                                        parallel=parallel, progress=progress)
+    public = {k: v for k, v in man.items() if k != "shards"}
+    public["shards"] = [{k: v for k, v in s.items() if k != "url"} for s in shards]
+    (out / "manifest.json").write_text(json.dumps(public, indent=1, sort_keys=True) + "\n")
+    return FetchReport(len(shards), fetched, skipped, downloaded, files)
+
+
+def fetch_export(api, api_url: str, dataset_id: str, man: dict[str, Any], out: Path, merger: ExportMerger, *,
+                 parallel: int, progress: bool) -> FetchReport:
+    """The shards' parts of export format merger.format, each verified by the manifest's sha256 and size and
+    extracted into out/STATE_DIR/{format}/shard-{index}/, then merged into `out` (no KITTI files, no manifest.json:
+    the export's record names the dataset). A dataset generated without outputs.{format} is refused before anything
+    is downloaded. The extracted parts stay (hard links of the export's files where the filesystem allows), so a
+    second run downloads nothing and merges again."""
+    fmt = merger.format
+    outputs = man["spec"].get("outputs") or {}
+    if not outputs.get(fmt):
+        raise Conflict(f"dataset {dataset_id} was generated without outputs.{fmt}, so its shards have no {fmt} "
+                       f"parts; fetch its KITTI tree (no --format) and convert it with `seasynth export DIR --format "
+                       f"{fmt} --out OUT`, or create the dataset again with outputs.{fmt}: true")
+    parts = []
+    for s in man["shards"]:
+        part = (s.get("exports") or {}).get(fmt)
+        if part is None:
+            raise IntegrityError(f"{s['key']}: the manifest of {dataset_id} lists no {fmt} part for shard "
+                                 f"{s['index']}, though its spec has outputs.{fmt}")
+        parts.append({**part, "index": s["index"]})
+    merger.prepare(out)
+    state = out / STATE_DIR / fmt
+    _make_state(state)
+    fetched, skipped, _, downloaded = _download_all(api, api_url, dataset_id, parts, out, fmt, parallel=parallel,
+                                                    progress=progress)
+    files = merger.merge(man, [(s, state / _part_folder(s)) for s in man["shards"]], out)
+    return FetchReport(len(parts), fetched, skipped, downloaded, files)
+
+
+def _part_folder(shard: dict[str, Any]) -> str:
+    return f"shard-{shard['index']:06d}"
+
+
+def _make_state(state: Path) -> None:
+    try:
+        state.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"{state}: cannot create the output folder ({err.strerror or err})") from err
+
+
+def _download_all(api, api_url: str, dataset_id: str, objects: list[dict[str, Any]], out: Path, fmt: str | None, *,
+                  parallel: int, progress: bool) -> tuple[int, int, int, int]:
+    """Fetch every shard (fmt None: into `out`) or export part (into out/STATE_DIR/{fmt}/shard-{index}/) in
+    parallel; (fetched, skipped, files, bytes downloaded)."""
     import httpx
 
-    man = get_manifest(api, api_url, dataset_id)
-    if not man["complete"] and not partial:
-        raise Conflict(
-            f"dataset {dataset_id} is {man['state']} with {len(man['shards'])} of {man['shards_total']} shards "
-            "committed; wait for it to finish or pass --partial"
-        )
-    try:
-        (out / STATE_DIR).mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f"{out}: cannot create the output folder ({err.strerror or err})") from err
-    shards = man["shards"]
-    total_bytes = sum(s["bytes"] for s in shards)
     fetched = skipped = files = 0
-    bar = _Bar(total_bytes, f"{dataset_id[:8]}: {len(shards)} shards", progress)
+    what = "shards" if fmt is None else f"{fmt} parts"
+    bar = _Bar(sum(s["bytes"] for s in objects), f"{dataset_id[:8]}: {len(objects)} {what}", progress)
+    state = None if fmt is None else out / STATE_DIR / fmt
     # Presigned URLs carry their own authorisation: no API key goes to the object store.
     with bar, httpx.Client(timeout=httpx.Timeout(120.0, connect=10.0)) as storage:
         with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
-            refresh = url_refresher(api, api_url, dataset_id)
-            futures = [pool.submit(fetch_shard, storage, s, out, bar.advance, refresh) for s in shards]
+            refresh = url_refresher(api, api_url, dataset_id, fmt)
+            futures = [pool.submit(fetch_shard, storage, s, out if state is None else state / _part_folder(s),
+                                   bar.advance, refresh, state, state is not None) for s in objects]
             for fut in as_completed(futures):
                 got, n = fut.result()
                 fetched += got
                 skipped += not got
                 files += n
-    public = {k: v for k, v in man.items() if k != "shards"}
-    public["shards"] = [{k: v for k, v in s.items() if k != "url"} for s in shards]
-    (out / "manifest.json").write_text(json.dumps(public, indent=1, sort_keys=True) + "\n")
-    return FetchReport(len(shards), fetched, skipped, bar.downloaded, files)
+    return fetched, skipped, files, bar.downloaded
 
 
 class _Bar:

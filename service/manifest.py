@@ -20,8 +20,9 @@ def pending_manifests_key(prefix: str) -> str:
 def build_manifest(
     record: DatasetRecord, commits: list[ShardCommit], url: Callable[[str], str] | None = None
 ) -> dict[str, Any]:
-    """The manifest as a JSON object; `url` adds a download URL per shard (presigned ones expire, so the
-    stored manifest.json has none)."""
+    """The manifest as a JSON object; `url` adds a download URL per shard and export part (presigned ones expire,
+    so the stored manifest.json has none). A shard entry lists its export parts (spec outputs.coco, yolo, mcap) under
+    `exports`: format -> {key, sha256, bytes}; shards of a spec without export formats have no `exports`."""
     shards = []
     for c in sorted(commits, key=lambda c: c.index):
         entry: dict[str, Any] = {
@@ -35,6 +36,11 @@ def build_manifest(
         }
         if url is not None:
             entry["url"] = url(c.key)
+        if c.exports:  # the shard's parts of the spec's export formats, each verified like the tar
+            entry["exports"] = {
+                p.format: {"key": p.key, "sha256": p.sha256, "bytes": p.bytes, **({"url": url(p.key)} if url else {})}
+                for p in c.exports
+            }
         shards.append(entry)
     return {
         "format": MANIFEST_FORMAT,

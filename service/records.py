@@ -5,7 +5,7 @@ Keys (P = settings.key_prefix):
   P:ds:{id}           HASH  the dataset record (spec, seed, versions, state, counters, times)
   P:ds:{id}:done      SET   committed shard indices (SADD makes a retry's commit count once)
   P:ds:{id}:failed    SET   shard indices given up on
-  P:ds:{id}:shards    HASH  shard index -> commit record JSON (key, sha256, bytes, frames, renderer)
+  P:ds:{id}:shards    HASH  shard index -> commit record JSON (key, sha256, bytes, frames, renderer, export parts)
   P:ds:{id}:tries     HASH  shard index -> executions started
   P:ds:{id}:errors    HASH  shard index -> last error
   P:ds:{id}:shown     ZSET  the first ERRORS_SHOWN failed shard indices (score: the index), whose errors a record
@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from service.errors import NotFound
+from service.spec import EXPORT_FORMATS
 
 QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED = "queued", "running", "succeeded", "failed", "cancelled"
 TERMINAL = frozenset({SUCCEEDED, FAILED, CANCELLED})
@@ -137,6 +138,17 @@ class DatasetRecord:
 
 
 @dataclass(frozen=True)
+class ExportPart:
+    """One shard's part of a generate-time export format (spec outputs.coco, yolo, mcap): a tar beside its KITTI
+    tar (service.shards.export_part_key)."""
+
+    format: str  # coco, yolo or mcap
+    key: str
+    sha256: str  # lowercase hex of the whole object
+    bytes: int
+
+
+@dataclass(frozen=True)
 class ShardCommit:
     """What a committed shard's marker says (the manifest's shard entries)."""
 
@@ -148,13 +160,22 @@ class ShardCommit:
     bytes: int
     code_version: str
     renderer: str
+    exports: tuple[ExportPart, ...] = ()  # in service.spec.EXPORT_FORMATS order
 
     def to_json(self) -> str:
-        return json.dumps(self.__dict__, sort_keys=True)
+        """The marker's JSON; `exports` only when there are parts, so markers of shards without stay as they were."""
+        data = {k: v for k, v in self.__dict__.items() if k != "exports"}
+        if self.exports:
+            data["exports"] = {p.format: {"key": p.key, "sha256": p.sha256, "bytes": p.bytes} for p in self.exports}
+        return json.dumps(data, sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str | bytes) -> ShardCommit:
-        return cls(**json.loads(text))
+        data = json.loads(text)
+        parts = data.pop("exports", {})
+        rank = {f: k for k, f in enumerate(EXPORT_FORMATS)}
+        order = sorted(parts, key=lambda f: (rank.get(f, len(rank)), f))
+        return cls(**data, exports=tuple(ExportPart(format=f, **parts[f]) for f in order))
 
 
 class Records:

@@ -1,4 +1,5 @@
-"""Shard planning and the deterministic object keys of a dataset's shards, commit markers and manifest."""
+"""Shard planning and the deterministic object keys of a dataset's shards, export parts, commit markers, manifest
+and previews."""
 
 from __future__ import annotations
 
@@ -35,7 +36,9 @@ OBJECT_S = 0.004  # per placed object and frame: draw, placement, a target's lab
 TERRAIN_CELL_S = 1e-6  # per heightfield cell (cells**2 of them) and frame: drawing it (measured 3e-7)
 TERRAIN_BUILD_CELL_S = 1e-5  # per cell, once per distinct terrain a process draws: build, upload (measured 4.5e-6)
 OUTPUT_SHARE = 0.25  # each of clean, range, depth, instance: this share of the image's sample cost again
-EXTRA_OUTPUTS = ("clean", "range", "depth", "instance")
+# Export formats (outputs.coco, yolo, mcap) count as outputs too: each writes the shard's images again with its
+# labels, and COCO also renders and encodes the instance ids.
+EXTRA_OUTPUTS = ("clean", "range", "depth", "instance", "coco", "yolo", "mcap")
 # A user terrain mesh is costed as the largest heightfield (service/spec.py MAX_TERRAIN_CELLS): its triangle count is
 # unknown before it is loaded.
 MAX_TERRAIN_CELLS_COSTED = 1024
@@ -53,8 +56,8 @@ def frame_seconds(
     """Conservative seconds of one frame on one worker process (terrain builds excluded: see shard_seconds).
 
     objects: the most objects a frame may place (the upper ends of targets.count and distractors.count);
-    terrain_cells: cells per side of the terrain grid; extra_outputs: how many of clean, range, depth and
-    instance are switched on.
+    terrain_cells: cells per side of the terrain grid; extra_outputs: how many of clean, range, depth, instance
+    and the export formats coco, yolo and mcap are switched on.
     """
     samples = width * height * SAMPLES_PER_PIXEL[quality] / SAMPLES_PER_S
     return (FRAME_OVERHEAD_S + samples * (1 + OUTPUT_SHARE * extra_outputs) + OBJECT_S * objects
@@ -152,6 +155,17 @@ def shard_key(dataset_id: str, index: int, compression: str = "none") -> str:
     """The final key of a shard's tar; users fetch everything under datasets/{id}/shards/."""
     suffix = ".tar.gz" if compression == "gz" else ".tar"
     return f"datasets/{dataset_id}/shards/shard-{index:06d}{suffix}"
+
+
+def export_part_key(dataset_id: str, index: int, fmt: str) -> str:
+    """A shard's part of export format `fmt` (coco, yolo, mcap): an uncompressed tar in shards/{fmt}/, beside the
+    KITTI tars and out of their shard-*.tar names."""
+    return f"datasets/{dataset_id}/shards/{fmt}/shard-{index:06d}.tar"
+
+
+def preview_key(dataset_id: str, digest: str) -> str:
+    """A cached contact sheet; `digest` is the sha256 of what it was drawn from (service.previews)."""
+    return f"datasets/{dataset_id}/previews/{digest}.png"
 
 
 def commit_key(dataset_id: str, index: int) -> str:

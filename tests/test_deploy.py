@@ -490,18 +490,20 @@ COMMANDS_OF_OTHER_IMAGES = {
         ("service/cli.py", "reproduce"): {"worker"},
         ("service/cli.py", "export"): {"worker"},
         ("service/cli.py", "preview"): {"worker"},
+        ("service/cli.py", "fetch"): {"worker"},  # --format merges export parts with worker.export
         ("service/cli.py", "worker"): {"worker"},
         ("service/cli.py", "bench_throughput"): {"bench"},
         ("service/cli.py", "bench_accuracy"): {"bench"},
         ("service/cli.py", "bench_fidelity"): {"bench"},
+        ("service/cli.py", "bench_scale"): {"bench"},
     },
     "worker": {
-        ("worker/export/mcap.py", "_require_mcap"): {"mcap_ros2"},  # the export extra, not in the image
         ("service/cli.py", "serve"): {"api"},
         ("service/cli.py", "reconcile"): {"api"},
         ("service/cli.py", "bench_throughput"): {"bench"},
         ("service/cli.py", "bench_accuracy"): {"bench"},
         ("service/cli.py", "bench_fidelity"): {"bench"},
+        ("service/cli.py", "bench_scale"): {"bench"},
     },
 }
 

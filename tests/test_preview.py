@@ -142,3 +142,46 @@ def test_library_refuses_bad_frame_counts_and_names(datasets, tmp_path):
     with pytest.raises(ExportError, match="no such folder"):
         make_preview(datasets["plain"], tmp_path / "missing" / "s.png")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_wide_frames_are_scaled_to_the_tile_width_with_their_boxes(datasets, tmp_path):
+    """Tiles of frames wider than --tile-width are scaled down, and each box outline lands on the pixels its box's
+    edges cover after scaling: exactly those pixels have the box colour in the image panel."""
+    from service.sheet import scale_box, tile_size
+
+    ds, tw = datasets["full"], 24
+    w, h = tile_size(W, H, tw)
+    assert (w, h) == (24, 18)
+    p = make_preview(ds, tmp_path / "sheet.png", frames=FRAMES, tile_width=tw)
+    sheet = np.asarray(Image.open(p.sheet))
+    panel_rows = sum(1 + len(bars) for _, _, bars in summary_rows(p.summary))
+    rows = -(-FRAMES // COLUMNS)
+    assert sheet.shape == (GAP + rows * (HEADER + h + GAP) + GAP + panel_rows * LINE + GAP,
+                           max(GAP + COLUMNS * (3 * w + GAP), PANEL_MIN_WIDTH), 3)
+    colour = np.array(BOX_COLOURS[0], dtype=np.uint8)
+    for k, lines in enumerate(label_truth(ds)):
+        x0, y0 = tile_origin(k, w, h, 3)
+        outline = np.zeros((h, w), dtype=bool)
+        for line in lines:
+            left, top, right, bottom = scale_box(tuple(int(v) for v in line["bbox"]), w / W, h / H, (w, h))
+            outline[top:bottom + 1, [left, right]] = True
+            outline[[top, bottom], left:right + 1] = True
+        assert np.array_equal((sheet[y0:y0 + h, x0:x0 + w] == colour).all(axis=-1), outline)
+        ids = np.asarray(Image.open(ds / f"instance/{k:06d}.png"))
+        inst = sheet[y0:y0 + h, x0 + 2 * w:x0 + 3 * w]
+        # Nearest-neighbour: each scaled pixel takes the id at its centre's place in the frame.
+        nearest = ids[((np.arange(h) + 0.5) * H / h).astype(int)][:, ((np.arange(w) + 0.5) * W / w).astype(int)]
+        assert np.array_equal((inst == 0).all(-1), nearest == 0)
+        for i in np.unique(nearest[nearest > 0]):  # one colour per id, as at native size
+            assert len(np.unique(inst[nearest == i], axis=0)) == 1
+
+
+def test_scale_box_is_exact_at_scale_one_and_keeps_boxes_inside():
+    from service.sheet import scale_box, tile_size
+
+    assert scale_box((3, 4, 10, 20), 1.0, 1.0, (48, 36)) == (3, 4, 10, 20)
+    assert scale_box((0, 0, 0, 0), 0.1, 0.1, (5, 4)) == (0, 0, 0, 0)  # a 1-px box stays one pixel
+    assert scale_box((40, 30, 47, 35), 0.5, 0.5, (24, 18)) == (20, 15, 23, 17)
+    # A 1920x1080 dataset's sheet of 12 frames with depth and instances stays a few thousand pixels wide.
+    w, h = tile_size(1920, 1080)
+    assert (w, h) == (320, 180) and GAP + COLUMNS * (3 * w + GAP) < 4000

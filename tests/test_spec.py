@@ -60,6 +60,10 @@ def test_contract_keys_and_defaults():
         "instance": False,
         "clean": False,
         "range": False,
+        "coco": False,
+        "yolo": False,
+        "mcap": False,
+        "split": (0.8, 0.1, 0.1),
     }
     # The contract names are the keys a spec file uses: each is accepted and read back as written.
     written = {
@@ -67,7 +71,8 @@ def test_contract_keys_and_defaults():
         "frames": 7,
         "shard_size": 3,
         "camera": {"width": 96, "height": 64},
-        "outputs": {"labels": False, "meta": False, "depth": True, "instance": True, "clean": True, "range": True},
+        "outputs": {"labels": False, "meta": False, "depth": True, "instance": True, "clean": True, "range": True,
+                    "coco": False, "yolo": False, "mcap": False, "split": (0.5, 0.25, 0.25)},
     }
     dumped = parse_spec(written).model_dump()
     for key in ("seed", "frames", "shard_size"):
@@ -156,6 +161,14 @@ REFUSED = [
     ({"frame": 10}, "frame", "Extra inputs are not permitted"),
     ({"camera": {"fov": 60}}, "camera.fov", "Extra inputs are not permitted"),
     ({"outputs": {"foo": True}}, "outputs.foo", "Extra inputs are not permitted"),
+    # export formats: labels needed, the split validated as `seasynth export --split` is
+    ({"outputs": {"labels": False, "coco": True}}, "outputs.coco", "needs outputs.labels: true"),
+    ({"outputs": {"yolo": True, "labels": False}}, "outputs.yolo", "needs outputs.labels: true"),
+    ({"outputs": {"mcap": 1}}, "outputs.mcap", "valid boolean"),
+    ({"outputs": {"split": [0.5, 0.6, 0.1]}}, "outputs.split", "fractions must sum to 1, they sum to 1.2"),
+    ({"outputs": {"split": [1.5, -0.5, 0.0]}}, "outputs.split", "fractions must be finite and >= 0"),
+    ({"outputs": {"split": [0.5, 0.5]}}, "outputs.split.2", "Field required"),
+    ({"outputs": {"split": [1.0, math.nan, 0.0]}}, "outputs.split.1", "finite number"),
     ({"targets": {"assets": [{"procedural": "urchin", "colour": "red"}]}}, "targets.assets.0.colour", "Extra inputs"),
     # unknown names
     ({"water": {"jerlov": ["II", "9Z"]}}, "water.jerlov", "unknown Jerlov type '9Z'"),
@@ -584,3 +597,13 @@ def test_cli_refuses_an_unwritable_output_folder_with_exit_1(cli_runs):
     assert code == 1, stderr
     assert stderr.startswith(f"error: {out}: cannot create or list the output folder")
     assert not out.exists()
+
+
+def test_export_outputs_default_off_and_leave_digests_alone():
+    """outputs.coco, yolo, mcap and split are new fields at their defaults: a spec written before them keeps its
+    digest (and so its dataset records), and `exports` lists the formats switched on in a fixed order."""
+    assert DatasetSpec().outputs.exports == ()
+    assert spec_digest(parse_spec({"outputs": {"coco": False, "split": [0.8, 0.1, 0.1]}})) == spec_digest(DatasetSpec())
+    on = parse_spec({"outputs": {"mcap": True, "coco": True, "split": [1, 0, 0]}})
+    assert on.outputs.exports == ("coco", "mcap") and on.outputs.split == (1.0, 0.0, 0.0)
+    assert spec_digest(on) != spec_digest(DatasetSpec())

@@ -18,6 +18,7 @@ from typing import Literal
 import service
 from service.errors import OutputError, SeasynthError
 from service.spec import DatasetSpec, spec_digest
+from worker.export import GENERATED_EXPORTS
 from worker.pipeline import RenderSession, frame_paths
 
 RECORD = "seasynth.json"  # the dataset record: spec, code version, and whether every frame is written
@@ -87,7 +88,7 @@ def prepare_output(out: Path, spec: DatasetSpec, mode: Mode, files: dict[str, st
         raise OutputError(f"{out}: is not a seasynth dataset (no {RECORD}); use --overwrite or another folder")
     try:
         if mode == "overwrite":
-            for name in (*OUTPUT_DIRS, RECORD):
+            for name in (*OUTPUT_DIRS, RECORD, GENERATED_EXPORTS):
                 target = out / name
                 if target.is_dir():
                     shutil.rmtree(target)

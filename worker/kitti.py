@@ -6,9 +6,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from service.kitti import LABEL_FIELDS, parse_label_file  # noqa: F401 (parsing lives with the readers of both sides)
 from worker.labels import KittiObject
 
-LABEL_FIELDS = 15
 # Calib matrices in file order and their shapes; P0..P3 are K [I | 0] for the single synthetic camera.
 CALIB_SHAPES: dict[str, tuple[int, int]] = {
     "P0": (3, 4),
@@ -60,38 +60,6 @@ def format_calib(K: np.ndarray) -> str:
     # Adding 0.0 turns -0.0 into 0.0 so no "-0.000000000000e+00" appears.
     lines = [f"{name}: " + " ".join(f"{v + 0.0:.12e}" for v in m.ravel()) for name, m in matrices.items()]
     return "\n".join(lines) + "\n"
-
-
-def parse_label_file(text: str) -> list[dict]:
-    """Objects of a label_2 text, one dict per line with the keys type (str), truncated (float), occluded (int),
-    alpha (float), bbox (4 floats, px), dimensions (h, w, l; m), location (x, y, z; m), rotation_y (float),
-    and score (float) when the line has a 16th field."""
-    objects = []
-    for number, line in enumerate(text.splitlines(), start=1):
-        if not line.strip():
-            continue
-        fields = line.split()
-        if len(fields) not in (LABEL_FIELDS, LABEL_FIELDS + 1):
-            raise ValueError(f"label line {number} has {len(fields)} fields, expected 15 or 16: {line!r}")
-        try:
-            values = [float(f) for f in fields[1:]]
-            occluded = int(fields[2])
-        except ValueError as error:
-            raise ValueError(f"label line {number}: {error}") from None
-        obj = {
-            "type": fields[0],
-            "truncated": values[0],
-            "occluded": occluded,
-            "alpha": values[2],
-            "bbox": values[3:7],
-            "dimensions": values[7:10],
-            "location": values[10:13],
-            "rotation_y": values[13],
-        }
-        if len(values) == LABEL_FIELDS:
-            obj["score"] = values[14]
-        objects.append(obj)
-    return objects
 
 
 def parse_calib(text: str) -> dict[str, np.ndarray]:

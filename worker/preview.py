@@ -1,168 +1,41 @@
-"""`seasynth preview`: a contact sheet of a dataset's first frames (boxes, depth, instances) and a label summary."""
+"""`seasynth preview`: a contact sheet of a dataset's first frames (boxes, depth, instances) and a label summary.
+
+The drawing is service.sheet's (the API draws the same sheet of a service dataset); this module reads a local one.
+"""
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from service.errors import ExportError
-
-COLUMNS = 4  # tiles per grid row
-GAP = 4  # px between tiles and around the grid
-HEADER = 12  # px above each tile for the frame name
-LINE = 12  # px per text row of the summary panel
-PANEL_MIN_WIDTH = 480  # px: the summary panel's text and bars need this much even under a narrow grid
-LABEL_W = 150  # px of a bar row's label column
-BAR_MAX = 200  # px of the longest bar
-BACKGROUND = (24, 24, 24)
-TEXT = (255, 255, 255)
-BAR = (90, 160, 230)
-BOX_COLOURS = ((255, 0, 255), (0, 255, 0), (255, 255, 0), (0, 255, 255))  # by class, in order of first sight
-# Instance ids 1, 2, ... take these in turn (id 0, terrain and water, is black): Kelly's distinct colours.
-PALETTE = np.array([
-    (255, 179, 0), (128, 62, 117), (255, 104, 0), (166, 189, 215), (193, 0, 32), (206, 162, 98),
-    (129, 112, 102), (0, 125, 52), (246, 118, 142), (0, 83, 138), (255, 122, 92), (83, 55, 122),
-    (255, 142, 0), (179, 40, 81), (244, 200, 0), (127, 24, 13), (147, 170, 0), (89, 51, 21),
-    (241, 58, 19), (35, 44, 22),
-], dtype=np.uint8)
-HEIGHT_EDGES = tuple(2 ** k for k in range(11))  # box-height bins [1, 2), [2, 4), ... [1024, inf), px
-OCCLUDED_LEVELS = (0, 1, 2, 3)  # KITTI: fully visible, partly, largely occluded, unknown
-
-
-@dataclass(frozen=True)
-class Summary:
-    """Label statistics over every complete frame of a dataset."""
-
-    frames: int
-    objects_per_class: dict[str, int]  # class name -> label lines, in order of first sight
-    height_hist: tuple[int, ...]  # objects per HEIGHT_EDGES bin of box height (bottom - top + 1), px
-    truncated: int  # objects with KITTI truncated > 0
-    occluded: tuple[int, ...]  # objects per OCCLUDED_LEVELS level
-    jerlov: dict[str, int] = field(default_factory=dict)  # Jerlov water type -> frames (from meta/), sorted
-
-    @property
-    def objects(self) -> int:
-        return sum(self.objects_per_class.values())
-
-
-def height_bin(height: int) -> int:
-    """Index into HEIGHT_EDGES of the bin holding a box `height` px high (>= 1)."""
-    return int(np.searchsorted(HEIGHT_EDGES, height, side="right")) - 1
-
-
-def bin_label(k: int) -> str:
-    lo = HEIGHT_EDGES[k]
-    if k + 1 == len(HEIGHT_EDGES):
-        return f">={lo} px"
-    hi = HEIGHT_EDGES[k + 1] - 1
-    return f"{lo} px" if lo == hi else f"{lo}-{hi} px"
-
-
-class SummaryCounter:
-    """Streamed counts: constant memory whatever the frame count."""
-
-    def __init__(self) -> None:
-        self.frames, self.truncated = 0, 0
-        self.classes: dict[str, int] = {}
-        self.heights = [0] * len(HEIGHT_EDGES)
-        self.occluded = [0] * len(OCCLUDED_LEVELS)
-        self.jerlov: dict[str, int] = {}
-
-    def add(self, objects: Iterable[tuple[str, tuple[int, int, int, int], float, int]], water: str | None) -> None:
-        """One frame: its (class, box, truncated, occluded) label lines and its Jerlov type (None if unknown)."""
-        self.frames += 1
-        for name, box, truncated, occluded in objects:
-            self.classes[name] = self.classes.get(name, 0) + 1
-            self.heights[height_bin(box[3] - box[1] + 1)] += 1
-            self.truncated += truncated > 0
-            self.occluded[OCCLUDED_LEVELS.index(occluded)] += 1
-        if water is not None:
-            self.jerlov[water] = self.jerlov.get(water, 0) + 1
-
-    def result(self) -> Summary:
-        return Summary(frames=self.frames, objects_per_class=dict(self.classes),
-                       height_hist=tuple(self.heights), truncated=self.truncated, occluded=tuple(self.occluded),
-                       jerlov=dict(sorted(self.jerlov.items())))
-
-
-def summary_rows(s: Summary) -> list[tuple[str, str, list[tuple[str, int]]]]:
-    """(section title, its text, its bars (label, count)) in the order both the table and the panel show them."""
-    n = max(s.objects, 1)
-    last = max((k for k, c in enumerate(s.height_hist) if c), default=0)
-    return [
-        ("frames", f"{s.frames} frames, {s.objects} objects", []),
-        ("objects per class", "", list(s.objects_per_class.items())),
-        ("box height", "", [(bin_label(k), s.height_hist[k]) for k in range(last + 1)]),
-        ("truncated > 0", f"{s.truncated} ({100 * s.truncated / n:.1f}%)", []),
-        ("occluded (KITTI level)", "", [(f"level {lv}", c) for lv, c in zip(OCCLUDED_LEVELS, s.occluded)]),
-        ("Jerlov water type", "" if s.jerlov else "unknown (no meta/)", list(s.jerlov.items())),
-    ]
-
-
-def markdown(s: Summary) -> str:
-    """The summary as a two-column markdown table (percentages of objects, or of frames for water types)."""
-    lines = ["| quantity | value |", "| --- | --- |"]
-    for title, text, bars in summary_rows(s):
-        if text:
-            lines.append(f"| {title} | {text} |")
-        whole = max(s.frames if title.startswith("Jerlov") else s.objects, 1)
-        for label, count in bars:
-            lines.append(f"| {title}: {label} | {count} ({100 * count / whole:.1f}%) |")
-    return "\n".join(lines) + "\n"
-
-
-def panel_rows(s: Summary) -> int:
-    """Text rows of the summary panel: each section's title line, then one row per bar."""
-    return sum(1 + len(bars) for _, _, bars in summary_rows(s))
-
-
-def sheet_size(tiles: int, width: int, height: int, panels: int, s: Summary) -> tuple[int, int]:
-    """(width, height) px of a sheet of `tiles` frames of `panels` (width x height) images each."""
-    rows = -(-tiles // COLUMNS)
-    grid_w = GAP + min(tiles, COLUMNS) * (panels * width + GAP)
-    grid_h = GAP + rows * (HEADER + height + GAP)
-    return max(grid_w, PANEL_MIN_WIDTH), grid_h + GAP + panel_rows(s) * LINE + GAP
-
-
-def depth_grey(raw: np.ndarray) -> np.ndarray:
-    """(h, w) uint8 of a depth image (h, w) uint16 metres*256: nearest 255 to farthest 32, no depth (0) black."""
-    out = np.zeros(raw.shape, dtype=np.uint8)
-    valid = raw > 0
-    if valid.any():
-        d = raw[valid].astype(np.float64)
-        lo, hi = d.min(), d.max()
-        out[valid] = np.rint(255 - 223 * (d - lo) / (hi - lo) if hi > lo else 255).astype(np.uint8)
-    return out
-
-
-def instance_colours(ids: np.ndarray) -> np.ndarray:
-    """(h, w, 3) uint8 of instance ids (h, w) uint16: PALETTE in turn from id 1, id 0 black."""
-    out = PALETTE[(ids.astype(np.int64) - 1) % len(PALETTE)]
-    out[ids == 0] = 0
-    return out
-
-
-def draw_boxes(image: np.ndarray, boxes: list[tuple[str, tuple[int, int, int, int], tuple[int, int, int]]],
-               font) -> np.ndarray:
-    """(h, w, 3) uint8 copy of an RGB `image` with each (class, box, colour): a 1-px outline on the box's edge
-    pixels (columns left and right over rows top..bottom, rows top and bottom over columns left..right), the class
-    name above. Names go first, so no name covers an outline."""
-    from PIL import Image, ImageDraw
-
-    canvas = Image.fromarray(image)
-    draw = ImageDraw.Draw(canvas)
-    for name, (left, top, _, _), _ in boxes:
-        draw.text((left, max(top - LINE, 0)), name, fill=TEXT, font=font)
-    out = np.array(canvas)
-    for _, (left, top, right, bottom), colour in boxes:  # slices, not ImageDraw: exact for 1-px-high boxes
-        out[top:bottom + 1, [left, right]] = colour
-        out[[top, bottom], left:right + 1] = colour
-    return out
+from service.sheet import (  # noqa: F401 (the sheet's layout and summary, re-exported for callers of this module)
+    BOX_COLOURS,
+    COLUMNS,
+    GAP,
+    HEADER,
+    HEIGHT_EDGES,
+    LINE,
+    PANEL_MIN_WIDTH,
+    TILE_WIDTH,
+    Summary,
+    SummaryCounter,
+    Tile,
+    class_colour,
+    decode_png,
+    draw_sheet,
+    jerlov_of,
+    markdown,
+    sheet_size,
+    summary_rows,
+    tile_origin,
+    tile_size,
+)
 
 
 @dataclass(frozen=True)
@@ -174,37 +47,37 @@ class Preview:
 
 
 def _read_png(path: Path) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
-
     try:
-        with Image.open(path) as img:
-            return np.asarray(img)
-    except (OSError, UnidentifiedImageError) as err:
-        raise ExportError(f"{path}: cannot decode ({err})") from None
+        data = path.read_bytes()
+    except OSError as err:
+        raise ExportError(f"{path}: cannot decode ({err.strerror or err})") from None
+    return decode_png(data, str(path))
 
 
 def _jerlov(path: Path | None) -> str | None:
     if path is None:
         return None
     try:
-        water = json.loads(path.read_text()).get("water")
-    except (OSError, ValueError, AttributeError) as err:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
         raise ExportError(f"{path}: unreadable meta ({err})") from None
-    return None if not isinstance(water, dict) or water.get("jerlov_type") is None else str(water["jerlov_type"])
+    return jerlov_of(meta)
 
 
 def make_preview(dataset: Path, out: Path, frames: int = 12,
                  on_frames: Callable[[int], None] | None = None,
-                 on_total: Callable[[int], None] | None = None) -> Preview:
+                 on_total: Callable[[int], None] | None = None,
+                 tile_width: int | None = None) -> Preview:
     """Write the contact sheet of the first `frames` complete frames to `out` (.png) and the summary over all
-    complete frames to `out` with suffix .md, each atomically. on_total gets the complete frame count once it is
-    known, on_frames the frames read since its last call."""
-    from PIL import Image, ImageFont
-
+    complete frames to `out` with suffix .md, each atomically. Frames wider than `tile_width` px (None:
+    TILE_WIDTH) are drawn scaled down. on_total gets the complete frame count once it is known, on_frames the
+    frames read since its last call."""
     from worker.export.dataset import TARGET, FrameReader, open_local_dataset, scan_frames
 
     if frames < 1:
         raise ExportError(f"--frames must be at least 1, got {frames}")
+    tile_width = TILE_WIDTH if tile_width is None else tile_width
+    tile_size(1, 1, tile_width)  # refuses a width below 1 before any work
     out = Path(out)
     if out.suffix.lower() != ".png":
         raise ExportError(f"{out}: the sheet is a PNG; give a name ending in .png")
@@ -216,9 +89,7 @@ def make_preview(dataset: Path, out: Path, frames: int = 12,
         raise ExportError(f"{ds.root}: no complete frame to preview")
     if on_total is not None:
         on_total(len(indices))
-    o, w, h = ds.spec.outputs, ds.spec.camera.width, ds.spec.camera.height
-    panels = 1 + o.depth + o.instance
-    font = ImageFont.load_default()
+    o = ds.spec.outputs
     counter, tiles, colours = SummaryCounter(), [], {}
     with FrameReader(ds, masks=False, distractors=False) as reader:
         for index in indices:
@@ -226,66 +97,21 @@ def make_preview(dataset: Path, out: Path, frames: int = 12,
             named = [(ds.spec.targets.class_name if ob.category == TARGET else "distractor", ob)
                      for ob in frame.objects]
             counter.add(((name, ob.box, ob.truncated, ob.occluded) for name, ob in named), _jerlov(frame.meta))
-            for name, _ in named:
-                colours.setdefault(name, BOX_COLOURS[len(colours) % len(BOX_COLOURS)])
+            boxes = tuple((name, ob.box, class_colour(colours, name)) for name, ob in named)
             if len(tiles) < frames:
-                tile = Image.new("RGB", (panels * w, h))
-                image = _read_png(frame.image)[..., :3].astype(np.uint8)
-                boxes = [(name, ob.box, colours[name]) for name, ob in named]
-                tile.paste(Image.fromarray(draw_boxes(image, boxes, font)), (0, 0))
-                x = w
-                if frame.depth is not None:
-                    tile.paste(Image.fromarray(depth_grey(_read_png(frame.depth))).convert("RGB"), (x, 0))
-                    x += w
-                if o.instance:
-                    ids = _read_png(ds.root / f"instance/{frame.name}.png")
-                    tile.paste(Image.fromarray(instance_colours(ids)), (x, 0))
-                tiles.append((frame.name, tile))
+                tiles.append(Tile(
+                    name=frame.name, image=_read_png(frame.image)[..., :3].astype(np.uint8), boxes=boxes,
+                    depth=None if frame.depth is None else _read_png(frame.depth),
+                    instance=_read_png(ds.root / f"instance/{frame.name}.png") if o.instance else None,
+                ))
             if on_frames is not None:
                 on_frames(1)
     summary = counter.result()
-    sheet = Image.new("RGB", sheet_size(len(tiles), w, h, panels, summary), BACKGROUND)
-    _draw_grid(sheet, tiles, w, h, panels, font)
-    grid_h = GAP + -(-len(tiles) // COLUMNS) * (HEADER + h + GAP)
-    _draw_summary(sheet, summary, grid_h + GAP, font)
+    sheet = draw_sheet(tiles, summary, tile_width)
     table = out.with_suffix(".md")
     _write_atomic(out, lambda p: sheet.save(p, format="PNG"))
     _write_atomic(table, lambda p: p.write_text(markdown(summary)))
     return Preview(summary=summary, sheet=out, table=table, tiles=len(tiles))
-
-
-def tile_origin(k: int, width: int, height: int, panels: int) -> tuple[int, int]:
-    """(x, y) px of the top-left pixel of tile k's image (below its header) on the sheet."""
-    row, col = divmod(k, COLUMNS)
-    return GAP + col * (panels * width + GAP), GAP + row * (HEADER + height + GAP) + HEADER
-
-
-def _draw_grid(sheet, tiles, width: int, height: int, panels: int, font) -> None:
-    from PIL import ImageDraw
-
-    draw = ImageDraw.Draw(sheet)
-    for k, (name, tile) in enumerate(tiles):
-        x, y = tile_origin(k, width, height, panels)
-        draw.text((x, y - HEADER), f"frame {name}", fill=TEXT, font=font)
-        sheet.paste(tile, (x, y))
-
-
-def _draw_summary(sheet, s: Summary, top: int, font) -> None:
-    """The summary as text rows and horizontal bars, from y = `top` down."""
-    from PIL import ImageDraw
-
-    draw, y = ImageDraw.Draw(sheet), top
-    for title, text, bars in summary_rows(s):
-        draw.text((GAP, y), f"{title}: {text}" if text else title, fill=TEXT, font=font)
-        y += LINE
-        most = max((c for _, c in bars), default=0)
-        for label, count in bars:
-            draw.text((GAP + 8, y), label, fill=TEXT, font=font)
-            length = round(BAR_MAX * count / most) if most else 0
-            if length:
-                draw.rectangle((GAP + LABEL_W, y + 2, GAP + LABEL_W + length - 1, y + LINE - 3), fill=BAR)
-            draw.text((GAP + LABEL_W + length + 4, y), str(count), fill=TEXT, font=font)
-            y += LINE
 
 
 def _write_atomic(path: Path, write: Callable[[Path], None]) -> None:

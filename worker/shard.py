@@ -1,4 +1,5 @@
-"""One shard end to end: render its frames, pack a deterministic tar, upload it atomically, commit, track completion.
+"""One shard end to end: render its frames, pack a deterministic tar (and its export parts: worker.shard_exports),
+upload them atomically, commit, track completion.
 
 Every step is idempotent: keys are deterministic, a shard's tar is a pure function of (spec, frames, renderer),
 a committed shard is skipped, and a retry's commit counts once (records.commit). Celery tasks wrap these
@@ -7,20 +8,18 @@ functions and map `RetryShard` onto a task retry.
 
 from __future__ import annotations
 
-import gzip
 import hashlib
 import json
 import logging
 import os
 import socket
-import tarfile
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import Any, Protocol
 
 from service import __version__
 from service.errors import AssetError, NotFound
@@ -41,6 +40,9 @@ from service.shards import (
 )
 from service.spec import DatasetSpec, parse_spec
 from service.storage import ObjectStore
+from worker.export.parts import kitti_names, parts_render_spec
+from worker.packing import pack_tar
+from worker.shard_exports import keep_frame, pack_parts, part_keys, upload_parts
 
 log = logging.getLogger(__name__)
 
@@ -114,77 +116,26 @@ class ShardContext:
         return self._specs[dataset_id]
 
 
-# --- packing
-
-
-class _HashingWriter:
-    """A write-only file that hashes and counts what passes through it."""
-
-    def __init__(self, f: IO[bytes]):
-        self.f = f
-        self.sha = hashlib.sha256()
-        self.size = 0
-
-    def write(self, data: bytes) -> int:
-        self.f.write(data)
-        self.sha.update(data)
-        self.size += len(data)
-        return len(data)
-
-    def flush(self) -> None:
-        self.f.flush()
-
-
-def _check_member(name: str) -> str:
-    parts = name.split("/")
-    if name.startswith("/") or any(p in ("", ".", "..") for p in parts):
-        raise ValueError(f"frame file {name!r} is not a plain relative path")
-    return name
-
-
-def pack_tar(files: Iterable[tuple[str, bytes]], out: IO[bytes], compression: str = "none") -> tuple[str, int]:
-    """Write a tar of (relative path, bytes) in the given order to `out`; return (sha256 hex, bytes).
-
-    Headers carry no time, owner or mode of the machine, so equal files give an equal tar on any worker.
-    """
-    writer = _HashingWriter(out)
-    gz = gzip.GzipFile(filename="", fileobj=writer, mode="wb", mtime=0) if compression == "gz" else None
-    with tarfile.open(fileobj=gz or writer, mode="w|", format=tarfile.USTAR_FORMAT) as tar:
-        for name, data in files:
-            info = tarfile.TarInfo(_check_member(name))
-            info.size, info.mtime, info.mode = len(data), 0, 0o644
-            info.uid = info.gid = 0
-            info.uname = info.gname = ""
-            tar.addfile(info, _BytesReader(data))
-    if gz is not None:
-        gz.close()
-    return writer.sha.hexdigest(), writer.size
-
-
-class _BytesReader:
-    def __init__(self, data: bytes):
-        self.data, self.pos = memoryview(data), 0
-
-    def read(self, n: int = -1) -> bytes:
-        end = len(self.data) if n < 0 else self.pos + n
-        out = self.data[self.pos : end].tobytes()
-        self.pos += len(out)
-        return out
-
-
 class _Cancelled(Exception):
     pass
 
 
 def shard_files(
-    session: FrameSource, spec: DatasetSpec, shard: Shard, cancelled: Callable[[], bool]
+    session: FrameSource, spec: DatasetSpec, shard: Shard, cancelled: Callable[[], bool], keep: Path | None = None
 ) -> Iterator[tuple[str, bytes]]:
-    """A shard's members in order: frame by frame, each frame's files by name."""
+    """A shard's members in order: frame by frame, each frame's files by name.
+
+    keep: a folder that also gets each frame's files, for the shard's export parts; the frames are then rendered
+    with what the parts need (worker.export.parts.parts_render_spec), and files only they need stay out of the tar.
+    """
+    render = spec if keep is None else parts_render_spec(spec)
     for index in shard.frames:
         if cancelled():
             raise _Cancelled
-        files = session.frame_files(spec, index)
-        for name in sorted(files):
+        files = session.frame_files(render, index)
+        if keep is not None:
+            keep_frame(keep, files)
+        for name in kitti_names(spec, render, index, list(files)):
             yield name, files[name]
 
 
@@ -291,13 +242,17 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int) -> Outcom
     compression = ctx.settings.shard_compression
     key = shard_key(dataset_id, shard.index, compression)
     cancelled = lambda: ctx.records.state(dataset_id) == CANCELLED  # noqa: E731
-    with tempfile.NamedTemporaryFile(prefix="seasynth-shard-", suffix=".tar") as tmp:
-        sha, size = pack_tar(shard_files(ctx.session, spec, shard, cancelled), tmp, compression)
-        tmp.flush()
+    with tempfile.TemporaryDirectory(prefix="seasynth-shard-") as work:
+        tar, keep = Path(work) / "shard.tar", (Path(work) / "frames" if spec.outputs.exports else None)
+        with open(tar, "wb") as f:
+            sha, size = pack_tar(shard_files(ctx.session, spec, shard, cancelled, keep), f, compression)
+        packed = [] if keep is None else pack_parts(spec, shard, keep, Path(work), rec.code_version)
         if cancelled():
             return Outcome.CANCELLED
-        # The tar becomes visible whole (one PUT or a completed multipart upload), then the marker commits it.
-        ctx.store.put_file(key, Path(tmp.name), "application/gzip" if compression == "gz" else "application/x-tar")
+        # The tar and the export parts become visible whole (one PUT or a completed multipart upload each), then
+        # the marker commits them.
+        ctx.store.put_file(key, tar, "application/gzip" if compression == "gz" else "application/x-tar")
+        exports = upload_parts(ctx.store, dataset_id, shard.index, packed)
     commit = ShardCommit(
         index=shard.index,
         key=key,
@@ -307,6 +262,7 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int) -> Outcom
         bytes=size,
         code_version=ctx.code_version,
         renderer=renderer,
+        exports=exports,
     )
     ctx.store.put_bytes(commit_key(dataset_id, shard.index), commit.to_json().encode(), "application/json")
     ctx.records.commit(dataset_id, commit)
@@ -321,9 +277,10 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int) -> Outcom
 
 
 def _take_back(ctx: ShardContext, dataset_id: str, index: int) -> None:
-    """Delete what an execution of shard `index` may have written (its tar, in either compression, and its commit
-    marker) once the dataset's purge has begun."""
-    written = (shard_key(dataset_id, index, "none"), shard_key(dataset_id, index, "gz"), commit_key(dataset_id, index))
+    """Delete what an execution of shard `index` may have written (its tar, in either compression, its export
+    parts and its commit marker) once the dataset's purge has begun."""
+    written = (shard_key(dataset_id, index, "none"), shard_key(dataset_id, index, "gz"), *part_keys(dataset_id, index),
+               commit_key(dataset_id, index))
     for key in written:
         ctx.store.delete(key)
 

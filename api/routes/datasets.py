@@ -1,4 +1,4 @@
-"""Dataset routes: create, list, status, manifest, single frames, cancel and purge."""
+"""Dataset routes: create, list, status, manifest, single frames, preview sheet, cancel and purge."""
 
 from typing import Annotated, Literal
 
@@ -7,6 +7,8 @@ from fastapi import APIRouter, Query, Response, status
 from api import operations
 from api.deps import DatasetId, FrameIndex, ServicesDep
 from api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic
+from service.previews import MAX_SHEET_FRAMES, SHEET_FRAMES, dataset_preview
+from service.sheet import TILE_WIDTH
 from service.spec import DatasetSpec
 
 router = APIRouter(prefix="/datasets", tags=["datasets"])
@@ -76,6 +78,29 @@ def get_frame(
     suffix = name[name.rfind("."):]
     return Response(body, media_type=MEDIA.get(suffix, "application/octet-stream"),
                     headers={"Content-Disposition": f'inline; filename="{name.replace("/", "_")}"'})
+
+
+@router.get(
+    "/{id}/preview.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}},
+                     "description": "The contact sheet: the first frames with their boxes (depth and instances where "
+                                    "the spec has them) over a label summary of the shards drawn from"},
+               404: {"description": "No such dataset, a purged one, or none of its shards committed yet (the body "
+                                    "says which)"}},
+)
+def get_preview(
+    id: DatasetId,
+    services: ServicesDep,
+    frames: Annotated[int, Query(ge=1, le=MAX_SHEET_FRAMES, description="Frames on the sheet")] = SHEET_FRAMES,
+    tile_width: Annotated[int, Query(ge=1, le=4096, description="Widest image panel, px; wider frames are "
+                                     "scaled down")] = TILE_WIDTH,
+) -> Response:
+    """A contact sheet of the dataset's first committed shards, drawn once and then served from the bucket."""
+    key, png = dataset_preview(services.store, services.records, id, frames, tile_width)
+    return Response(png, media_type="image/png",
+                    headers={"Content-Disposition": f'inline; filename="{id}-preview.png"',
+                             "ETag": f'"{key.rsplit("/", 1)[-1].removesuffix(".png")}"'})
 
 
 @router.delete("/{id}", response_model=DatasetPublic)

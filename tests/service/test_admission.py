@@ -17,7 +17,7 @@ from test_worker_robustness import api_on
 
 REFUSAL = re.compile(
     r"shard_size: (\d+) frames of 640x480 at quality 'draft' \(up to 128 objects, 1024 terrain cells a side, "
-    r"24 terrains, 4 of clean/range/depth/instance\) are estimated at (\d+) s per shard, over the limit of (\d+) s "
+    r"24 terrains, 4 of clean/range/depth/instance/coco/yolo/mcap\) are estimated at (\d+) s per shard, over the limit of (\d+) s "
     r"\(the soft task time limit, SEASYNTH_TASK_TIME_LIMIT_S\); use shard_size <= (\d+)"
 )
 

@@ -2,12 +2,13 @@
 
 A format is one module with one Exporter class, registered in FORMATS. The driver reads the dataset's frames one
 at a time (worker.export.dataset), gives each to the exporter with its split, and owns the export folder's record
-and the removal of files an earlier export left that this one does not write.
+and the removal of files an earlier export left that this one does not write. The same exporters write the formats
+a spec asks for at generate time: a service shard's part (worker.export.parts), merged by `seasynth fetch --format`
+(worker.export.merge), and a local dataset's OUT/export/{format}/ (export_generated).
 """
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ import numpy as np
 
 from service.errors import ExportError
 from service.seeds import frame_rng
+from service.spec import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
 from worker.export.dataset import (
     DISTRACTOR,
     DISTRACTOR_NAME,
@@ -33,18 +35,17 @@ from worker.export.dataset import (
 from worker.export.files import EXPORT_RECORD, json_bytes, open_export_folder, write_atomic
 
 __all__ = [
-    "DISTRACTOR", "FORMATS", "SPLITS", "STREAM_SPLIT", "TARGET", "ExportInfo", "ExportPlan", "ExportReport",
-    "Exporter", "Frame", "FrameObject", "FrameReader", "LocalDataset", "exporter_for", "open_local_dataset",
-    "parse_split", "plan_export", "run_export", "split_of",
+    "DISTRACTOR", "FORMATS", "GENERATED_EXPORTS", "SPLITS", "SPLIT_SUM_TOLERANCE", "STREAM_SPLIT", "TARGET",
+    "ExportInfo", "ExportPlan", "ExportReport", "Exporter", "Frame", "FrameObject", "FrameReader", "LocalDataset",
+    "export_generated", "exporter_class", "exporter_for", "open_local_dataset", "parse_split", "plan_export",
+    "run_export", "split_of",
 ]
 
-SPLITS = ("train", "val", "test")
 # The split's own stream of SeedSequence([dataset seed, frame index, stream]); far from the frame's streams
 # (service.seeds: 0 scene, 1 noise) so no stream added there later draws the same numbers. ASCII "splt".
 STREAM_SPLIT = 0x73706C74
-SPLIT_SUM_TOLERANCE = 1e-9
-
-FORMATS = ("coco", "yolo", "mcap")
+FORMATS = EXPORT_FORMATS
+GENERATED_EXPORTS = "export"  # `seasynth generate` writes the spec's export formats into OUT/export/{format}/
 
 
 def parse_split(text: str) -> tuple[float, float, float]:
@@ -56,10 +57,9 @@ def parse_split(text: str) -> tuple[float, float, float]:
         values = tuple(float(p) for p in parts)
     except ValueError:
         raise ExportError(f"split {text!r}: fractions must be numbers") from None
-    if not all(math.isfinite(v) and v >= 0 for v in values):
-        raise ExportError(f"split {text!r}: fractions must be finite and >= 0")
-    if abs(math.fsum(values) - 1.0) > SPLIT_SUM_TOLERANCE:
-        raise ExportError(f"split {text!r}: fractions must sum to 1, they sum to {math.fsum(values):g}")
+    problem = split_problem(values)
+    if problem is not None:
+        raise ExportError(f"split {text!r}: {problem}")
     return values  # type: ignore[return-value]
 
 
@@ -123,20 +123,25 @@ class Exporter(Protocol):
         ...
 
 
-def exporter_for(fmt: str) -> Exporter:
+def exporter_class(fmt: str) -> type:
+    """The Exporter class of format `fmt` (its module imports no format package: making one may need it)."""
     if fmt == "coco":
         from worker.export.coco import CocoExporter
 
-        return CocoExporter()
+        return CocoExporter
     if fmt == "yolo":
         from worker.export.yolo import YoloExporter
 
-        return YoloExporter()
+        return YoloExporter
     if fmt == "mcap":
         from worker.export.mcap import McapExporter
 
-        return McapExporter()
+        return McapExporter
     raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
+
+
+def exporter_for(fmt: str) -> Exporter:
+    return exporter_class(fmt)()
 
 
 @dataclass(frozen=True)
@@ -171,13 +176,15 @@ class ExportReport:
     renders_masks: bool
 
 
-def plan_export(root: Path, fmt: str, fractions: tuple[float, float, float], *, partial: bool = False,
-                distractors: bool = False) -> ExportPlan:
-    """Check the dataset and decide every frame's split; ExportError naming what is missing if it is not whole
-    (unless `partial`: then incomplete frames are left out)."""
+def plan_export(root: Path, fmt: str, fractions: tuple[float, float, float] | None = None, *,
+                partial: bool = False, distractors: bool = False) -> ExportPlan:
+    """Check the dataset and decide every frame's split (fractions None: its spec's outputs.split); ExportError
+    naming what is missing if it is not whole (unless `partial`: then incomplete frames are left out)."""
     if fmt not in FORMATS:
         raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
     ds = open_local_dataset(Path(root))
+    if fractions is None:
+        fractions = ds.spec.outputs.split
     if distractors and ds.spec.targets.class_name == DISTRACTOR_NAME:
         raise ExportError(f"{ds.root}: targets.class_name is {DISTRACTOR_NAME!r}, the name distractors get with "
                           "--distractors; export without --distractors")
@@ -241,6 +248,16 @@ def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] 
     }))
     return ExportReport(out=out, format=plan.format, frames=counts, skipped=plan.skipped,
                         renders_masks=plan.renders_masks)
+
+
+def export_generated(root: Path, *, on_frames: Callable[[int], None] | None = None,
+                     platform: str = "egl") -> list[ExportReport]:
+    """The exports a generated dataset's spec asks for (outputs.coco, yolo, mcap), each of every frame into
+    root/export/{format}/ with the spec's outputs.split; [] when it asks for none."""
+    root = Path(root)
+    formats = open_local_dataset(root).spec.outputs.exports
+    return [run_export(plan_export(root, fmt), root / GENERATED_EXPORTS / fmt, on_frames=on_frames,
+                       platform=platform) for fmt in formats]
 
 
 def remove_stale(out: Path, exporter: Exporter, plan: ExportPlan) -> None:

@@ -88,6 +88,18 @@ def _line(entry: dict) -> bytes:
     return json.dumps(entry, sort_keys=True, separators=(",", ":")).encode()
 
 
+def coco_head(info: ExportInfo, split: str) -> dict:
+    """What instances_{split}.json holds besides its images and annotations."""
+    return {
+        "info": {"description": f"seasynth dataset, {split} split", "version": info.code_version,
+                 "dataset_seed": info.dataset_seed, "spec_sha256": info.spec_sha256,
+                 "split": split, "split_fractions": dict(zip(SPLITS, info.fractions))},
+        "licenses": [],
+        "categories": [{"id": k + 1, "name": name, "supercategory": "target" if k == 0 else "distractor"}
+                       for k, name in enumerate(info.categories)],
+    }
+
+
 class CocoExporter:
     """COCO "instances" files, one per split (every split has one, with no images if none fell in it)."""
 
@@ -125,6 +137,12 @@ class CocoExporter:
         f.write((b",\n" if self._written[split, stream] else b"\n") + _line(entry))
         self._written[split, stream] += 1
 
+    def add_entries(self, split: str, images: list[dict], annotations: list[dict]) -> None:
+        """Entries made by another export of the same dataset (a shard's part), after those added so far."""
+        for stream, entries in (("images", images), ("annotations", annotations)):
+            for entry in entries:
+                self._append(split, stream, entry)
+
     def add(self, frame: Frame, split: str) -> None:
         info = self._info
         place_file(frame.image, info.out / self.frame_outputs(split, frame.name)[0])
@@ -149,19 +167,10 @@ class CocoExporter:
             })
 
     def finish(self) -> None:
-        info = self._info
-        categories = [{"id": k + 1, "name": name, "supercategory": "target" if k == 0 else "distractor"}
-                      for k, name in enumerate(info.categories)]
         for split in SPLITS:
             for stream in STREAMS:
                 self._files[split, stream].close()
-            head = {
-                "info": {"description": f"seasynth dataset, {split} split", "version": info.code_version,
-                         "dataset_seed": info.dataset_seed, "spec_sha256": info.spec_sha256,
-                         "split": split, "split_fractions": dict(zip(SPLITS, info.fractions))},
-                "licenses": [],
-                "categories": categories,
-            }
+            head = coco_head(self._info, split)
             with atomic_writer(self.index_path(split)) as out:
                 out.write(_line(head)[:-1])  # the object stays open for the two arrays
                 for stream in STREAMS:

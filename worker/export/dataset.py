@@ -170,9 +170,7 @@ class FrameReader:
         self._stack = contextlib.ExitStack()
         o = ds.spec.outputs
         self.renders = self.masks and not (o.instance and o.meta)
-        self._render_spec = ds.spec.model_copy(
-            update={"outputs": o.model_copy(update={"instance": True, "meta": True, "labels": True})}
-        )
+        self._render_spec = mask_spec(ds.spec)
 
     def __enter__(self) -> FrameReader:
         if self.renders:
@@ -200,31 +198,16 @@ class FrameReader:
 
     def read(self, index: int) -> Frame:
         """Frame `index` (which must be complete); ExportError naming the file at fault if it is inconsistent."""
-        spec, root, n = self.ds.spec, self.ds.root, frame_name(index)
-        label_path = root / f"label_2/{n}.txt"
-        label_bytes = _read_bytes(label_path)
-        try:
-            label_text = label_bytes.decode("utf-8")
-        except UnicodeDecodeError as err:
-            raise ExportError(f"{label_path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
-        objects = _label_objects(label_path, label_text, spec.targets.class_name)
-        instance = None
+        root, n = self.ds.root, frame_name(index)
+        label_bytes = _read_bytes(root / f"label_2/{n}.txt")
+        masks = None
         if self.masks:
             if self.renders:
-                instance, meta = self._render(index, label_bytes)
-                where = f"re-rendered instance/{n}.png"
+                masks = (*self._render(index, label_bytes), f"re-rendered instance/{n}.png")
             else:
                 where = str(root / f"instance/{n}.png")
-                instance, meta = _read_instance(Path(where)), _read_json(root / f"meta/{n}.json")
-            if instance.shape != (spec.camera.height, spec.camera.width):
-                raise ExportError(f"{where}: shape {instance.shape}, the spec says "
-                                  f"{spec.camera.height}x{spec.camera.width} (height x width)")
-            objects = _with_masks(objects, instance, meta, where, label_path, self.distractors)
-        o = spec.outputs
-        return Frame(index=index, name=n, image=root / f"image_2/{n}.png", width=spec.camera.width,
-                     height=spec.camera.height, objects=tuple(objects), instance=instance,
-                     calib=root / f"calib/{n}.txt", meta=root / f"meta/{n}.json" if o.meta else None,
-                     depth=root / f"depth/{n}.png" if o.depth else None)
+                masks = (_read_instance(Path(where)), _read_json(root / f"meta/{n}.json"), where)
+        return frame_of(self.ds.spec, root, index, label_bytes, masks, self.distractors)
 
     def _render(self, index: int, label_bytes: bytes) -> tuple[np.ndarray, dict]:
         """(instance ids (h, w) uint16, meta) of frame `index` rendered again, once its image and labels are
@@ -244,8 +227,43 @@ class FrameReader:
                     f"{_code_version()}, renderer {self._session.renderer_name!r}); export it where it was made, "
                     "or generate it with outputs.instance on"
                 )
-        instance = _decode_instance(files[f"instance/{n}.png"], f"re-rendered instance/{n}.png")
+        instance = decode_instance(files[f"instance/{n}.png"], f"re-rendered instance/{n}.png")
         return instance, json.loads(files[f"meta/{n}.json"])
+
+
+def mask_spec(spec: DatasetSpec) -> DatasetSpec:
+    """`spec` with the outputs instance masks are read from switched on (instance/, meta/, label_2/). Its frames'
+    image_2, label_2 and calib bytes are those of `spec` (label_2 already renders the instance ids)."""
+    o = spec.outputs
+    return spec.model_copy(update={"outputs": o.model_copy(update={"instance": True, "meta": True, "labels": True})})
+
+
+def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
+             masks: tuple[np.ndarray, dict, str] | None, distractors: bool) -> Frame:
+    """Frame `index` of the KITTI files under `root`, labelled as `spec` says.
+
+    label_bytes: its label_2 file's bytes; masks: (instance ids (h, w) uint16, its meta record, where they came
+    from, for errors), or None to read no masks. The frame's meta and depth paths follow spec.outputs.
+    """
+    n = frame_name(index)
+    label_path = root / f"label_2/{n}.txt"
+    try:
+        label_text = label_bytes.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ExportError(f"{label_path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    objects = _label_objects(label_path, label_text, spec.targets.class_name)
+    instance = None
+    if masks is not None:
+        instance, meta, where = masks
+        if instance.shape != (spec.camera.height, spec.camera.width):
+            raise ExportError(f"{where}: shape {instance.shape}, the spec says "
+                              f"{spec.camera.height}x{spec.camera.width} (height x width)")
+        objects = _with_masks(objects, instance, meta, where, label_path, distractors)
+    o = spec.outputs
+    return Frame(index=index, name=n, image=root / f"image_2/{n}.png", width=spec.camera.width,
+                 height=spec.camera.height, objects=tuple(objects), instance=instance,
+                 calib=root / f"calib/{n}.txt", meta=root / f"meta/{n}.json" if o.meta else None,
+                 depth=root / f"depth/{n}.png" if o.depth else None)
 
 
 def camera_projection(path: Path) -> np.ndarray:
@@ -307,10 +325,10 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _read_instance(path: Path) -> np.ndarray:
-    return _decode_instance(_read_bytes(path), str(path))
+    return decode_instance(_read_bytes(path), str(path))
 
 
-def _decode_instance(data: bytes, where: str) -> np.ndarray:
+def decode_instance(data: bytes, where: str) -> np.ndarray:
     """(h, w) uint16 instance ids of a 16-bit greyscale PNG."""
     from PIL import Image, UnidentifiedImageError
 

@@ -1,0 +1,88 @@
+"""Export parts: one shard's frames in a detector format (spec outputs.coco, yolo, mcap), written at generate time.
+
+A part is what `seasynth export` writes for those frames alone, less the files that name the export folder
+(YOLO's data.yaml, rebuilt by worker.export.merge): COCO's images/{split}/*.png and annotations/instances_{split}
+.json of the shard's frames, YOLO's images/ and labels/, MCAP's {split}.mcap. Every frame gets the split
+split_of(seed, index, outputs.split) gives it, whatever the shard, so merged parts equal one export of the whole
+dataset. A part is a pure function of (spec, code version, the shard's frame files).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from service.errors import ExportError
+from service.shards import frame_name
+from service.spec import DatasetSpec, spec_digest
+from worker.export import SPLITS, ExportInfo, exporter_class, exporter_for, split_of
+from worker.export.dataset import decode_instance, frame_of, mask_spec
+
+# Files of an export that describe the folder rather than frames: left out of parts, written by the merge.
+REBUILT_AT_MERGE = {"yolo": ("data.yaml",)}
+
+
+def needs_masks(spec: DatasetSpec) -> bool:
+    """Whether one of the spec's export formats needs instance masks (COCO's segmentations)."""
+    return any(exporter_class(fmt).needs_masks for fmt in spec.outputs.exports)
+
+
+def parts_render_spec(spec: DatasetSpec) -> DatasetSpec:
+    """What a shard with export parts renders: `spec`, or with instance/ and meta/ on when a format needs masks
+    (the frames' image_2, label_2 and calib bytes are the same either way: worker.export.dataset.mask_spec)."""
+    return mask_spec(spec) if needs_masks(spec) else spec
+
+
+def kitti_names(spec: DatasetSpec, render: DatasetSpec, index: int, names: list[str]) -> list[str]:
+    """Of the files frame `index` rendered with `render` has, those `spec` asks for, sorted."""
+    n, o, r = frame_name(index), spec.outputs, render.outputs
+    extra = set()
+    if r.instance and not o.instance:
+        extra.add(f"instance/{n}.png")
+    if r.meta and not o.meta:
+        extra.add(f"meta/{n}.json")
+    return sorted(name for name in names if name not in extra)
+
+
+def part_info(spec: DatasetSpec, out: Path, code_version: str | None) -> ExportInfo:
+    """The ExportInfo `seasynth export` uses for a dataset of `spec` (no --distractors, outputs.split)."""
+    return ExportInfo(out=Path(out).absolute(), categories=(spec.targets.class_name,), width=spec.camera.width,
+                      height=spec.camera.height, dataset_seed=spec.seed, spec_sha256=spec_digest(spec),
+                      code_version=code_version, fractions=spec.outputs.split)
+
+
+def write_part(spec: DatasetSpec, fmt: str, frames: range, root: Path, out: Path,
+               code_version: str | None) -> list[str]:
+    """Write format `fmt`'s files for `frames` into the empty folder `out`; return the part's members (relative
+    paths, sorted).
+
+    root holds the frames' files as parts_render_spec(spec) renders them (KITTI layout): masks come from its
+    instance/ and meta/ when the format needs them, whether or not `spec` keeps those outputs.
+    """
+    exporter = exporter_for(fmt)
+    exporter.begin(part_info(spec, out, code_version))
+    try:
+        for index in frames:
+            n = frame_name(index)
+            label = _read(root / f"label_2/{n}.txt")
+            masks = None
+            if exporter.needs_masks:
+                where = f"rendered instance/{n}.png"
+                masks = (decode_instance(_read(root / f"instance/{n}.png"), where),
+                         json.loads(_read(root / f"meta/{n}.json")), where)
+            split = SPLITS[split_of(spec.seed, index, spec.outputs.split)]
+            exporter.add(frame_of(spec, root, index, label, masks, distractors=False), split)
+        exporter.finish()
+    except BaseException:
+        exporter.abort()
+        raise
+    skip = set(REBUILT_AT_MERGE.get(fmt, ()))
+    return sorted(rel for p in Path(out).rglob("*")
+                  if p.is_file() and (rel := p.relative_to(out).as_posix()) not in skip)
+
+
+def _read(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as err:
+        raise ExportError(f"{path}: unreadable ({err.strerror or err})") from None
