@@ -201,7 +201,7 @@ OBJECT_KEYS = {"instance_id", "class", "role", "label_line", "visible_pixels", "
 
 def test_meta_records_reproduction_inputs(full):
     out, spec = full
-    versions = {p: version(p) for p in ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow")}
+    versions = {p: version(p) for p in ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow", "imagecodecs")}
     for i in range(spec.frames):
         n = f"{i:06d}"
         meta = json.loads((out / f"meta/{n}.json").read_text())

@@ -36,9 +36,12 @@ PRESETS: dict[str, Sampling] = {
     "high": Sampling(msaa=4, supersample=2, per_sample_shading=True),
 }
 
-PNG_COMPRESS_LEVEL = 1  # zlib level: larger files, much faster encoding; any level decodes to the same pixels
+# PNG as libpng writes it (through imagecodecs): zlib level 1, run-length strategy, every row SUB-filtered. At
+# 1920x1080 this is 3.3x faster than Pillow's level 1 for RGB (2.6x for 16-bit depth) and 24% smaller, and it
+# releases the GIL (bench/results/cpu/encoders-1920x1080). Any settings decode to the same pixels.
+PNG_SETTINGS = {"level": 1, "strategy": 3, "filter": 16}  # Z_RLE, PNG_FILTER_SUB
 DEPTH_SCALE = 256.0  # KITTI depth PNG: metres * 256 in uint16, 0 = no measurement
-VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow")
+VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow", "imagecodecs")
 
 
 def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
@@ -75,14 +78,12 @@ def to_render_mesh(key: str, mesh) -> Mesh:
 
 def png_bytes(array: np.ndarray) -> bytes:
     """PNG of an (h, w, 3) uint8 RGB or (h, w) uint16 image."""
-    from PIL import Image
+    import imagecodecs
 
     if not ((array.dtype == np.uint8 and array.ndim == 3 and array.shape[2] == 3) or
             (array.dtype == np.uint16 and array.ndim == 2)):
         raise ValueError(f"png_bytes takes (h, w, 3) uint8 or (h, w) uint16, got {array.shape} {array.dtype}")
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(array)).save(buf, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
-    return buf.getvalue()
+    return bytes(imagecodecs.png_encode(np.ascontiguousarray(array), **PNG_SETTINGS))
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
