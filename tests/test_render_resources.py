@@ -120,7 +120,7 @@ def test_only_the_passes_asked_for_are_drawn_and_read(renderer, water, passes, e
 
 
 OUTPUTS = ("labels", "meta", "depth", "instance", "clean", "range")
-SURFACE = ("surface+range", "resolve+haze", "read image")
+SURFACE = ("surface+range", "resolve+haze", "read image srgb8")  # no noise: the codes come from the GPU
 
 
 @pytest.mark.parametrize(
@@ -135,8 +135,8 @@ SURFACE = ("surface+range", "resolve+haze", "read image")
         (("range",), True, (*SURFACE, "read nearest range", "range", "read range"), False),
         (("clean", "range"), True, (*SURFACE, "read clean", "read nearest range", "range", "read range"), False),
         (("labels", "depth"), True, (*SURFACE, "read nearest range", "ids+range", "read ids", "read range"), True),
-        (("labels", "meta"), False, ("surface", "resolve", "read image", "ids", "read ids"), True),
-        ((), False, ("surface", "resolve", "read image"), False),
+        (("labels", "meta"), False, ("surface", "resolve", "read image srgb8", "ids", "read ids"), True),
+        ((), False, ("surface", "resolve", "read image srgb8"), False),
     ],
     ids=["image-only", "meta", "labels", "depth", "instance", "clean", "range", "clean+range", "labels+depth",
          "labels-dry", "dry"],
@@ -258,3 +258,15 @@ def test_samples_are_the_same_after_their_framebuffers_were_evicted(renderer):
     J2, R2 = renderer.samples(VIEW, [item], LIGHT, Sampling(msaa=4))
     np.testing.assert_array_equal(J1, J2)
     np.testing.assert_array_equal(R1, R2)
+
+
+def test_sensor_noise_keeps_the_image_in_float_until_it_is_added(render_session, monkeypatch):
+    renderer = render_session.renderer
+    results = []
+    render = renderer.render
+    monkeypatch.setattr(renderer, "render", lambda *a, **k: results.append(render(*a, **k)) or results[-1])
+    spec = load_spec("examples/urchins.yaml", {"camera.width": 48, "camera.height": 36, "outputs.labels": False,
+                                               "noise.gaussian_sigma": 0.01})
+    render_session.frame_files(spec, 2)
+    assert [r.passes for r in results] == [SURFACE[:2] + ("read image",)]
+    assert results[0].image.dtype == np.float32

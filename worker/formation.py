@@ -6,6 +6,8 @@ import numpy as np
 
 __all__ = [
     "GLSL_HAZE",
+    "GLSL_SRGB8",
+    "SRGB8_THRESHOLDS_F32",
     "SRGB8_TO_LINEAR",
     "box_downsample",
     "decode_srgb8",
@@ -109,6 +111,10 @@ def _encode_tables_f64() -> tuple[np.ndarray, np.ndarray]:
 
 
 _LO_F32, _THR_F32 = _encode_tables_f32()
+SRGB8_THRESHOLDS_F32: np.ndarray = _f64_thresholds_as(np.float32)
+"""(255,) float32, ascending: a float32 linear value x has code c + 1 or more iff x >= SRGB8_THRESHOLDS_F32[c], so its
+code is the number of thresholds <= x (what encode_srgb8 computes, and GLSL_SRGB8 on the GPU)."""
+SRGB8_THRESHOLDS_F32.flags.writeable = False
 _LO_F64, _THR_F64 = _encode_tables_f64()
 _ONE_BITS_F64 = int(np.array(1.0, np.float64).view(np.int64))
 _ENCODE_CHUNK = 65536  # elements per chunk in encode_srgb8
@@ -388,3 +394,28 @@ vec3 haze(vec3 J, float z, vec3 betaD, vec3 betaB, vec3 Binf) {
 }
 """
 """GLSL 330 source defining `vec3 haze(vec3 J, float z, vec3 betaD, vec3 betaB, vec3 Binf)` (no #version line)."""
+
+GLSL_SRGB8: str = """
+// Exact 8-bit sRGB codes of float32 linear values: the code c with thr[c - 1] <= x < thr[c] over the 255 ascending
+// float32 thresholds (SRGB8_THRESHOLDS_F32), which is encode_srgb8 of the same float32 bit for bit. The sRGB formula
+// guesses c to within one code (its float32 error is ~1e-4 of a code); two comparison steps make it exact. Negatives
+// and 0 give 0, values from the last threshold up (+inf too) 255. NaN compares false everywhere (code 0): srgb8()
+// flags it in alpha so the reader can refuse it as encode_srgb8 does.
+uniform float u_srgb_thr[255];
+uint srgb8_code(float x) {
+    if (!(x > 0.0)) return 0u;
+    if (x >= u_srgb_thr[254]) return 255u;
+    float s = x <= 0.0031308 ? x * 12.92 : 1.055 * pow(x, 1.0 / 2.4) - 0.055;
+    int c = clamp(int(s * 255.0 + 0.5), 0, 254);
+    for (int k = 0; k < 2; ++k) {
+        if (x >= u_srgb_thr[c]) c = min(c + 1, 254);
+        else if (c > 0 && x < u_srgb_thr[c - 1]) c -= 1;
+    }
+    return uint(c);
+}
+uvec4 srgb8(vec3 v) {
+    bool nan = isnan(v.r) || isnan(v.g) || isnan(v.b);
+    return uvec4(srgb8_code(v.r), srgb8_code(v.g), srgb8_code(v.b), nan ? 1u : 0u);
+}
+"""
+"""GLSL 330 source defining `uvec4 srgb8(vec3 linear)`: the codes in rgb, 1 in alpha where a channel is NaN."""

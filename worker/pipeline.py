@@ -265,13 +265,15 @@ class RenderSession:
         items = self.draw_items(scene)
         mark("sampling")
         o = spec.outputs
-        passes = Passes(clean=o.clean, ids=o.labels or o.instance, range=o.range or o.depth)
+        noisy = spec.noise.gaussian_sigma > 0
+        # Without sensor noise the image needs nothing more in float: its 8-bit codes come from the GPU.
+        passes = Passes(clean=o.clean, ids=o.labels or o.instance, range=o.range or o.depth, srgb8=not noisy)
         result = self.renderer.render(
             view, items, scene_light(scene), scene.water, PRESETS[spec.quality], passes, mark=timer
         )
         image = result.image
         noise = None
-        if spec.noise.gaussian_sigma > 0:
+        if noisy:
             noise_rng = frame_rng(spec.seed, index, STREAM_NOISE)
             image = image + noise_rng.normal(0.0, spec.noise.gaussian_sigma, image.shape).astype(np.float32)
             noise = {"gaussian_sigma_linear": spec.noise.gaussian_sigma}
@@ -279,7 +281,7 @@ class RenderSession:
         mark("labels")
 
         n = frame_name(index)
-        files: dict[str, bytes] = {f"image_2/{n}.png": png_bytes(encode_srgb8(image))}
+        files: dict[str, bytes] = {f"image_2/{n}.png": png_bytes(encode_srgb8(image) if noisy else image)}
         if o.labels:
             files[f"label_2/{n}.txt"] = kitti.format_label_file(frame_labels.objects).encode()
         files[f"calib/{n}.txt"] = kitti.format_calib(view.K).encode()

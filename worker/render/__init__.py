@@ -90,11 +90,14 @@ class Passes:
     # Per-pixel range: +inf exactly where no sample of the pixel hits a surface (the pixel is pure water); else
     # the range at the pixel centre where it hits a surface, else the nearest of the pixel's samples that does.
     range: bool = False
+    # The image as exact 8-bit sRGB codes ((h, w, 3) uint8, equal to formation.encode_srgb8 of the float image),
+    # encoded on the GPU and read back at a quarter of the bytes. For frames whose image needs nothing more in float.
+    srgb8: bool = False
 
 
 @dataclass(frozen=True)
 class RenderResult:
-    image: np.ndarray  # (h, w, 3) float32 linear RGB, hazed when water was given
+    image: np.ndarray  # (h, w, 3) float32 linear RGB, hazed when water was given (uint8 sRGB codes: Passes.srgb8)
     clean: np.ndarray | None  # (h, w, 3) float32 linear RGB in air
     instance: np.ndarray | None  # (h, w) uint32, 0 = terrain or open water
     range_m: np.ndarray | None  # (h, w) float32 metres (see Passes.range), +inf where no sample hits a surface

@@ -417,7 +417,8 @@ class GLRenderer:
         done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
         log: list[str] = []
         image, clean, nearest = self._surface(
-            view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done, log=log
+            view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done, log=log,
+            srgb8=passes.srgb8,
         )
         centres = passes.range and sampling.per_pixel > 1
         instance = centre = None
@@ -443,7 +444,7 @@ class GLRenderer:
 
     def _surface(
         self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, want_nearest=False,
-        done=None, log=None,
+        done=None, log=None, srgb8=False,
     ):
         """Draw the surface pass and resolve it: (image, clean or the one sample's range, nearest sample range), the
         last two None unless asked. log (if given) gets the passes drawn and attachments read."""
@@ -483,10 +484,11 @@ class GLRenderer:
         if done is not None:
             done("render")
 
-        from worker.formation import GLSL_HAZE
+        from worker.formation import GLSL_HAZE, GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 
         second = want_clean or sample_range
-        formats = (GL.GL_RGBA32F,) * (1 + second) + (GL.GL_R32F,) * want_nearest
+        formats = ((GL.GL_RGBA8UI if srgb8 else GL.GL_RGBA32F,) + (GL.GL_RGBA32F,) * second
+                   + (GL.GL_R32F,) * want_nearest)
         res = self._resolve_target(view.width, view.height, formats)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
@@ -500,6 +502,7 @@ class GLRenderer:
         else:
             src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
             extra_defines = {}
+        src = src.replace("SRGB8_FUNCTION", GLSL_SRGB8)
         prog, locs = self._program(
             shaders.FULLSCREEN,
             src,
@@ -511,6 +514,7 @@ class GLRenderer:
             WITH_SAMPLE_RANGE=sample_range,
             WITH_NEAREST=want_nearest,
             NEAREST_LOCATION=1 + second,
+            SRGB8_OUT=srgb8,
         )
         GL.glUseProgram(prog)
         GL.glViewport(0, 0, view.width, view.height)
@@ -527,14 +531,23 @@ class GLRenderer:
         if volume:
             gl_light.volume_uniforms(self, locs, view, lighting)
         GL.glUniform1i(locs["u_only_sample"], only_sample)
+        if srgb8:
+            GL.glUniform1fv(locs["u_srgb_thr"], len(SRGB8_THRESHOLDS_F32), SRGB8_THRESHOLDS_F32)
         GL.glBindVertexArray(self._empty_vao)
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)
         log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
         w, h = view.width, view.height
-        image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
-        log.append("read image")
+        if srgb8:
+            codes = self._read(0, w, h, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_BYTE, np.uint8, 4)
+            if codes[..., 3].any():
+                raise ValueError("encode_srgb8: linear image contains NaN")  # as the CPU encoder says it
+            image = np.ascontiguousarray(codes[..., :3])
+            log.append("read image srgb8")
+        else:
+            image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+            log.append("read image")
         extra = nearest = None
         if second:
             extra = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)

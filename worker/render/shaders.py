@@ -4,7 +4,7 @@
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
     "u_cam_from_obj", "u_nrm_cam", "u_proj", "u_scale", "u_bias", "u_sun_cam", "u_sun", "u_ambient",
-    "u_range_bounds", "u_id", "u_J", "u_R", "u_betaD", "u_betaB", "u_Binf", "u_only_sample",
+    "u_range_bounds", "u_id", "u_J", "u_R", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr",
 )
 
 # Range is interpolated at the pixel centre even for multisample coverage (no per-sample shading); a sample that
@@ -112,7 +112,12 @@ uniform vec3 u_betaD;
 uniform vec3 u_betaB;
 uniform vec3 u_Binf;
 uniform int u_only_sample;     // >= 0: output that one sample (audits); < 0: the average
+#ifdef SRGB8_OUT
+layout(location = 0) out uvec4 o_img;
+SRGB8_FUNCTION
+#else
 layout(location = 0) out vec4 o_img;
+#endif
 #ifdef WITH_CLEAN
 layout(location = 1) out vec4 o_clean;
 #endif
@@ -166,7 +171,11 @@ void main() {
             }
         }
     }
+#ifdef SRGB8_OUT
+    o_img = srgb8(acc / n);
+#else
     o_img = vec4(acc / n, 1.0);
+#endif
 #ifdef WITH_CLEAN
     o_clean = vec4(clean / n, 1.0);
 #endif
