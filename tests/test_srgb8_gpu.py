@@ -13,7 +13,7 @@ from worker.render.shaders import FULLSCREEN
 PROBE = """
 #version 330 core
 uniform sampler2D u_vals;
-layout(location = 0) out uvec4 o;
+layout(location = 0) out vec4 o;
 """ + GLSL_SRGB8 + """
 void main() {
     vec4 v = texelFetch(u_vals, ivec2(gl_FragCoord.xy), 0);
@@ -35,7 +35,7 @@ def gpu_codes(renderer, values: np.ndarray) -> np.ndarray:
         GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, n, 1, 0, GL.GL_RGBA, GL.GL_FLOAT, rgb)
         for k in (GL.GL_TEXTURE_MIN_FILTER, GL.GL_TEXTURE_MAG_FILTER):
             GL.glTexParameteri(GL.GL_TEXTURE_2D, k, GL.GL_NEAREST)
-        target = renderer._resolve_target(n, 1, (GL.GL_RGBA8UI,))
+        target = renderer._resolve_target(n, 1, (GL.GL_RGBA8,))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, target.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0])
         GL.glDisable(GL.GL_DEPTH_TEST)
@@ -48,7 +48,7 @@ def gpu_codes(renderer, values: np.ndarray) -> np.ndarray:
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)
-        return renderer._read(0, n, 1, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_BYTE, np.uint8, 4)[0]
+        return renderer._read(0, n, 1, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, np.uint8, 4)[0]
     finally:
         GL.glDeleteTextures([tex])
 

@@ -400,7 +400,8 @@ GLSL_SRGB8: str = """
 // float32 thresholds (SRGB8_THRESHOLDS_F32), which is encode_srgb8 of the same float32 bit for bit. The sRGB formula
 // guesses c to within one code (its float32 error is ~1e-4 of a code); two comparison steps make it exact. Negatives
 // and 0 give 0, values from the last threshold up (+inf too) 255. NaN compares false everywhere (code 0): srgb8()
-// flags it in alpha so the reader can refuse it as encode_srgb8 does.
+// flags it in alpha so the reader can refuse it as encode_srgb8 does. Written as code / 255 to an 8-bit normalised
+// target, which stores exactly the code (the common readback path, faster than an integer format's).
 uniform float u_srgb_thr[255];
 uint srgb8_code(float x) {
     if (!(x > 0.0)) return 0u;
@@ -413,9 +414,10 @@ uint srgb8_code(float x) {
     }
     return uint(c);
 }
-uvec4 srgb8(vec3 v) {
+vec4 srgb8(vec3 v) {
     bool nan = isnan(v.r) || isnan(v.g) || isnan(v.b);
-    return uvec4(srgb8_code(v.r), srgb8_code(v.g), srgb8_code(v.b), nan ? 1u : 0u);
+    return vec4(uvec4(srgb8_code(v.r), srgb8_code(v.g), srgb8_code(v.b), nan ? 1u : 0u)) / 255.0;
 }
 """
-"""GLSL 330 source defining `uvec4 srgb8(vec3 linear)`: the codes in rgb, 1 in alpha where a channel is NaN."""
+"""GLSL 330 source defining `vec4 srgb8(vec3 linear)`: the codes / 255 in rgb, 1 / 255 in alpha where a channel is
+NaN (for an 8-bit normalised target)."""

@@ -487,7 +487,7 @@ class GLRenderer:
         from worker.formation import GLSL_HAZE, GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 
         second = want_clean or sample_range
-        formats = ((GL.GL_RGBA8UI if srgb8 else GL.GL_RGBA32F,) + (GL.GL_RGBA32F,) * second
+        formats = ((GL.GL_RGBA8 if srgb8 else GL.GL_RGBA32F,) + (GL.GL_RGBA32F,) * second
                    + (GL.GL_R32F,) * want_nearest)
         res = self._resolve_target(view.width, view.height, formats)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
@@ -540,7 +540,7 @@ class GLRenderer:
         log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
         w, h = view.width, view.height
         if srgb8:
-            codes = self._read(0, w, h, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_BYTE, np.uint8, 4)
+            codes = self._read(0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, np.uint8, 4)
             if codes[..., 3].any():
                 raise ValueError("encode_srgb8: linear image contains NaN")  # as the CPU encoder says it
             image = np.ascontiguousarray(codes[..., :3])

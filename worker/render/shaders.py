@@ -112,11 +112,9 @@ uniform vec3 u_betaD;
 uniform vec3 u_betaB;
 uniform vec3 u_Binf;
 uniform int u_only_sample;     // >= 0: output that one sample (audits); < 0: the average
-#ifdef SRGB8_OUT
-layout(location = 0) out uvec4 o_img;
-SRGB8_FUNCTION
-#else
 layout(location = 0) out vec4 o_img;
+#ifdef SRGB8_OUT
+SRGB8_FUNCTION
 #endif
 #ifdef WITH_CLEAN
 layout(location = 1) out vec4 o_clean;
