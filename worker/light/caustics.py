@@ -95,9 +95,11 @@ def factor(c: Caustics, points_world: np.ndarray, surface_z: float, sun_dir_worl
 
 
 # GLSL 330 (inside the surface shader): needs u_caustic_* uniforms and the world position of the shaded point.
+# Wavenumbers and phases go in cycles (k / 2 pi, phi / 2 pi) so the shader reduces each argument to [0, 1) with fract
+# before cos: GLSL leaves cos's precision at large arguments (100+ radians at far points) to the implementation.
 GLSL = f"""
-uniform vec2 u_caustic_k[{WAVES}];
-uniform float u_caustic_phase[{WAVES}];
+uniform vec2 u_caustic_k[{WAVES}];       // cycles per metre
+uniform float u_caustic_phase[{WAVES}];  // cycles
 uniform float u_caustic_amp[{WAVES}];
 uniform float u_caustic_norm;
 uniform float u_caustic_focal;
@@ -106,7 +108,8 @@ uniform vec3 u_sun_world;
 float caustic_factor(vec3 p_world, float depth) {{
     vec2 xs = p_world.xy + u_sun_world.xy * (depth / u_sun_world.z);
     float g = 0.0;
-    for (int i = 0; i < {WAVES}; ++i) g += u_caustic_amp[i] * cos(dot(u_caustic_k[i], xs) + u_caustic_phase[i]);
+    for (int i = 0; i < {WAVES}; ++i)
+        g += u_caustic_amp[i] * cos(6.283185307179586 * fract(dot(u_caustic_k[i], xs) + u_caustic_phase[i]));
     float m = (1.0 - exp(-depth / u_caustic_focal)) * exp(-u_caustic_blur * depth * depth);
     float r = g / {LINE_WIDTH!r};
     return 1.0 + m * (({FLOOR!r} + exp(-r * r)) * u_caustic_norm - 1.0);

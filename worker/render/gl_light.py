@@ -160,8 +160,8 @@ def _caustic_uniforms(GL, locs: dict[str, int], light: PhysicalLight, world_from
         _set(GL, locs, name, GL.glUniform4f, *world_from_cam[row].astype(np.float32).tolist())
     _vec3(GL, locs, "u_sun_world", light.sun_dir_world)
     for i in range(len(c.phase)):
-        _set(GL, locs, f"u_caustic_k[{i}]", GL.glUniform2f, *c.k[i].astype(np.float32).tolist())
-        _set(GL, locs, f"u_caustic_phase[{i}]", GL.glUniform1f, float(c.phase[i]))
+        _set(GL, locs, f"u_caustic_k[{i}]", GL.glUniform2f, *(c.k[i] / (2 * np.pi)).astype(np.float32).tolist())
+        _set(GL, locs, f"u_caustic_phase[{i}]", GL.glUniform1f, float(c.phase[i] / (2 * np.pi)))
         _set(GL, locs, f"u_caustic_amp[{i}]", GL.glUniform1f, float(c.amplitude[i]))
     for name, value in (("u_caustic_norm", c.norm), ("u_caustic_focal", c.focal_depth_m),
                         ("u_caustic_blur", c.blur_per_m2)):
