@@ -76,7 +76,8 @@ def generate(
     width: WidthOpt = None,
     height: HeightOpt = None,
     quality: QualityOpt = None,
-    workers: Annotated[int, typer.Option("--workers", min=1, help="Local render processes.")] = 1,
+    workers: Annotated[str, typer.Option("--workers", help="Local render processes: a count, or auto (one per "
+                                         "usable CPU core, at most one per frame to render).")] = "1",
     resume: Annotated[bool, typer.Option("--resume", help="Complete a partly written dataset.")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the dataset in OUT.")] = False,
     gl: PlatformOpt = "egl",
@@ -86,10 +87,12 @@ def generate(
     outputs.instance renders each frame again for its masks)."""
     if resume and overwrite:
         raise SpecError("--resume and --overwrite exclude each other")
+    count = _worker_count(workers)
     s = _load(spec, frames, seed, width, height, quality)  # before the renderer's imports: bad specs fail fast
-    from worker.generate import open_dataset, render_frames
+    from worker.generate import auto_workers, open_dataset, render_frames
 
     todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")
+    workers = auto_workers(len(todo)) if count is None else count
     try:
         with _progress(len(todo), "frames") as bar:
             task = bar.add_task("render", total=len(todo))
@@ -202,6 +205,19 @@ def preview(
                          on_total=lambda n: bar.update(task, total=n), tile_width=tile_width)
     typer.echo(markdown(p.summary), nl=False)
     typer.echo(f"{p.sheet}: {p.tiles} of {p.summary.frames} complete frames; summary in {p.table}")
+
+
+def _worker_count(text: str) -> int | None:
+    """--workers: None for auto, else a count >= 1."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise typer.BadParameter(f"{text!r}: give a count >= 1 or auto", param_hint="'--workers'")
+    return n
 
 
 def _bad_option(ctx: typer.Context, name: str, message: str) -> typer.BadParameter:

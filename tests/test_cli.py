@@ -29,11 +29,13 @@ def seasynth(*args: str | Path, cwd: Path | None = None) -> subprocess.Completed
     [
         ((), "Usage: seasynth [OPTIONS] COMMAND", "Error: Missing command."),
         (("generate", EXAMPLE, "--out", "OUT", "--workers", "0"), "Usage: ", "Error: Invalid value for '--workers'"),
+        (("generate", EXAMPLE, "--out", "OUT", "--workers", "many"), "Usage: ",
+         "Error: Invalid value for '--workers'"),
         (("generate", EXAMPLE, "--out", "OUT", "--bogus"), "Usage: ", "Error: No such option: --bogus"),
         (("generate", EXAMPLE), "Usage: ", "Error: Missing option '--out'"),
         (("reproduce", EXAMPLE, "--out", "OUT"), "Usage: ", "Error: Missing option '--frame'"),
     ],
-    ids=["no-args", "workers-0", "unknown-option", "missing-out", "missing-frame"],
+    ids=["no-args", "workers-0", "workers-word", "unknown-option", "missing-out", "missing-frame"],
 )
 def test_usage_errors_exit_2_with_usage_and_no_traceback(tmp_path, args, usage, error):
     r = seasynth(*args, cwd=tmp_path)
@@ -173,3 +175,23 @@ def test_resume_of_a_record_without_renderer_or_files_completes_identically(made
     r = seasynth("generate", made[0], "--out", out, "--resume")
     assert r.returncode == 0, r.stderr
     assert tree(out) == tree(made[1])
+
+
+def test_workers_auto_fills_the_cores_it_may_use_and_no_more_than_the_frames(monkeypatch):
+    import os
+
+    from worker.generate import auto_workers
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 5})
+    assert [auto_workers(n) for n in (0, 1, 3, 4, 100)] == [1, 1, 3, 4, 4]
+
+
+def test_generate_with_workers_auto_writes_the_same_files_as_one_worker(tmp_path):
+    spec = spec_file(tmp_path, lambda data: data.update(frames=3))
+    one, auto = tmp_path / "one", tmp_path / "auto"
+    assert seasynth("generate", spec, "--out", one, "--workers", "1").returncode == 0
+    r = seasynth("generate", spec, "--out", auto, "--workers", "auto")
+    assert r.returncode == 0, r.stderr
+    files = sorted(p.relative_to(one) for p in one.rglob("*") if p.is_file() and p.name != "seasynth.json")
+    assert len(files) >= 9
+    assert all((one / f).read_bytes() == (auto / f).read_bytes() for f in files)

@@ -187,6 +187,17 @@ def generate(
     return render_frames(spec, out, todo, workers=workers, on_frames=on_frames, platform=platform)
 
 
+def auto_workers(frames_to_render: int) -> int:
+    """Render processes that fill this machine: one per CPU core this process may use (the frame's CPU stages,
+    encoding and labels, bound a GPU host; on a software renderer a second process still overlaps them with
+    rendering), at most one per frame to render, at least one."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, frames_to_render))
+
+
 def open_dataset(spec: DatasetSpec, out: Path, mode: Mode = "new") -> list[int]:
     """Check the spec's files and the output folder, mark the dataset incomplete; the frames still to render."""
     files = check_assets(spec)
