@@ -1,4 +1,5 @@
-"""Domain errors to HTTP answers, in one place. Every error body is {"detail": str, "errors": [str, ...]}."""
+"""Domain errors to HTTP answers, in one place. Every error body, 422 included, is {"detail": str, "errors": [str, ...]}
+(api.models.ErrorPublic, the model the OpenAPI document declares for each error status)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
+from starlette.routing import Match
 
 from service.errors import (
     AssetError,
@@ -52,6 +54,16 @@ def status_of(err: Exception) -> int:
     return 500
 
 
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route of the request's path takes (a path's routes partly match any other method)."""
+    scope = {**request.scope, "method": ""}
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        if route.matches(scope)[0] is not Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
+
+
 def install(app: FastAPI, retry_after_s: int) -> None:
     """Register the handlers that turn domain errors, bad requests and unreachable dependencies into HTTP."""
 
@@ -91,7 +103,10 @@ def install(app: FastAPI, retry_after_s: int) -> None:
 
     async def http(request: Request, err: HTTPException) -> JSONResponse:
         # Starlette's own answers (unknown path, wrong method, unparsable form) in the same body shape.
-        return JSONResponse(error_body(str(err.detail)), status_code=err.status_code, headers=err.headers)
+        headers = dict(err.headers or {})
+        if err.status_code == 405:  # Starlette names only the first route of the path; a path has several
+            headers["Allow"] = ", ".join(allowed_methods(request))
+        return JSONResponse(error_body(str(err.detail)), status_code=err.status_code, headers=headers)
 
     import redis
 

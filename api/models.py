@@ -120,3 +120,27 @@ class Health(BaseModel):
     status: str
     version: str
     checks: dict[str, str] = {}
+
+
+class ErrorPublic(BaseModel):
+    """Every error the API answers, 422 included (not FastAPI's default list of validation objects)."""
+
+    detail: str = Field(description="What went wrong, naming the field, file, limit or dataset at fault")
+    errors: list[str] = Field(description="The same, one line per problem")
+
+
+ERROR_WHY = {
+    400: "Malformed request: unparsable JSON, multipart body or Content-Length",
+    401: "A valid API key is required (when SEASYNTH_API_KEYS is set)",
+    404: "No such dataset (or a deleted one), frame or path",
+    409: "Conflicts with the dataset's or asset's current state (the body says which)",
+    413: "Over a configured limit (the body names it)",
+    422: "Invalid request: each line of `errors` names a field and why",
+    502: "The frame worker failed to render it (retrying does not help)",
+    503: "A dependency (Redis, the bucket, the broker, a frame worker) is unavailable; retry after Retry-After seconds",
+}
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for these error statuses, each with the one error body model."""
+    return {code: {"model": ErrorPublic, "description": ERROR_WHY[code]} for code in codes}

@@ -220,7 +220,7 @@ def public(rec: DatasetRecord, now: float) -> DatasetPublic:
 def dataset_status(services: Services, dataset_id: str) -> DatasetPublic:
     """The record, and on the side a nudge to the reconciler when the dataset needs one. A nudge that cannot be
     published does not fail the read: the status is still true, and the next read nudges again."""
-    rec = services.records.get(dataset_id)
+    rec = live_record(services, dataset_id)
     now = time.time()
     try:
         if (
@@ -242,7 +242,7 @@ def list_datasets(services: Services, offset: int, limit: int) -> tuple[list[Dat
     now, out = time.time(), []
     for i in ids:
         try:
-            rec = services.records.get(i)
+            rec = live_record(services, i)
         except NotFound:  # deleted between the two reads
             continue
         try:
@@ -318,26 +318,42 @@ def sweep_all(services: Services, dataset_ids: list[str] | None = None) -> list[
             return swept
 
 
-def cancel_dataset(services: Services, dataset_id: str, purge: bool) -> DatasetPublic:
-    """Cancel at once (pending shards will be skipped); with purge, also delete the dataset's objects.
+def live_record(services: Services, dataset_id: str) -> DatasetRecord:
+    """The record of a dataset that was not deleted; NotFound for an unknown or deleted one."""
+    rec = services.records.get(dataset_id)
+    if rec.purged:
+        raise NotFound(f"no dataset {dataset_id} (it was deleted)")
+    return rec
 
-    The purge is marked as begun before anything is deleted, and a worker checks that mark after writing an
-    object: a write whose check missed the mark came before it, so the delete finds the object; a write whose
-    check sees it is taken back out by its worker. The record says purged only once the delete is done: a purge
-    the bucket fails answers 503 (Unavailable) and leaves `purged` false, so the same request can be repeated.
-    """
+
+def cancel_dataset(services: Services, dataset_id: str) -> DatasetPublic:
+    """Cancel at once (pending shards will be skipped); Conflict for a dataset that already finished."""
+    live_record(services, dataset_id)
     state = services.records.cancel(dataset_id, time.time())
-    if state != CANCELLED and not purge:
-        raise Conflict(f"dataset {dataset_id} already {state}; nothing to cancel (add ?purge=true to delete it)")
-    if purge:
-        services.records.mark_purging(dataset_id)
-        services.store.delete_prefix(dataset_prefix(dataset_id))
-        services.records.mark_purged(dataset_id)
+    if state != CANCELLED:
+        raise Conflict(f"dataset {dataset_id} already {state}; nothing to cancel (DELETE it to remove it)")
     return public(services.records.get(dataset_id), time.time())
 
 
+def delete_dataset(services: Services, dataset_id: str) -> None:
+    """Cancel a live dataset, delete its objects, then drop it from the listing; its record stays as a purged
+    tombstone, which the API answers 404 for and workers still read (below).
+
+    The purge is marked as begun before anything is deleted, and a worker checks that mark after writing an
+    object: a write whose check missed the mark came before it, so the delete finds the object; a write whose
+    check sees it is taken back out by its worker. The record says purged only once the delete is done: a delete
+    the bucket fails answers 503 (Unavailable) and leaves the dataset readable, so the same request can be repeated.
+    """
+    live_record(services, dataset_id)
+    services.records.cancel(dataset_id, time.time())
+    services.records.mark_purging(dataset_id)
+    services.store.delete_prefix(dataset_prefix(dataset_id))
+    services.records.mark_purged(dataset_id)
+    services.records.unlist(dataset_id)
+
+
 def reconcile_dataset(services: Services, dataset_id: str, requeue: bool) -> DatasetPublic:
-    rec = services.records.get(dataset_id)
+    rec = live_record(services, dataset_id)
     publish(services, TASK_RECONCILE, [dataset_id, requeue], shard_queue(rec.code_version))
     return public(rec, time.time())
 
@@ -350,9 +366,7 @@ def manifest(services: Services, dataset_id: str, start: int = 0, limit: int = M
     """One page of the manifest: the committed shards with index in [start, start + limit), each with a
     presigned URL. Pages cut by shard index, not by position among committed shards, so a page's contents
     never shift while shards commit; totals (frames_done, shards_done, complete) are the whole dataset's."""
-    rec = services.records.get(dataset_id)
-    if rec.purged:
-        raise NotFound(f"dataset {dataset_id} was purged; its objects are gone")
+    rec = live_record(services, dataset_id)
     stop = min(start + limit, rec.shards_total)
     page = build_manifest(rec, services.records.commits_between(dataset_id, start, stop), url=services.store.url)
     # build_manifest counts the shards it is given; this page is part of the whole.
@@ -369,7 +383,7 @@ def manifest(services: Services, dataset_id: str, start: int = 0, limit: int = M
 
 def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[str, bytes]:
     """Re-render one file of one frame on a frames-queue worker; Unavailable (503) when none answers in time."""
-    rec = services.records.get(dataset_id)
+    rec = live_record(services, dataset_id)
     if not 0 <= index < rec.frames_total:
         raise NotFound(f"dataset {dataset_id} has no frame {index} (frames 0..{rec.frames_total - 1})")
     if part not in FRAME_PARTS:

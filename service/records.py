@@ -308,6 +308,11 @@ class Records:
         """Note that the dataset's objects are gone: call it only after they were deleted."""
         self._update(keys=[self._k(dataset_id)], args=["purged", "1"])
 
+    def unlist(self, dataset_id: str) -> None:
+        """Drop a purged dataset from the listing. Its record stays: workers still find it purged (purge_started)
+        and take back out what they write late."""
+        self.r.zrem(f"{self.p}:datasets", dataset_id)
+
     def purge_started(self, dataset_id: str) -> bool:
         """Whether a purge has begun (mark_purging) or finished: an object of the dataset written before this answer
         may already have been missed by the purge's delete."""

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Response, UploadFile, status
 
 from api import operations
 from api.deps import ServicesDep
-from api.models import AssetPublic
+from api.models import AssetPublic, error_responses
 
 router = APIRouter(prefix="/assets", tags=["assets"])
 
@@ -16,9 +16,7 @@ router = APIRouter(prefix="/assets", tags=["assets"])
     status_code=status.HTTP_201_CREATED,
     response_model=AssetPublic,
     responses={200: {"model": AssetPublic, "description": "These bytes were already uploaded in this format"},
-               409: {"description": "These bytes were already uploaded in another format (named)"},
-               413: {"description": "Over SEASYNTH_MAX_ASSET_BYTES"},
-               422: {"description": "Not a mesh or image that loads (named)"}},
+               **error_responses(400, 401, 409, 413, 422, 503)},
 )
 def upload_asset(file: UploadFile, services: ServicesDep, response: Response) -> AssetPublic:
     """Upload a mesh (.glb, .obj, .ply, .stl) or texture (.png, .jpg) as multipart field `file`.

@@ -1,4 +1,6 @@
-"""Dataset routes: create, list, status, manifest, single frames, preview sheet, cancel and purge."""
+"""Dataset routes: create, list, status, manifest, single frames, preview sheet, cancel, delete and reconcile.
+
+Every status a route can answer is declared, each error with the one body model (api.models.ErrorPublic)."""
 
 from typing import Annotated, Literal
 
@@ -6,18 +8,20 @@ from fastapi import APIRouter, Query, Response, status
 
 from api import operations
 from api.deps import DatasetId, FrameIndex, ServicesDep
-from api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic
+from api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic, error_responses
 from service.previews import MAX_SHEET_FRAMES, SHEET_FRAMES, dataset_preview
 from service.sheet import TILE_WIDTH
 from service.spec import DatasetSpec
 
-router = APIRouter(prefix="/datasets", tags=["datasets"])
+# Any route: no key (401), a bad parameter (422), Redis down (503).
+router = APIRouter(prefix="/datasets", tags=["datasets"], responses=error_responses(401, 422, 503))
 
 MEDIA = {".png": "image/png", ".txt": "text/plain; charset=utf-8", ".json": "application/json",
          ".npy": "application/octet-stream"}
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=DatasetCreated)
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=DatasetCreated,
+             responses=error_responses(400, 413))
 def create_dataset(spec: DatasetSpec, services: ServicesDep, response: Response) -> DatasetCreated:
     """Accept a dataset spec (the spec-file schema as JSON) and queue its shards."""
     created = operations.create_dataset(services, spec)
@@ -37,13 +41,13 @@ def list_datasets(
     return DatasetList(items=items, total=total, offset=offset, limit=limit, next=nxt)
 
 
-@router.get("/{id}", response_model=DatasetPublic)
+@router.get("/{id}", response_model=DatasetPublic, responses=error_responses(404))
 def get_dataset(id: DatasetId, services: ServicesDep) -> DatasetPublic:
     """State, progress (frames_done counts committed shards only), frames/s, ETA and shard errors."""
     return operations.dataset_status(services, id)
 
 
-@router.get("/{id}/manifest", response_model=ManifestPublic)
+@router.get("/{id}/manifest", response_model=ManifestPublic, responses=error_responses(404))
 def get_manifest(
     id: DatasetId,
     services: ServicesDep,
@@ -60,9 +64,9 @@ def get_manifest(
 @router.get(
     "/{id}/frames/{index}",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}, "text/plain": {}, "application/json": {}}},
-               502: {"description": "The frame worker failed to render it (retrying does not help)"},
-               503: {"description": "No frame worker answered in time; retry after Retry-After seconds"}},
+    responses={200: {"content": {"image/png": {}, "text/plain": {}, "application/json": {},
+                                 "application/octet-stream": {}}},
+               **error_responses(404, 502)},
 )
 def get_frame(
     id: DatasetId,
@@ -86,8 +90,7 @@ def get_frame(
     responses={200: {"content": {"image/png": {}},
                      "description": "The contact sheet: the first frames with their boxes (depth and instances where "
                                     "the spec has them) over a label summary of the shards drawn from"},
-               404: {"description": "No such dataset, a purged one, or none of its shards committed yet (the body "
-                                    "says which)"}},
+               **error_responses(404)},
 )
 def get_preview(
     id: DatasetId,
@@ -103,15 +106,24 @@ def get_preview(
                              "ETag": f'"{key.rsplit("/", 1)[-1].removesuffix(".png")}"'})
 
 
-@router.delete("/{id}", response_model=DatasetPublic)
-def delete_dataset(
-    id: DatasetId, services: ServicesDep, purge: Annotated[bool, Query(description="Also delete its objects")] = False
-) -> DatasetPublic:
-    """Cancel at once: pending shards are not rendered, committed ones are kept (purge=true deletes them too)."""
-    return operations.cancel_dataset(services, id, purge)
+@router.post("/{id}/cancel", response_model=DatasetPublic, responses=error_responses(404, 409))
+def cancel_dataset(id: DatasetId, services: ServicesDep) -> DatasetPublic:
+    """Cancel at once: pending shards are not rendered, committed ones are kept. Cancelling a cancelled dataset
+    again is harmless; a finished one is 409."""
+    return operations.cancel_dataset(services, id)
 
 
-@router.post("/{id}/reconcile", response_model=DatasetPublic, status_code=status.HTTP_202_ACCEPTED)
+@router.delete("/{id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response,
+               responses=error_responses(404))
+def delete_dataset(id: DatasetId, services: ServicesDep) -> Response:
+    """Delete the dataset: cancel it if live, delete its objects, and drop it from the API (every route then
+    answers 404). A delete the bucket fails is 503 and may be repeated."""
+    operations.delete_dataset(services, id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.post("/{id}/reconcile", response_model=DatasetPublic, status_code=status.HTTP_202_ACCEPTED,
+             responses=error_responses(404))
 def reconcile(
     id: DatasetId,
     services: ServicesDep,

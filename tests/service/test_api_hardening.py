@@ -272,7 +272,7 @@ def test_datasets_need_meshes_for_objects_and_an_image_for_the_texture(api):
                       terrain={"cells": 16, "variants": 1, "mesh": {"asset_id": mesh}, "texture": {"asset_id": image}})
     r = api.post("/datasets", json=right)
     assert r.status_code == 202, r.text
-    assert api.delete(f"/datasets/{r.json()['id']}").json()["state"] == "cancelled"
+    assert api.post(f"/datasets/{r.json()['id']}/cancel").json()["state"] == "cancelled"
 
 
 # --- the gate: the key first, then the body's size, before any body is read
@@ -319,7 +319,7 @@ def test_a_spec_of_exactly_the_limit_is_read(api, settings):
     exact = spec + b" " * (settings.max_spec_bytes - len(spec))
     r = api.post("/datasets", content=exact, headers={"content-type": "application/json"})
     assert r.status_code == 202, r.text
-    assert api.delete(f"/datasets/{r.json()['id']}").json()["state"] == "cancelled"
+    assert api.post(f"/datasets/{r.json()['id']}/cancel").json()["state"] == "cancelled"
     r = api.post("/datasets", content=exact + b" ", headers={"content-type": "application/json"})
     assert r.status_code == 413 and "SEASYNTH_MAX_SPEC_BYTES" in r.json()["detail"]
 
@@ -421,7 +421,7 @@ def test_a_purge_the_bucket_fails_is_503_and_can_be_repeated(serve, services, se
     headers = {"X-API-Key": KEY}
 
     down = serve(store=dead_store(settings.s3_bucket))
-    r = httpx.delete(f"{down}/datasets/{dataset_id}", params={"purge": "true"}, headers=headers, timeout=60)
+    r = httpx.delete(f"{down}/datasets/{dataset_id}", headers=headers, timeout=60)
     assert r.status_code == 503 and r.headers["retry-after"] == "9", r.text
     assert f"s3://{settings.s3_bucket}/{prefix}" in r.json()["detail"]
     rec = records.get(dataset_id)
@@ -429,10 +429,13 @@ def test_a_purge_the_bucket_fails_is_503_and_can_be_repeated(serve, services, se
     assert sorted(o.key for o in services.store.list(prefix)) == keys
 
     up = serve()
-    r = httpx.delete(f"{up}/datasets/{dataset_id}", params={"purge": "true"}, headers=headers)
-    assert r.status_code == 200 and r.json()["purged"] and r.json()["state"] == "cancelled", r.text
+    assert httpx.get(f"{up}/datasets/{dataset_id}", headers=headers).json()["state"] == "cancelled"  # still there
+    r = httpx.delete(f"{up}/datasets/{dataset_id}", headers=headers)
+    assert r.status_code == 204 and r.content == b"", r.text
     assert list(services.store.list(prefix)) == []
-    assert records.get(dataset_id).purged
+    assert records.get(dataset_id).purged  # the tombstone workers read
+    assert httpx.get(f"{up}/datasets/{dataset_id}", headers=headers).status_code == 404
+    assert httpx.delete(f"{up}/datasets/{dataset_id}", headers=headers).status_code == 404
 
 
 class PartialDeleteClient:

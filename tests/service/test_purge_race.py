@@ -10,7 +10,7 @@ from collections.abc import Callable
 import pytest
 
 from api.deps import Services
-from api.operations import cancel_dataset
+from api.operations import delete_dataset
 from service.manifest import pending_manifests_key
 from service.shards import commit_key, dataset_prefix, manifest_key, shard_key
 from service.storage import LocalStore, open_store
@@ -74,7 +74,7 @@ def test_an_object_written_between_the_purges_delete_and_its_mark_is_taken_back_
     deleted, resume, answer = threading.Event(), threading.Event(), {}
     api = Services(settings=infra.settings(), records=records, raw_redis=None,
                    store=HoldAfterDelete(store, deleted, resume), producer=None)
-    purge = threading.Thread(target=lambda: answer.update(public=cancel_dataset(api, ds, purge=True)))
+    purge = threading.Thread(target=lambda: answer.update(result=delete_dataset(api, ds)))
 
     def purge_up_to_its_mark() -> None:
         purge.start()
@@ -91,7 +91,8 @@ def test_an_object_written_between_the_purges_delete_and_its_mark_is_taken_back_
         resume.set()
         purge.join(30)
     assert not purge.is_alive()
-    assert (answer["public"].state, answer["public"].purged) == (state, True)
+    assert answer == {"result": None}
+    assert (records.get(ds).state, records.get(ds).purged) == (state, True)
     assert [o.key for o in store.list(dataset_prefix(ds))] == []
 
 
@@ -127,7 +128,7 @@ def test_a_shard_an_execution_wrote_after_the_purge_and_died_is_taken_back_by_th
         raise Killed(commit_key(ds, 0))
 
     # The whole purge runs just before the tar is written; the process dies right after writing its marker.
-    ctx.store = HookedWrites(store, before={tar: lambda: cancel_dataset(api, ds, purge=True)},
+    ctx.store = HookedWrites(store, before={tar: lambda: delete_dataset(api, ds)},
                              after={commit_key(ds, 0): die})
     with pytest.raises(Killed):
         run_shard(ctx, ds, 0)
@@ -152,7 +153,8 @@ def test_a_manifest_a_dead_finaliser_wrote_after_the_purge_is_deleted_by_the_nex
     ctx.store = store
     assert run_shard(ctx, ds, 0) is Outcome.COMMITTED and records.get(ds).state == "succeeded"
     api = Services(settings=infra.settings(), records=records, raw_redis=None, store=store, producer=None)
-    assert cancel_dataset(api, ds, purge=True).purged
+    delete_dataset(api, ds)
+    assert records.get(ds).purged
     # A finaliser that decided before the purge writes the manifest after the purge's delete, then dies with the
     # dataset still in the set of manifests to write.
     store.put_bytes(manifest_key(ds), b"{}", "application/json")

@@ -24,7 +24,7 @@ def test_health_and_docs(client):
 def test_unknown_or_malformed_ids_are_404_on_every_route(client, bad_id):
     for method, path in [("GET", "/datasets/{}"), ("GET", "/datasets/{}/manifest"),
                          ("GET", "/datasets/{}/frames/0"), ("DELETE", "/datasets/{}"),
-                         ("DELETE", "/datasets/{}?purge=true"), ("POST", "/datasets/{}/reconcile")]:
+                         ("POST", "/datasets/{}/cancel"), ("POST", "/datasets/{}/reconcile")]:
         r = client.request(method, path.format(bad_id))
         assert r.status_code == 404, (method, path, bad_id, r.status_code, r.text)
 
@@ -56,7 +56,6 @@ def test_every_route_with_garbage_never_500(client):
         ("GET", "/datasets/" + "0" * 32 + "/frames/zz", {}),
         ("GET", "/datasets/" + "0" * 32 + "/frames/" + "9" * 40, {}),
         ("GET", "/datasets/" + "0" * 32 + "/frames/0", {"params": {"part": "secrets"}}),
-        ("DELETE", "/datasets/" + "0" * 32, {"params": {"purge": "maybe"}}),
         ("POST", "/assets", {}),
         ("POST", "/assets", {"content": b"junk", "headers": {"content-type": "multipart/form-data; boundary=x"}}),
         ("POST", "/assets", {"files": {"file": ("evil.exe", b"MZ")}}),
@@ -88,7 +87,7 @@ def test_limits_are_named(client):
     assert r.status_code == 413 and "frames: 500001 is over the limit of 500000 (SEASYNTH_MAX_FRAMES)" in r.text
     ok = client.post("/datasets", json=tiny_spec(frames=500_000, shard_size=1000))
     assert ok.status_code == 202
-    assert client.delete(f"/datasets/{ok.json()['id']}").json()["state"] == "cancelled"
+    assert client.post(f"/datasets/{ok.json()['id']}/cancel").json()["state"] == "cancelled"
 
 
 def test_shard_work_is_limited_by_the_task_time_limit(client, stack: Stack):
@@ -102,11 +101,11 @@ def test_shard_work_is_limited_by_the_task_time_limit(client, stack: Stack):
     assert "use shard_size <= 41" in line
     ok = client.post("/datasets", json=tiny_spec(frames=100, shard_size=41, quality="high", camera=big))
     assert ok.status_code == 202, ok.text
-    assert client.delete(f"/datasets/{ok.json()['id']}").json()["state"] == "cancelled"
+    assert client.post(f"/datasets/{ok.json()['id']}/cancel").json()["state"] == "cancelled"
     # A cheaper preset fits more frames per shard.
     fast = client.post("/datasets", json=tiny_spec(frames=100, shard_size=50, quality="draft", camera=big))
     assert fast.status_code == 202, fast.text
-    assert client.delete(f"/datasets/{fast.json()['id']}").json()["state"] == "cancelled"
+    assert client.post(f"/datasets/{fast.json()['id']}/cancel").json()["state"] == "cancelled"
 
 
 def test_local_paths_and_unknown_assets_are_refused(client):

@@ -225,7 +225,7 @@ def test_killed_pool_process_reruns_its_shard_exactly_once(stack: Stack, client,
 def test_cancel_stops_pending_shards_and_keeps_the_record(stack: Stack, client, services):
     dataset_id = post(client, tiny_spec(frames=200, shard_size=1))
     wait_for(lambda: services.records.get(dataset_id).shards_done >= 1, 60, "a first shard")
-    r = client.delete(f"/datasets/{dataset_id}")
+    r = client.post(f"/datasets/{dataset_id}/cancel")
     assert r.status_code == 200 and r.json()["state"] == "cancelled"
     then = services.records.get(dataset_id)
     processes = sum(1 for _ in stack.workers())  # the session's workers run one process each
@@ -243,19 +243,20 @@ def test_cancel_stops_pending_shards_and_keeps_the_record(stack: Stack, client, 
     man = client.get(f"/datasets/{dataset_id}/manifest").json()
     assert not man["complete"] and len(man["shards"]) == rec["shards_done"]
     assert not list(services.store.list(f"datasets/{dataset_id}/shards/manifest.json"))
-    assert client.delete(f"/datasets/{dataset_id}").status_code == 200  # cancelling again is harmless
+    assert client.post(f"/datasets/{dataset_id}/cancel").status_code == 200  # cancelling again is harmless
 
 
 def test_purge_deletes_the_objects(stack: Stack, client, services):
     dataset_id = post(client, tiny_spec(frames=4, shard_size=2))
     assert wait_state(client, dataset_id, {"succeeded"})["state"] == "succeeded"
     assert len(list(services.store.list(f"datasets/{dataset_id}/"))) == 5  # 2 shards, 2 markers, manifest
-    assert client.delete(f"/datasets/{dataset_id}").status_code == 409  # finished: nothing to cancel
-    r = client.delete(f"/datasets/{dataset_id}", params={"purge": "true"})
-    assert r.status_code == 200 and r.json()["purged"] and r.json()["state"] == "succeeded"
+    assert client.post(f"/datasets/{dataset_id}/cancel").status_code == 409  # finished: nothing to cancel
+    r = client.delete(f"/datasets/{dataset_id}")
+    assert r.status_code == 204, r.text
     assert list(services.store.list(f"datasets/{dataset_id}/")) == []
     assert client.get(f"/datasets/{dataset_id}/manifest").status_code == 404
-    assert client.get(f"/datasets/{dataset_id}").status_code == 200
+    assert client.get(f"/datasets/{dataset_id}").status_code == 404
+    assert dataset_id not in [d["id"] for d in client.get("/datasets", params={"limit": 100}).json()["items"]]
 
 
 def test_unusable_asset_fails_the_dataset_after_n_attempts(stack: Stack, client, services):
