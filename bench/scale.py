@@ -81,8 +81,11 @@ def run_cli(spec, workers: int, platform: str) -> dict:
                  on_frames=lambda n: stamps.extend([time.perf_counter()] * n))
         wall = time.perf_counter() - t0
         busy1, total1 = cpu_times()
+    # Frames can be reported several at a time (one timestamp each): with no time between the quarter mark and the
+    # end, the steady rate is the whole run's.
     k = int(len(stamps) * STEADY_AFTER)
-    steady = (len(stamps) - k) / (stamps[-1] - stamps[k - 1]) if 0 < k < len(stamps) else len(stamps) / wall
+    span = stamps[-1] - stamps[k - 1] if 0 < k < len(stamps) else 0.0
+    steady = (len(stamps) - k) / span if span > 0 else len(stamps) / wall
     return {"frames": len(stamps), "wall_s": round(wall, 2), "wall_fps": round(len(stamps) / wall, 2),
             "steady_fps": round(steady, 2), "gpu_util": gpu.mean(),
             "cpu_util": round(100.0 * (busy1 - busy0) / max(total1 - total0, 1e-9), 1)}
