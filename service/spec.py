@@ -14,6 +14,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StrictBool,
+    StrictFloat,
     StrictInt,
     ValidationError,
     field_validator,
@@ -73,16 +74,17 @@ def _count_range(v: tuple[int, int]) -> tuple[int, int]:
 
 
 # A closed interval [min, max] written as a two-element list in spec files.
-Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
-NonNegInterval = Annotated[tuple[float, float], AfterValidator(_ordered), AfterValidator(_nonneg)]
-PositiveInterval = Annotated[tuple[float, float], AfterValidator(_ordered), AfterValidator(_positive)]
+Interval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_ordered)]
+NonNegInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_ordered), AfterValidator(_nonneg)]
+PositiveInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_ordered), AfterValidator(_positive)]
 CountInterval = Annotated[tuple[StrictInt, StrictInt], AfterValidator(_count_range)]
-Vec3 = tuple[float, float, float]
+Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
 
 
 class _Model(BaseModel):
     # NaN and inf would slip past every bound check (NaN compares false), so no float field takes them.
-    # Integer and boolean fields are StrictInt / StrictBool: true, "7" and 2.0 are not integers, 1 and "yes"
+    # Integer, float and boolean fields are StrictInt / StrictFloat / StrictBool: true, "7" and 2.0 are not integers,
+    # true and "0.5" are not numbers (an integer is a float), 1 and "yes"
     # are not booleans (YAML's own true/false and JSON's true/false are).
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -104,20 +106,20 @@ class Box(_Model):
 
 
 class Intrinsics(_Model):
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
+    fx: StrictFloat = Field(gt=0)
+    fy: StrictFloat = Field(gt=0)
+    cx: StrictFloat
+    cy: StrictFloat
 
 
 class Camera(_Model):
     width: StrictInt = Field(640, ge=MIN_SIDE, le=MAX_SIDE)
     height: StrictInt = Field(480, ge=MIN_SIDE, le=MAX_SIDE)
     # Horizontal field of view; the vertical one follows from the aspect ratio (square pixels).
-    hfov_deg: float | None = Field(None, gt=1.0, lt=170.0)
+    hfov_deg: StrictFloat | None = Field(None, gt=1.0, lt=170.0)
     intrinsics: Intrinsics | None = None
     clip: PositiveInterval = (0.02, 300.0)
-    look_at_jitter_m: float = Field(0.05, ge=0)
+    look_at_jitter_m: StrictFloat = Field(0.05, ge=0)
 
     @field_validator("clip")
     @classmethod
@@ -199,13 +201,13 @@ class Terrain(_Model):
         default_factory=lambda: ["sand", "pebbles", "rock"], min_length=1, max_length=MAX_CHOICES
     )
     variants: StrictInt = Field(8, ge=1, le=MAX_VARIANTS)
-    size_m: float = Field(12.0, gt=0, le=1000)
+    size_m: StrictFloat = Field(12.0, gt=0, le=1000)
     cells: StrictInt = Field(192, ge=2, le=MAX_TERRAIN_CELLS)
-    relief_m: float = Field(0.25, ge=0, le=100)
+    relief_m: StrictFloat = Field(0.25, ge=0, le=100)
     # User terrain: a mesh file (replaces the procedural heightfield) and/or a colour texture.
     mesh: FileRef | None = None
     texture: FileRef | None = None
-    texture_tile_m: float = Field(1.0, gt=0)
+    texture_tile_m: StrictFloat = Field(1.0, gt=0)
 
 
 class Workspaces(_Model):
@@ -230,8 +232,8 @@ class Lamp(_Model):
 
     offset_m: Vec3 = (0.0, 0.0, 0.0)
     direction: Vec3 = (0.0, 0.0, 1.0)
-    beam_width_deg: float = Field(20.0, gt=0, lt=90)
-    cutoff_deg: float = Field(35.0, gt=0, lt=90)
+    beam_width_deg: StrictFloat = Field(20.0, gt=0, lt=90)
+    cutoff_deg: StrictFloat = Field(35.0, gt=0, lt=90)
     colour: Vec3 = (1.0, 1.0, 1.0)
     intensity: NonNegInterval = (4.0, 4.0)
 
@@ -366,7 +368,7 @@ class TextureRandomisation(_Model):
 class Noise(_Model):
     """Camera noise: off by default; recorded in meta when on."""
 
-    gaussian_sigma: float = Field(0.0, ge=0, le=0.5)
+    gaussian_sigma: StrictFloat = Field(0.0, ge=0, le=0.5)
 
 
 EXPORT_FORMATS = ("coco", "yolo", "mcap")  # detector formats written beside the KITTI files (worker.export)
@@ -404,7 +406,7 @@ class Outputs(_Model):
     coco: StrictBool = False
     yolo: StrictBool = False
     mcap: StrictBool = False
-    split: tuple[float, float, float] = (0.8, 0.1, 0.1)
+    split: tuple[StrictFloat, StrictFloat, StrictFloat] = (0.8, 0.1, 0.1)
 
     @field_validator("coco", "yolo", "mcap")
     @classmethod

@@ -239,13 +239,17 @@ NOT_STRICT = [
     ("camera.width", 64.0), ("camera.height", "48"), ("targets.count", [1.0, 2]), ("terrain.cells", 16.0),
     ("targets.assets", [{"procedural": "urchin", "variants": 2.0}]), ("outputs.depth", 1), ("outputs.labels", "true"),
     ("outputs.range", 0.0), ("water.enabled", "no"),
+    # Float fields take numbers only: a lax parse would read false as 0.0 and "12" as 12.0.
+    ("noise.gaussian_sigma", False), ("camera.hfov_deg", True), ("lighting.sun_intensity", [True, 1.0]),
+    ("terrain.size_m", "12"), ("outputs.split", [0.8, "0.1", 0.1]),
 ]
 
 
 @pytest.mark.parametrize(("dotted", "value"), NOT_STRICT, ids=[f"{d}={v!r}" for d, v in NOT_STRICT])
 def test_ints_and_bools_are_strict_naming_the_field(dotted, value):
     (line,) = refusal(apply_overrides({}, {dotted: value}))
-    name = {"targets.count": "targets.count.0", "targets.assets": "targets.assets.0.variants"}.get(dotted, dotted)
+    name = {"targets.count": "targets.count.0", "targets.assets": "targets.assets.0.variants",
+            "lighting.sun_intensity": "lighting.sun_intensity.0", "outputs.split": "outputs.split.1"}.get(dotted, dotted)
     assert line.startswith(f"{name}: Input should be a valid "), line
 
 
@@ -607,3 +611,8 @@ def test_export_outputs_default_off_and_leave_digests_alone():
     on = parse_spec({"outputs": {"mcap": True, "coco": True, "split": [1, 0, 0]}})
     assert on.outputs.exports == ("coco", "mcap") and on.outputs.split == (1.0, 0.0, 0.0)
     assert spec_digest(on) != spec_digest(DatasetSpec())
+
+
+
+def test_an_integer_is_a_float():
+    assert parse_spec({"noise": {"gaussian_sigma": 0}, "terrain": {"size_m": 12}}).terrain.size_m == 12.0
