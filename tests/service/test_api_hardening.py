@@ -668,3 +668,15 @@ def test_frame_worker_failures_map_to_honest_statuses(api, services, header, sta
     else:
         assert r.json()["detail"] == detail.format(id=dataset_id)
         assert ("retry-after" in r.headers) == (status == 503)
+
+
+@pytest.mark.parametrize("body", [
+    b"[" * 2000 + b"]" * 2000,  # deeper than the JSON decoder's recursion limit
+    b'{"a":' * 500 + b"1" + b"}" * 500,
+    b'{"camera": ' + b"[" * 900 + b"]" * 900 + b"}",  # parses, then fails validation deep inside
+], ids=["arrays-2000", "objects-500", "nested-in-a-field"])
+def test_deeply_nested_json_within_the_size_limit_is_a_4xx_with_a_body(api, settings, body):
+    assert len(body) <= settings.max_spec_bytes
+    r = api.post("/datasets", content=body, headers={"content-type": "application/json"})
+    assert r.status_code in (400, 422), (r.status_code, r.text[:300])
+    assert isinstance(r.json()["detail"], str) and r.json()["detail"]
