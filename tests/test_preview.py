@@ -13,7 +13,7 @@ from local_datasets import generate_variants, seasynth
 
 from service.errors import ExportError
 from worker import kitti
-from worker.preview import (
+from service.sheet import (
     BOX_COLOURS,
     COLUMNS,
     GAP,
@@ -21,11 +21,11 @@ from worker.preview import (
     HEIGHT_EDGES,
     LINE,
     PANEL_MIN_WIDTH,
-    make_preview,
     markdown,
     summary_rows,
     tile_origin,
 )
+from worker.preview import make_preview
 
 W, H, FRAMES = 48, 36, 5
 

@@ -14,14 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import ExportError
-from service.sheet import (  # noqa: F401 (the sheet's layout and summary, re-exported for callers of this module)
-    BOX_COLOURS,
-    COLUMNS,
-    GAP,
-    HEADER,
-    HEIGHT_EDGES,
-    LINE,
-    PANEL_MIN_WIDTH,
+from service.sheet import (
     TILE_WIDTH,
     Summary,
     SummaryCounter,
@@ -31,9 +24,6 @@ from service.sheet import (  # noqa: F401 (the sheet's layout and summary, re-ex
     draw_sheet,
     jerlov_of,
     markdown,
-    sheet_size,
-    summary_rows,
-    tile_origin,
     tile_size,
 )
 
