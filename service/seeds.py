@@ -5,6 +5,11 @@ import numpy as np
 # Distinct streams derived from one frame's entropy; appended to the SeedSequence key so they never collide.
 STREAM_SCENE = 0
 STREAM_NOISE = 1
+# Sensors' own streams (ASCII tags, like worker.export's STREAM_SPLIT): switching a sensor on changes no other draw.
+STREAM_FLS = 0x666C73  # "fls": forward-looking sonar speckle and noise
+STREAM_SSS = 0x737373  # "sss": side-scan sonar speckle and noise
+STREAM_NAV = 0x6E6176  # "nav": DVL, pressure and IMU noise, and the seabed depth when the water model draws none
+STREAM_NAV_BIAS = 0x62696173  # "bias": IMU biases, drawn once per dataset (frame index 0 of this stream)
 
 
 def frame_rng(dataset_seed: int, frame_index: int, stream: int = STREAM_SCENE) -> np.random.Generator:

@@ -39,6 +39,11 @@ OUTPUT_SHARE = 0.25  # each of clean, range, depth, instance: this share of the 
 # Export formats (outputs.coco, yolo, mcap) count as outputs too: each writes the shard's images again with its
 # labels, and COCO also renders and encodes the instance ids.
 EXTRA_OUTPUTS = ("clean", "range", "depth", "instance", "coco", "yolo", "mcap")
+# Sonar and navigation sensors (service.sensors): their renders (one sample per pixel, then the echo model's numpy
+# work per pixel) and a fixed cost per enabled sensor. Measured on the same machine: FLS at defaults (852,044 render
+# pixels) 0.219 s, i.e. 3.9e6 pixels/s; SSS at defaults (2 x 27,060 pixels) 0.016 s; DVL + pressure 0.014 s.
+SENSOR_PIXELS_PER_S = 1e6
+SENSOR_S = 0.05  # per enabled sensor and frame (measured 0.007-0.016)
 # A user terrain mesh is costed as the largest heightfield (service/spec.py MAX_TERRAIN_CELLS): its triangle count is
 # unknown before it is loaded.
 MAX_TERRAIN_CELLS_COSTED = 1024
@@ -52,16 +57,19 @@ def frame_seconds(
     objects: int = 0,
     terrain_cells: int = 0,
     extra_outputs: int = 0,
+    sensors: int = 0,
+    sensor_pixels: int = 0,
 ) -> float:
     """Conservative seconds of one frame on one worker process (terrain builds excluded: see shard_seconds).
 
     objects: the most objects a frame may place (the upper ends of targets.count and distractors.count);
     terrain_cells: cells per side of the terrain grid; extra_outputs: how many of clean, range, depth, instance
-    and the export formats coco, yolo and mcap are switched on.
+    and the export formats coco, yolo and mcap are switched on; sensors: how many sonar and navigation sensors are
+    on; sensor_pixels: the pixels they render per frame (service.sensors.Sensors.render_pixels).
     """
     samples = width * height * SAMPLES_PER_PIXEL[quality] / SAMPLES_PER_S
     return (FRAME_OVERHEAD_S + samples * (1 + OUTPUT_SHARE * extra_outputs) + OBJECT_S * objects
-            + TERRAIN_CELL_S * terrain_cells**2)
+            + TERRAIN_CELL_S * terrain_cells**2 + SENSOR_S * sensors + sensor_pixels / SENSOR_PIXELS_PER_S)
 
 
 def shard_seconds(
@@ -74,6 +82,8 @@ def shard_seconds(
     terrain_cells: int = 0,
     extra_outputs: int = 0,
     terrain_builds: int = 0,
+    sensors: int = 0,
+    sensor_pixels: int = 0,
 ) -> float:
     """Conservative seconds one worker process needs for a full shard of these frames.
 
@@ -82,7 +92,7 @@ def shard_seconds(
     spec_shard_seconds, which fills in the rest from the spec.
     """
     frame = frame_seconds(width, height, quality, objects=objects, terrain_cells=terrain_cells,
-                          extra_outputs=extra_outputs)
+                          extra_outputs=extra_outputs, sensors=sensors, sensor_pixels=sensor_pixels)
     builds = min(terrain_builds, shard_size) * TERRAIN_BUILD_CELL_S * terrain_cells**2
     return shard_size * frame + builds
 
@@ -97,6 +107,8 @@ def spec_cost_terms(spec) -> dict[str, int]:
         "extra_outputs": sum(bool(getattr(spec.outputs, name)) for name in EXTRA_OUTPUTS),
         # A user mesh is one terrain; procedural ones come in len(styles) x variants (repeats weight the draw).
         "terrain_builds": 1 if t.mesh is not None else len(set(t.styles)) * t.variants,
+        "sensors": spec.sensors.enabled_count,
+        "sensor_pixels": spec.sensors.render_pixels(),
     }
 
 
@@ -201,6 +213,13 @@ FRAME_PARTS: dict[str, tuple[str, str]] = {
     "instance": ("instance", ".png"),
     "clean": ("clean", ".png"),
     "range": ("range", ".npy"),
+    # Sonar and navigation sensors (service.sensors), where the spec switches them on.
+    "fls": ("fls", ".png"),
+    "fls_fan": ("fls_fan", ".png"),
+    "fls_label": ("fls_label", ".json"),
+    "sss": ("sss", ".png"),
+    "sss_label": ("sss_label", ".json"),
+    "nav": ("nav", ".json"),
 }
 
 

@@ -176,6 +176,25 @@ class Tile:
     boxes: tuple[tuple[str, tuple[int, int, int, int], tuple[int, int, int]], ...]  # (class, box, colour)
     depth: np.ndarray | None = None  # (h, w) uint16 metres * 256, 0 = no depth
     instance: np.ndarray | None = None  # (h, w) uint16 instance ids, 0 = terrain or water
+    sonar: np.ndarray | None = None  # (fh, fw) uint16 FLS fan image (fls_fan/), drawn last by fit_size
+    sonar_boxes: tuple[tuple[str, tuple[int, int, int, int], tuple[int, int, int]], ...] = ()  # fan_box of fls_label
+
+
+def sonar_grey(codes: np.ndarray) -> np.ndarray:
+    """(..., ) uint8 display of 16-bit sonar codes: linear, 0 black and the 99th percentile of the positive codes
+    (or their maximum, if that is 0) white, brighter codes clipped; all black without a positive code."""
+    positive = codes[codes > 0]
+    if positive.size == 0:
+        return np.zeros(codes.shape, dtype=np.uint8)
+    top = float(np.percentile(positive, 99)) or float(positive.max())
+    return np.rint(np.clip(codes.astype(np.float64) / top, 0.0, 1.0) * 255).astype(np.uint8)
+
+
+def fit_size(width: int, height: int, box: tuple[int, int]) -> tuple[int, int, int, int]:
+    """(x, y, w, h) px: an image of (width, height) scaled by one factor to fit `box` (w, h), centred in it."""
+    s = min(box[0] / width, box[1] / height)
+    w, h = max(1, round(width * s)), max(1, round(height * s))
+    return (box[0] - w) // 2, (box[1] - h) // 2, w, h
 
 
 def class_colour(colours: dict[str, tuple[int, int, int]], name: str) -> tuple[int, int, int]:
@@ -208,7 +227,8 @@ def scale_box(box: tuple[int, int, int, int], sx: float, sy: float, size: tuple[
 
 def render_tile(tile: Tile, size: tuple[int, int], font):
     """The tile as one PIL RGB image of `size` (w, h) per panel: the image and depth box-filtered, the instances
-    nearest-neighbour (so colours stay ids'), when scaled; then the boxes drawn on their scaled pixels."""
+    nearest-neighbour (so colours stay ids'), when scaled; then the boxes drawn on their scaled pixels. An FLS
+    fan goes in one more panel, scaled by fit_size with its label boxes."""
     from PIL import Image
 
     h, w = tile.image.shape[:2]
@@ -218,7 +238,13 @@ def render_tile(tile: Tile, size: tuple[int, int], font):
         panels.append((np.repeat(depth_grey(tile.depth)[..., None], 3, axis=-1), Image.BOX))
     if tile.instance is not None:
         panels.append((instance_colours(tile.instance), Image.NEAREST))
-    out = Image.new("RGB", (len(panels) * sw, sh))
+    out = Image.new("RGB", (len(panels) * sw + (tile.sonar is not None) * sw, sh))
+    if tile.sonar is not None:  # the FLS fan, its shape kept, centred in the last panel on black
+        fh, fw = tile.sonar.shape
+        x, y, w2, h2 = fit_size(fw, fh, (sw, sh))
+        fan = Image.fromarray(np.repeat(sonar_grey(tile.sonar)[..., None], 3, axis=-1)).resize((w2, h2), Image.BOX)
+        boxes = [(name, scale_box(box, w2 / fw, h2 / fh, (w2, h2)), colour) for name, box, colour in tile.sonar_boxes]
+        out.paste(Image.fromarray(draw_boxes(np.asarray(fan), boxes, font)), (len(panels) * sw + x, y))
     for k, (panel, resample) in enumerate(panels):
         img = Image.fromarray(np.ascontiguousarray(panel))
         if (sw, sh) != (w, h):
@@ -239,7 +265,7 @@ def draw_sheet(tiles: list[Tile], summary: Summary, tile_width: int = TILE_WIDTH
     if tiles:
         h, w = tiles[0].image.shape[:2]
         size = tile_size(w, h, tile_width)
-        panels = 1 + (tiles[0].depth is not None) + (tiles[0].instance is not None)
+        panels = 1 + (tiles[0].depth is not None) + (tiles[0].instance is not None) + (tiles[0].sonar is not None)
     else:
         size, panels = (0, 0), 1
     sheet = Image.new("RGB", sheet_size(len(tiles), *size, panels, summary), BACKGROUND)

@@ -22,6 +22,7 @@ from pydantic import (
 )
 
 from service.errors import SpecError
+from service.sensors import Sensors, Trajectory
 from service.water import JERLOV_TYPES
 
 # Documented limits. They keep one frame inside memory and one shard inside the task time limit, and every frame
@@ -30,7 +31,7 @@ MAX_FRAMES = 1_000_000
 MAX_SIDE = 4096
 MIN_SIDE = 8
 MAX_SHARD_SIZE = 10_000
-MAX_SHARD_MEGAPIXELS = 600.0  # shard_size * width * height / 1e6
+MAX_SHARD_MEGAPIXELS = 600.0  # shard_size * (width * height + sensors' render pixels) / 1e6
 MAX_OBJECTS = 64  # per role and frame
 MAX_TERRAIN_CELLS = 1024
 MAX_VARIANTS = 1024
@@ -447,6 +448,8 @@ class DatasetSpec(_Model):
     texture: TextureRandomisation = TextureRandomisation()
     noise: Noise = Noise()
     outputs: Outputs = Outputs()
+    sensors: Sensors = Sensors()
+    trajectory: Trajectory = Trajectory()
 
     @model_validator(mode="after")
     def _camera_under_water(self) -> DatasetSpec:
@@ -459,6 +462,15 @@ class DatasetSpec(_Model):
         return self
 
     @model_validator(mode="after")
+    def _trajectory_under_water(self) -> DatasetSpec:
+        w, tr = self.water, self.trajectory
+        top = tr.altitude_m + tr.heave_m
+        if tr.kind != "random" and w.enabled and w.resolved_model == "physical" and w.depth_m[0] <= top:
+            raise ValueError(f"trajectory.altitude_m: {tr.altitude_m} m + heave_m {tr.heave_m} m reaches the surface "
+                             f"(water.depth_m min {w.depth_m[0]} m): the vehicle must stay under water")
+        return self
+
+    @model_validator(mode="after")
     def _caustics_need_physical_light(self) -> DatasetSpec:
         w = self.water
         if self.lighting.caustics.enabled and not (w.enabled and w.resolved_model == "physical"):
@@ -468,10 +480,12 @@ class DatasetSpec(_Model):
 
     @model_validator(mode="after")
     def _shard_work(self) -> DatasetSpec:
-        mp = self.shard_size * self.camera.width * self.camera.height / 1e6
+        sensor_px = self.sensors.render_pixels()  # the sonars' and DVL's renders count as the camera's pixels do
+        mp = self.shard_size * (self.camera.width * self.camera.height + sensor_px) / 1e6
         if mp > MAX_SHARD_MEGAPIXELS:
+            sensors = f" plus {sensor_px} sensor render pixels (sensors.fls, sss, dvl)" if sensor_px else ""
             raise ValueError(
-                f"shard_size: {self.shard_size} frames of {self.camera.width}x{self.camera.height} is "
+                f"shard_size: {self.shard_size} frames of {self.camera.width}x{self.camera.height}{sensors} is "
                 f"{mp:.0f} megapixels per shard, over the limit of {MAX_SHARD_MEGAPIXELS:.0f}; lower shard_size"
             )
         return self

@@ -22,7 +22,8 @@ from worker.assets.procedural import procedural_asset
 from worker.assets.terrain import Terrain, apply_texture, procedural_terrain
 from worker.formation import decode_srgb8, encode_srgb8
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
-from worker.scene import Placed, Scene, sample_scene
+from worker.scene import Placed, Scene, on_trajectory, sample_scene
+from worker.sensors.outputs import SensorFrame, sensor_frame, sensor_paths, sensors_on
 
 # Quality presets: how many samples make a pixel and where they are shaded. The water is always applied per
 # sample, in float32, before samples are averaged in linear light. `fast` shades once per pixel at its centre
@@ -56,7 +57,7 @@ def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
         (o.clean, f"clean/{n}.png"),
         (o.range, f"range/{n}.npy"),
     )
-    return paths + [p for want, p in optional if want]
+    return paths + [p for want, p in optional if want] + sensor_paths(spec.sensors, index)
 
 
 def to_render_mesh(key: str, mesh) -> Mesh:
@@ -216,7 +217,11 @@ class RenderSession:
 
     # ---- frames --------------------------------------------------------------------------------------------
     def scene(self, spec: DatasetSpec, index: int) -> Scene:
-        return sample_scene(spec, frame_rng(spec.seed, index), self.asset_for, self.terrain_for)
+        if spec.trajectory.kind == "random":
+            return sample_scene(spec, frame_rng(spec.seed, index), self.asset_for, self.terrain_for)
+        # A survey: one world (frame 0's draws) for every frame, seen from the trajectory's pose at this frame.
+        return on_trajectory(sample_scene(spec, frame_rng(spec.seed, 0), self.asset_for, self.terrain_for),
+                             spec, index)
 
     def view(self, spec: DatasetSpec, scene: Scene) -> View:
         return View(
@@ -279,6 +284,11 @@ class RenderSession:
             noise = {"gaussian_sigma_linear": spec.noise.gaussian_sigma}
         frame_labels = self.labels(view, scene, items, result) if o.labels else None
         mark("labels")
+        # Sonar and navigation sensors, each from its own seed stream: switching one on changes no camera byte.
+        sensors = None
+        if sensors_on(spec.sensors):
+            sensors = sensor_frame(spec, index, scene, items, self.renderer)
+            mark("sensors")
 
         n = frame_name(index)
         files: dict[str, bytes] = {f"image_2/{n}.png": png_bytes(encode_srgb8(image) if noisy else image)}
@@ -286,7 +296,7 @@ class RenderSession:
             files[f"label_2/{n}.txt"] = kitti.format_label_file(frame_labels.objects).encode()
         files[f"calib/{n}.txt"] = kitti.format_calib(view.K).encode()
         if o.meta:
-            files[f"meta/{n}.json"] = self.meta(spec, index, scene, view, frame_labels, noise).encode()
+            files[f"meta/{n}.json"] = self.meta(spec, index, scene, view, frame_labels, noise, sensors).encode()
         if o.depth:
             files[f"depth/{n}.png"] = png_bytes(depth_png16(result.range_m, self._ray_norms(view)))
         if o.instance:
@@ -295,6 +305,9 @@ class RenderSession:
             files[f"clean/{n}.png"] = png_bytes(encode_srgb8(result.clean))
         if o.range:
             files[f"range/{n}.npy"] = npy_bytes(result.range_m)
+        if sensors is not None:
+            for rel, data in sensors.outputs.items():
+                files[rel] = png_bytes(data) if isinstance(data, np.ndarray) else data.encode()
         mark("encode")
         return files
 
@@ -321,7 +334,8 @@ class RenderSession:
             objects.append(labels.kitti_object(p.class_name, box, labels.box3d(pts), truncated, occluded))
         return FrameLabels(objects=objects, line_of=line_of, visible=visible, alone=alone)
 
-    def meta(self, spec, index, scene: Scene, view: View, fl: FrameLabels | None, noise) -> str:
+    def meta(self, spec, index, scene: Scene, view: View, fl: FrameLabels | None, noise,
+             sensors: SensorFrame | None = None) -> str:
         """The frame's audit record: nothing in it depends on time, host, duration, worker count, the dataset's
         frame count, shard size or the optional outputs depth/instance/clean/range (the dataset record holds the
         whole spec). With outputs.labels off there are no labels, so each object's label_line, visible_pixels
@@ -359,6 +373,8 @@ class RenderSession:
             "objects_left_out": scene.dropped,
             "noise": noise,
         }
+        if sensors is not None:  # absent with every sensor off, so such frames' meta is unchanged
+            record["sensors"] = sensors.record
         return json.dumps(record, indent=1, sort_keys=True) + "\n"
 
 

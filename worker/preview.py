@@ -1,4 +1,5 @@
-"""`seasynth preview`: a contact sheet of a dataset's first frames (boxes, depth, instances) and a label summary.
+"""`seasynth preview`: a contact sheet of a dataset's first frames (boxes, depth, instances, the FLS fan with its
+boxes) and a label summary.
 
 The drawing is service.sheet's (the API draws the same sheet of a service dataset); this module reads a local one.
 """
@@ -54,6 +55,20 @@ def _jerlov(path: Path | None) -> str | None:
     return jerlov_of(meta)
 
 
+def _fls_fan(files: dict[str, Path], colours: dict) -> tuple[np.ndarray | None, tuple]:
+    """The frame's FLS fan image ((h, w) uint16) and its targets' fan boxes (class, box, colour), or (None, ())
+    for a dataset without the FLS."""
+    if "fls_fan" not in files:
+        return None, ()
+    try:
+        objects = json.loads(files["fls_label"].read_text())["objects"]
+        boxes = tuple((o["class"], (o["fan_box"]["left"], o["fan_box"]["top"], o["fan_box"]["right"],
+                                    o["fan_box"]["bottom"]), class_colour(colours, o["class"])) for o in objects)
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ExportError(f"{files['fls_label']}: unreadable FLS labels ({err!r})") from None
+    return _read_png(files["fls_fan"]), boxes
+
+
 def make_preview(dataset: Path, out: Path, frames: int = 12,
                  on_frames: Callable[[int], None] | None = None,
                  on_total: Callable[[int], None] | None = None,
@@ -89,10 +104,12 @@ def make_preview(dataset: Path, out: Path, frames: int = 12,
             counter.add(((name, ob.box, ob.truncated, ob.occluded) for name, ob in named), _jerlov(frame.meta))
             boxes = tuple((name, ob.box, class_colour(colours, name)) for name, ob in named)
             if len(tiles) < frames:
+                fan, fan_boxes = _fls_fan(frame.sensor_files, colours)
                 tiles.append(Tile(
                     name=frame.name, image=_read_png(frame.image)[..., :3].astype(np.uint8), boxes=boxes,
                     depth=None if frame.depth is None else _read_png(frame.depth),
                     instance=_read_png(ds.root / f"instance/{frame.name}.png") if o.instance else None,
+                    sonar=fan, sonar_boxes=fan_boxes,
                 ))
             if on_frames is not None:
                 on_frames(1)

@@ -217,7 +217,9 @@ def _sample_water(spec: DatasetSpec, rng: np.random.Generator) -> tuple[WaterPar
 
 
 def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSource, terrain_for) -> Scene:
-    """Draw one frame's scene. Every draw comes from `rng`, in a fixed order that no output option changes."""
+    """Draw one frame's scene. Every draw comes from `rng`, in a fixed order that no output option changes. A survey
+    (trajectory.kind other than random) draws no camera: its pose is the trajectory's at frame 0 (on_trajectory
+    moves it to any frame)."""
     tex = spec.texture
     terrain = terrain_for(spec, rng)
     t_scale = rng.uniform(*tex.scale, size=3).astype(np.float32)
@@ -258,29 +260,14 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
                 )
             )
 
-    # Look at a random target inside the look-at workspace, else at a random point of that workspace.
-    ws = spec.workspaces
-    centres = np.array([p.world_from_obj[:3, 3] for p in placed if p.role == "target"]).reshape(-1, 3)
-    ids = [p.instance_id for p in placed if p.role == "target"]
-    inside = np.flatnonzero(in_box(centres, ws.look_at)) if centres.size else np.array([], int)
-    if inside.size:
-        pick = int(inside[rng.integers(inside.size)])
-        look_at, look_id = centres[pick].copy(), ids[pick]
-    else:  # a point of the seabed inside the look-at workspace
-        look_at, look_id = uniform3(rng, ws.look_at.min, ws.look_at.max), None
-        ground = float(terrain.height_at(look_at[None, :2])[0])
-        look_at[2] = min(max(ground, ws.look_at.min[2]), ws.look_at.max[2])
-    look_at = look_at + rng.normal(0.0, spec.camera.look_at_jitter_m, size=3)
-
     spheres = [_bounding_sphere(p) for p in placed]
-    for tries in range(1, CAMERA_TRIES + 1):
-        eye = uniform3(rng, ws.camera.min, ws.camera.max)
-        if _camera_clear(eye, look_at, terrain, spheres, spec.camera.clip[0]):
-            break
-    else:
-        raise SceneError(
-            f"workspaces.camera: no camera position outside the terrain and objects after {CAMERA_TRIES} draws"
-        )
+    if spec.trajectory.kind == "random":
+        world_from_cam, look_at, look_id, tries = _draw_camera(spec, rng, terrain, placed, spheres)
+    else:  # a survey's pose is its trajectory's (frame 0 here, see on_trajectory): no draw, so no workspace fails it
+        from worker.trajectory import vehicle_state
+
+        world_from_cam = vehicle_state(spec.trajectory, 0).world_from_vehicle
+        look_at, look_id, tries = world_from_cam[:3, 3] + world_from_cam[:3, 2], None, 0
 
     lt = spec.lighting
     elev = math.radians(rng.uniform(*lt.sun_elevation_deg))
@@ -301,7 +288,7 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
         terrain_albedo_scale=t_scale,
         terrain_albedo_bias=t_bias,
         objects=tuple(placed),
-        world_from_cam=look_at_pose(eye, look_at),
+        world_from_cam=world_from_cam,
         look_at=look_at,
         look_at_instance=look_id,
         camera_tries=tries,
@@ -311,6 +298,32 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
         light=light,
         dropped=dropped,
     )
+
+
+def _draw_camera(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, placed: list[Placed],
+                 spheres: list) -> tuple[np.ndarray, np.ndarray, int | None, int]:
+    """A random-pose frame's camera: (world_from_cam (4, 4) float64, look_at (3,) float64 world, its target's
+    instance id or None, positions drawn). Looks at a random target inside the look-at workspace, else at a random
+    point of that workspace's seabed, from the first position in workspaces.camera clear of all geometry."""
+    ws = spec.workspaces
+    centres = np.array([p.world_from_obj[:3, 3] for p in placed if p.role == "target"]).reshape(-1, 3)
+    ids = [p.instance_id for p in placed if p.role == "target"]
+    inside = np.flatnonzero(in_box(centres, ws.look_at)) if centres.size else np.array([], int)
+    if inside.size:
+        pick = int(inside[rng.integers(inside.size)])
+        look_at, look_id = centres[pick].copy(), ids[pick]
+    else:  # a point of the seabed inside the look-at workspace
+        look_at, look_id = uniform3(rng, ws.look_at.min, ws.look_at.max), None
+        ground = float(terrain.height_at(look_at[None, :2])[0])
+        look_at[2] = min(max(ground, ws.look_at.min[2]), ws.look_at.max[2])
+    look_at = look_at + rng.normal(0.0, spec.camera.look_at_jitter_m, size=3)
+
+    for tries in range(1, CAMERA_TRIES + 1):
+        eye = uniform3(rng, ws.camera.min, ws.camera.max)
+        if _camera_clear(eye, look_at, terrain, spheres, spec.camera.clip[0]):
+            return look_at_pose(eye, look_at), look_at, look_id, tries
+    raise SceneError(f"workspaces.camera: no camera position outside the terrain and objects after {CAMERA_TRIES} "
+                     "draws")
 
 
 def _bounding_sphere(p: Placed) -> tuple[np.ndarray, float]:
@@ -329,3 +342,20 @@ def _camera_clear(eye, look_at, terrain: Terrain, spheres, near: float) -> bool:
     if math.isfinite(ground) and eye[2] < ground + CAMERA_CLEARANCE_M + near:
         return False
     return all(np.linalg.norm(eye - c) > r + CAMERA_CLEARANCE_M + near for c, r in spheres)
+
+
+def on_trajectory(scene: Scene, spec: DatasetSpec, index: int) -> Scene:
+    """The scene seen from the trajectory's vehicle pose at frame `index` (worker.trajectory), which must lie above
+    the terrain and outside every object."""
+    import dataclasses
+
+    from worker.trajectory import vehicle_state
+
+    state = vehicle_state(spec.trajectory, index)
+    T = state.world_from_vehicle
+    eye = T[:3, 3]
+    spheres = [_bounding_sphere(p) for p in scene.objects]
+    if not _camera_clear(eye, eye + T[:3, 2], scene.terrain, spheres, spec.camera.clip[0]):
+        raise SceneError(f"trajectory: frame {index}'s vehicle position {eye.round(3).tolist()} is inside the terrain "
+                         "or an object; raise trajectory.altitude_m")
+    return dataclasses.replace(scene, world_from_cam=T, look_at=eye + T[:3, 2], look_at_instance=None, camera_tries=0)

@@ -73,7 +73,8 @@ def get_frame(
     index: FrameIndex,
     services: ServicesDep,
     part: Annotated[
-        Literal["image", "label", "calib", "meta", "depth", "instance", "clean", "range"],
+        Literal["image", "label", "calib", "meta", "depth", "instance", "clean", "range", "fls", "fls_fan",
+                "fls_label", "sss", "sss_label", "nav"],
         Query(description="Which of the frame's files: the PNG by default"),
     ] = "image",
 ) -> Response:

@@ -416,7 +416,7 @@ def test_admission_costs_objects_terrain_and_outputs():
     heavy = cost()
     assert heavy / 4 >= 2 * 5.0, "a shard of the heavy spec must be costed at least 2x its measured time"
     assert spec_cost_terms(parse_spec(HEAVY)) == {"objects": 128, "terrain_cells": 1024, "extra_outputs": 4,
-                                                  "terrain_builds": 24}
+                                                  "terrain_builds": 24, "sensors": 0, "sensor_pixels": 0}
     lighter = [
         cost(targets={"count": [0, 8]}),
         cost(distractors={"count": [3, 5]}),

@@ -18,6 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from service.errors import ExportError
+from service.sensors import Sensors
 from service.seeds import frame_rng
 from service.spec import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
 from worker.export.dataset import (
@@ -98,6 +99,7 @@ class ExportInfo:
     spec_sha256: str
     code_version: str | None  # the dataset's
     fractions: tuple[float, float, float]  # train, val, test
+    sensors: Sensors = Sensors()  # the spec's sonar and navigation sensors (their files are in Frame.sensor_files)
 
 
 class Exporter(Protocol):
@@ -216,7 +218,7 @@ def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] 
     open_export_folder(out, plan.format)
     info = ExportInfo(out=out, categories=plan.categories, width=ds.spec.camera.width,
                       height=ds.spec.camera.height, dataset_seed=ds.spec.seed, spec_sha256=ds.spec_sha256,
-                      code_version=ds.code_version, fractions=plan.fractions)
+                      code_version=ds.code_version, fractions=plan.fractions, sensors=ds.spec.sensors)
     counts = dict.fromkeys(SPLITS, 0)
     with FrameReader(ds, masks=exporter.needs_masks, distractors=plan.distractors, platform=platform) as reader:
         exporter.begin(info)

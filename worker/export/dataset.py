@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +13,7 @@ import numpy as np
 from service.errors import AssetError, ExportError, SpecError
 from service.shards import frame_name
 from service.spec import DatasetSpec, parse_spec, spec_digest
+from worker.sensors.outputs import sensor_paths
 
 LOCAL_RECORD = "seasynth.json"  # written by `seasynth generate` (worker.generate.RECORD)
 FETCHED_RECORD = "manifest.json"  # written by `seasynth fetch`
@@ -151,6 +152,8 @@ class Frame:
     calib: Path | None = None  # calib/{name}.txt
     meta: Path | None = None  # meta/{name}.json
     depth: Path | None = None  # depth/{name}.png
+    # The sonar and navigation sensors' files (worker.sensors.outputs), by folder: "fls", "fls_fan", "nav", ...
+    sensor_files: dict[str, Path] = field(default_factory=dict)
 
 
 class FrameReader:
@@ -263,7 +266,8 @@ def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
     return Frame(index=index, name=n, image=root / f"image_2/{n}.png", width=spec.camera.width,
                  height=spec.camera.height, objects=tuple(objects), instance=instance,
                  calib=root / f"calib/{n}.txt", meta=root / f"meta/{n}.json" if o.meta else None,
-                 depth=root / f"depth/{n}.png" if o.depth else None)
+                 depth=root / f"depth/{n}.png" if o.depth else None,
+                 sensor_files={p.split("/")[0]: root / p for p in sensor_paths(spec.sensors, index)})
 
 
 def camera_projection(path: Path) -> np.ndarray:

@@ -15,6 +15,8 @@ as rosbag2 writes them), zstd chunks. Frames come in ascending index; frame i is
                                                              (only when the dataset has meta/)
   /camera/depth             sensor_msgs/msg/Image            "32FC1" z-depth in metres, NaN where none (only
                                                              when the dataset has depth/)
+  /fls/..., /sss/..., /dvl/twist, /pressure, /imu: the sonar and navigation sensors the spec switches on
+  (worker.export.mcap_sensors lists them)
 
 Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
 frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate, the split
@@ -34,6 +36,7 @@ from service.errors import ExportError
 from worker.export import SPLITS, ExportInfo, Frame
 from worker.export.dataset import camera_pose, camera_projection, depth_metres
 from worker.export.files import make_dirs, tmp_name
+from worker.export.mcap_sensors import SENSOR_DEFS, SENSOR_TOPICS, sensor_messages
 
 FRAME_RATE_HZ = 10  # frame i is stamped i / 10 s: frames are independent scenes, so the rate is nominal
 NS_PER_S = 1_000_000_000
@@ -72,6 +75,7 @@ _DEFS = {
     "vision_msgs/Detection2D": ("std_msgs/Header header\nvision_msgs/ObjectHypothesisWithPose[] results\n"
                                 "vision_msgs/BoundingBox2D bbox\nstring id\n"),
     "vision_msgs/Detection2DArray": "std_msgs/Header header\nvision_msgs/Detection2D[] detections\n",
+    **SENSOR_DEFS,
 }
 
 
@@ -106,6 +110,7 @@ TOPICS = {
     DETECTIONS_TOPIC: "vision_msgs/msg/Detection2DArray",
     TF_TOPIC: "tf2_msgs/msg/TFMessage",
     DEPTH_TOPIC: "sensor_msgs/msg/Image",
+    **SENSOR_TOPICS,
 }
 
 
@@ -243,6 +248,8 @@ class McapExporter:
                 "header": _header(ns), "height": frame.height, "width": frame.width, "encoding": "32FC1",
                 "is_bigendian": 0, "step": frame.width * 4, "data": depth.astype("<f4").tobytes(),
             }, ns, seq)
+        for topic, message in sensor_messages(frame.sensor_files, self._info.sensors, lambda f: _header(ns, f)):
+            self._write(split, topic, message, ns, seq)
         self._frames[split] += 1
 
     def finish(self) -> None:

@@ -580,6 +580,13 @@ class GLRenderer:
             log.append("read range")
         return ids, rng
 
+    def geometry(self, view: View, items: list[DrawItem]) -> tuple[np.ndarray, np.ndarray]:
+        """First-hit instance ids (h, w) uint32 (0 = terrain or nothing) and range (h, w) float32 metres (+inf
+        where nothing is hit) at pixel centres: what a non-optical sensor (sonar) needs, with no shading."""
+        self._platform.make_current()
+        self._call += 1
+        return self._ids(view, items, True, True)
+
     def pixels_alone(self, view: View, item: DrawItem, region: tuple[int, int, int, int] | None = None) -> int:
         """Pixels (at pixel centres) the item covers when rendered with nothing else in the scene.
 

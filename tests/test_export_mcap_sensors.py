@@ -1,0 +1,123 @@
+"""`seasynth export --format mcap` of a survey with every sonar and navigation sensor: each sensor message, decoded
+with mcap-ros2's decoder, equals the dataset's fls/, fls_fan/, sss/ and nav/ files and the spec's sonar geometry."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from service.spec import load_spec
+from worker.export import plan_export, run_export
+from worker.generate import generate
+from worker.sensors.fls import fls_grid
+from worker.sensors.sss import sss_grid
+
+pytest.importorskip("mcap")
+pytest.importorskip("mcap_ros2")
+from mcap.reader import make_reader  # noqa: E402
+from mcap_ros2.decoder import DecoderFactory  # noqa: E402
+
+from worker.export.mcap import FRAME_RATE_HZ  # noqa: E402
+from worker.export.mcap_sensors import DTYPE_UINT16, NOMINAL_SOUND_SPEED  # noqa: E402
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey-sonar.yaml"
+SMALL = {"camera.width": 32, "camera.height": 24, "frames": 4, "shard_size": 2, "sensors.fls.beams": 16,
+         "sensors.fls.range_bins": 24, "sensors.fls.horizontal_aperture_deg": 60.0, "sensors.fls.beam_width_deg": 4.0,
+         "sensors.sss.enabled": True, "sensors.sss.range_bins": 16, "sensors.sss.horizontal_beam_deg": 2.0}
+SENSOR_TOPICS = ["/fls/image", "/fls/fan", "/fls/sonar_image", "/sss/image", "/sss/sonar_image", "/dvl/twist",
+                 "/pressure", "/imu"]
+F32 = np.float32
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    root = tmp_path_factory.mktemp("mcap-sensors")
+    spec = load_spec(EXAMPLE, SMALL)
+    generate(spec, root / "ds", workers=1)
+    run_export(plan_export(root / "ds", "mcap", (1.0, 0.0, 0.0)), root / "out")
+    with open(root / "out" / "train.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        messages = [(c.topic, s.name, m.log_time, d)
+                    for s, c, m, d in reader.iter_decoded_messages(log_time_order=False)]
+    return spec, root / "ds", messages
+
+
+def png16(path: Path) -> np.ndarray:
+    a = np.asarray(Image.open(path))
+    assert a.dtype == np.uint16
+    return a
+
+
+def check_image(msg, a: np.ndarray, frame_id: str, ns: int) -> None:
+    assert (msg.header.frame_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec) == (frame_id, ns)
+    assert (msg.height, msg.width, msg.encoding, msg.is_bigendian, msg.step) == (*a.shape, "mono16", 0, 2 * a.shape[1])
+    assert np.array_equal(np.frombuffer(bytes(msg.data), "<u2").reshape(a.shape), a)
+
+
+def test_every_sensor_message_equals_the_dataset_files(survey):
+    spec, ds, messages = survey
+    fls, sss = spec.sensors.fls, spec.sensors.sss
+    per_frame = {}
+    for topic, schema, ns, msg in messages:
+        per_frame.setdefault(ns, []).append((topic, schema, msg))
+    assert sorted(per_frame) == [i * 10**9 // FRAME_RATE_HZ for i in range(spec.frames)]
+    for i in range(spec.frames):
+        n, ns = f"{i:06d}", i * 10**9 // FRAME_RATE_HZ
+        got = [(t, s) for t, s, _ in per_frame[ns] if not t.startswith(("/camera", "/detections", "/tf"))]
+        assert got == list(zip(SENSOR_TOPICS, ["sensor_msgs/msg/Image"] * 2
+                               + ["marine_acoustic_msgs/msg/ProjectedSonarImage", "sensor_msgs/msg/Image",
+                                  "marine_acoustic_msgs/msg/ProjectedSonarImage",
+                                  "geometry_msgs/msg/TwistWithCovarianceStamped", "sensor_msgs/msg/FluidPressure",
+                                  "sensor_msgs/msg/Imu"]))
+        m = {t: msg for t, _, msg in per_frame[ns]}
+        polar, fan, row = png16(ds / f"fls/{n}.png"), png16(ds / f"fls_fan/{n}.png"), png16(ds / f"sss/{n}.png")
+        assert polar.shape == (24, 16) and row.shape == (1, 32)
+        check_image(m["/fls/image"], polar, "fls", ns)
+        check_image(m["/fls/fan"], fan, "fls", ns)
+        check_image(m["/sss/image"], row, "sss", ns)
+
+        sonar = m["/fls/sonar_image"]
+        az = fls_grid(fls).beam_az  # the beam centres the echo model beamforms at
+        assert [(d.x, d.y, d.z) for d in sonar.beam_directions] == [(math.sin(a), 0.0, math.cos(a)) for a in az]
+        edges = fls_grid(fls).range_edges
+        assert list(sonar.ranges) == [float(F32(r)) for r in (edges[:-1] + edges[1:]) / 2]
+        p = sonar.ping_info
+        assert (p.frequency, p.sound_speed) == (750_000.0, NOMINAL_SOUND_SPEED)
+        assert list(p.tx_beamwidths) == [float(F32(math.radians(20.0)))] * 16
+        assert list(p.rx_beamwidths) == [float(F32(math.radians(4.0)))] * 16
+        img = sonar.image
+        assert (img.dtype, img.beam_count, img.is_bigendian) == (DTYPE_UINT16, 16, False)
+        assert np.array_equal(np.frombuffer(bytes(img.data), "<u2").reshape(24, 16), polar)
+
+        side = m["/sss/sonar_image"]
+        d = math.radians(sss.depression_deg)
+        assert [(v.x, v.y, v.z) for v in side.beam_directions] == [(-math.cos(d), math.sin(d), 0.0),
+                                                                   (math.cos(d), math.sin(d), 0.0)]
+        e = sss_grid(sss).edges
+        assert list(side.ranges) == [float(F32(r)) for r in (e[:-1] + e[1:]) / 2]
+        assert (side.ping_info.frequency, side.image.beam_count) == (900_000.0, 2)
+        cells = np.frombuffer(bytes(side.image.data), "<u2").reshape(16, 2)
+        assert np.array_equal(cells[:, 0], row[0, :16][::-1]) and np.array_equal(cells[:, 1], row[0, 16:])
+
+        nav = json.loads((ds / f"nav/{n}.json").read_text())
+        tw = m["/dvl/twist"]
+        assert tw.header.frame_id == "dvl"
+        lin = tw.twist.twist.linear
+        assert [lin.x, lin.y, lin.z] == nav["dvl"]["velocity_dvl_m_s"]
+        s2 = spec.sensors.dvl.velocity_sigma_m_s ** 2
+        assert list(tw.twist.covariance) == list(np.diag([s2, s2, s2, -1.0, -1.0, -1.0]).ravel())
+        pr = m["/pressure"]
+        assert (pr.header.frame_id, pr.fluid_pressure, pr.variance) == ("pressure", nav["pressure"]["pressure_pa"],
+                                                                       100.0**2)
+        imu = m["/imu"]
+        w, a = imu.angular_velocity, imu.linear_acceleration
+        assert [w.x, w.y, w.z] == nav["imu"]["angular_rate_rad_s"]
+        assert [a.x, a.y, a.z] == nav["imu"]["specific_force_m_s2"]
+        assert list(imu.orientation_covariance) == [-1.0] + [0.0] * 8
+        assert list(imu.angular_velocity_covariance) == list(np.diag([1e-4**2] * 3).ravel())
+        assert list(imu.linear_acceleration_covariance) == list(np.diag([1e-3**2] * 3).ravel())

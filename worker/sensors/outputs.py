@@ -1,0 +1,82 @@
+"""A frame's sensor outputs besides the camera: which files each sensor writes, and one call that makes them all."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.seeds import STREAM_FLS, STREAM_NAV, STREAM_SSS, frame_rng
+from service.sensors import Sensors
+from service.shards import frame_name
+from service.spec import DatasetSpec
+from worker.scene import Scene
+from worker.sensors import world_from_sensor
+
+
+def sensors_on(s: Sensors) -> bool:
+    return s.fls.enabled or s.sss.enabled or s.any_nav
+
+
+def sensor_paths(s: Sensors, index: int) -> list[str]:
+    """Relative paths of the sensor files of frame `index` (none with every sensor off)."""
+    n = frame_name(index)
+    paths = []
+    if s.fls.enabled:
+        paths += [f"fls/{n}.png", f"fls_fan/{n}.png", f"fls_label/{n}.json"]
+    if s.sss.enabled:
+        paths += [f"sss/{n}.png", f"sss_label/{n}.json"]
+    if s.any_nav:
+        paths.append(f"nav/{n}.json")
+    return paths
+
+
+def surface_z(spec: DatasetSpec, scene: Scene, index: int) -> float:
+    """World z of the water surface: the physical model's (drawn with the scene), else the first draw of the frame's
+    nav stream from water.depth_m (the paper model draws no depth; that draw changes no camera output)."""
+    drawn = float(frame_rng(spec.seed, index, STREAM_NAV).uniform(*spec.water.depth_m))
+    return scene.light.medium.surface_z if scene.light is not None else drawn
+
+
+@dataclass(frozen=True)
+class SensorFrame:
+    """Every sensor output of one frame: files as arrays ((h, w) uint16 PNGs) or text, and meta's `sensors` entry."""
+
+    outputs: dict[str, np.ndarray | str]
+    record: dict
+
+
+def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, renderer) -> SensorFrame:
+    """The sensors' outputs of frame `index` (the camera's scene and draw items; the GL renderer)."""
+    s, n = spec.sensors, frame_name(index)
+    outputs: dict[str, np.ndarray | str] = {}
+    record: dict = {}
+    surface = surface_z(spec, scene, index)
+    objects = {p.instance_id: (p.role, p.class_name) for p in scene.objects}
+    if s.fls.enabled:
+        from worker.sensors.fls import fls_frame
+
+        pose = world_from_sensor(scene.world_from_cam, s.fls.pose)
+        fr = fls_frame(s.fls, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
+                       frame_rng(spec.seed, index, STREAM_FLS))
+        outputs[f"fls/{n}.png"] = fr.polar
+        outputs[f"fls_fan/{n}.png"] = fr.fan
+        outputs[f"fls_label/{n}.json"] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
+        record["fls"] = fr.record
+    if s.sss.enabled:
+        from worker.sensors.sss import sss_frame
+
+        pose = world_from_sensor(scene.world_from_cam, s.sss.pose)
+        fr = sss_frame(s.sss, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
+                       frame_rng(spec.seed, index, STREAM_SSS))
+        outputs[f"sss/{n}.png"] = fr.row
+        outputs[f"sss_label/{n}.json"] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
+        record["sss"] = fr.record
+    if s.any_nav:
+        from worker.sensors.nav import nav_record
+
+        nav = nav_record(spec, index, scene, items, renderer, surface)
+        outputs[f"nav/{n}.json"] = json.dumps(nav, indent=1, sort_keys=True) + "\n"
+        record["nav"] = nav
+    return SensorFrame(outputs=outputs, record=record)
