@@ -57,14 +57,18 @@ def open_services(settings: Settings) -> Services:
     )
 
 
-def get_services(request: Request) -> Services:
+# The dependencies below do no I/O, so they are `async def`: FastAPI runs a plain `def` dependency on the thread
+# pool, two thread hand-offs per status read that cost more CPU than the read itself (bench/load.py).
+
+
+async def get_services(request: Request) -> Services:
     return request.app.state.services
 
 
 ServicesDep = Annotated[Services, Depends(get_services)]
 
 
-def dataset_id(id: Annotated[str, Path(description="Dataset id (32 lowercase hex digits)")]) -> str:
+async def dataset_id(id: Annotated[str, Path(description="Dataset id (32 lowercase hex digits)")]) -> str:
     """A syntactically valid dataset id; any other string names no dataset (404, like an unknown id)."""
     if not DATASET_ID.fullmatch(id):
         raise NotFound(f"no dataset {id[:80]!r}")
@@ -77,7 +81,7 @@ DatasetId = Annotated[str, Depends(dataset_id)]
 FRAME_INDEX = re.compile(r"^[0-9]{1,19}$")
 
 
-def frame_index(index: Annotated[str, Path(description="Frame index: decimal digits, from 0")]) -> int:
+async def frame_index(index: Annotated[str, Path(description="Frame index: decimal digits, from 0")]) -> int:
     """A frame index written plainly; any other string names no frame (404)."""
     if not FRAME_INDEX.fullmatch(index):
         raise NotFound(f"no frame {index[:40]!r} (a frame index is written in decimal digits)")

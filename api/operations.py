@@ -20,6 +20,7 @@ from service.errors import AssetError, Conflict, LimitExceeded, NotFound, Render
 from service.manifest import build_manifest
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
 from service.records import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord, wait_reply
+from service.recovery import cancelled_key, check_redis, forget, restore, save_record
 from service.settings import Settings
 from service.shards import (
     FRAME_PARTS,
@@ -91,15 +92,18 @@ def shard_over_time_limit(spec: DatasetSpec, budget: float) -> str | None:
         return None
     size = min(spec.shard_size, spec.frames)
     terms = spec_cost_terms(spec)
+    sensors = (f", {terms['sensors']} sensors rendering {terms['sensor_pixels']} pixels"
+               if terms["sensors"] else "")
     what = (f"shard_size: {size} frames of {spec.camera.width}x{spec.camera.height} at quality {spec.quality!r} "
             f"(up to {terms['objects']} objects, {terms['terrain_cells']} terrain cells a side, "
             f"{terms['terrain_builds']} terrains, {terms['extra_outputs']} of clean/range/depth/instance/coco/yolo/"
-            f"mcap) are estimated at {need:.0f} s per shard, over the limit of {budget} s (the soft task time limit, "
-            f"SEASYNTH_TASK_TIME_LIMIT_S)")
+            f"mcap{sensors}) are estimated at {need:.0f} s per shard, over the limit of {budget} s (the soft task "
+            f"time limit, SEASYNTH_TASK_TIME_LIMIT_S)")
     fits = largest_shard_size(spec, budget, below=size)
     if fits == 0:
         return (f"{what}; even one frame per shard is estimated at {spec_shard_seconds(spec, 1):.0f} s: lower the "
-                "resolution, quality, object counts, terrain.cells or outputs")
+                "resolution, quality, object counts, terrain.cells or outputs"
+                + (", or the sensors' beams and bins" if terms["sensors"] else ""))
     return f"{what}; use shard_size <= {fits}"
 
 
@@ -149,26 +153,29 @@ def create_dataset(services: Services, spec: DatasetSpec) -> DatasetCreated:
     fails the record is discarded and the answer is 503, so no client ever sees a dataset that nothing will
     render. If the API dies between the two writes, the record stays queued, and the reconciler republishes
     it once it has stalled for SEASYNTH_STALL_TIMEOUT_S (status reads, listings, `seasynth reconcile`).
+    The creation record goes to the bucket first (service.recovery), so a Redis that loses its data loses no
+    dataset.
     """
     s = services.settings
     check_limits(spec, s)
     check_files(spec, services)
     dataset_id = uuid.uuid4().hex
     shards = shard_count(spec.frames, spec.shard_size)
-    services.records.create(
-        dataset_id,
-        spec.model_dump(mode="json"),
-        seed=spec.seed,
-        code_version=s.worker_version,
-        frames=spec.frames,
-        shard_size=spec.shard_size,
-        shards=shards,
-        now=time.time(),
-    )
+    spec_json = spec.model_dump(mode="json")
+    fields = dict(seed=spec.seed, code_version=s.worker_version, frames=spec.frames, shard_size=spec.shard_size,
+                  shards=shards)
+    now = time.time()
+    save_record(services.records, services.store, dataset_id, {"spec": spec_json, **fields, "created_at": now})
+    services.records.create(dataset_id, spec_json, **fields, now=now)
     try:
         publish(services, TASK_PLAN, [dataset_id, 0], shard_queue(s.worker_version))
     except Unavailable:
         services.records.discard(dataset_id)
+        try:
+            forget(services.records, services.store, dataset_id)  # nothing may restore what no client was given
+        except Unavailable as err:
+            log.warning("dataset %s: never published, but its bucket record stays (%s); a Redis restarted without "
+                        "its data would restore it", dataset_id, err)
         raise
     return DatasetCreated(
         id=dataset_id,
@@ -213,6 +220,7 @@ def public(rec: DatasetRecord, now: float) -> DatasetPublic:
         started_at=_time(rec.started_at),
         finished_at=_time(rec.finished_at),
         purged=rec.purged,
+        restored_at=_time(rec.restored_at),
         links=links(rec.id),
     )
 
@@ -240,10 +248,11 @@ def dataset_status(services: Services, dataset_id: str) -> DatasetPublic:
 def list_datasets(services: Services, offset: int, limit: int) -> tuple[list[DatasetPublic], int]:
     ids, total = services.records.list_ids(offset, limit)
     now, out = time.time(), []
-    for i in ids:
+    for i, rec in zip(ids, services.records.get_many(ids)):  # the page's records in one round trip
         try:
-            rec = live_record(services, i)
-        except NotFound:  # deleted between the two reads
+            if rec is None or rec.purged:  # deleted between the two reads, or lost by Redis (restored here)
+                rec = live_record(services, i)
+        except NotFound:
             continue
         try:
             sweep_if_stalled(services, rec, now)
@@ -298,11 +307,23 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
 
 
 def sweep_all(services: Services, dataset_ids: list[str] | None = None) -> list[str]:
-    """`seasynth reconcile`: sweep the given datasets now (force), or every live one that stalled."""
+    """`seasynth reconcile`: sweep the given datasets now (force), or every live one that stalled, after
+    recovering from a Redis restart since the last round (service.recovery.check_redis): the datasets it restored
+    from the bucket or whose executions it cut off are swept at once."""
     now = time.time()
     if dataset_ids:
         recs = [services.records.get(i) for i in dataset_ids]
         return [r.id for r in recs if sweep_if_stalled(services, r, now, force=True)]
+    check = check_redis(services.records, services.store, now)
+    if check.restored:  # a new Redis restores nothing: said only when Redis lost datasets
+        log.warning("Redis restarted without its data: %d datasets restored from the bucket", len(check.restored))
+    if check.cut_off:
+        log.warning("Redis restarted: %d live datasets had shard executions cut off; their shards are published "
+                    "again", len(check.cut_off))
+    for i in sorted(set(check.restored) | set(check.cut_off)):
+        rec = services.records.get(i)
+        if rec.state in (QUEUED, RUNNING):
+            sweep_if_stalled(services, rec, now, force=True)
     swept, offset = [], 0
     while True:
         ids, total = services.records.list_ids(offset, 500)
@@ -319,8 +340,14 @@ def sweep_all(services: Services, dataset_ids: list[str] | None = None) -> list[
 
 
 def live_record(services: Services, dataset_id: str) -> DatasetRecord:
-    """The record of a dataset that was not deleted; NotFound for an unknown or deleted one."""
-    rec = services.records.get(dataset_id)
+    """The record of a dataset that was not deleted; NotFound for an unknown or deleted one. A dataset Redis lost
+    (its data gone in a restart) is restored from the bucket first (service.recovery.restore)."""
+    try:
+        rec = services.records.get(dataset_id)
+    except NotFound:
+        if not restore(services.records, services.store, dataset_id, time.time()):
+            raise
+        rec = services.records.get(dataset_id)
     if rec.purged:
         raise NotFound(f"no dataset {dataset_id} (it was deleted)")
     return rec
@@ -329,8 +356,12 @@ def live_record(services: Services, dataset_id: str) -> DatasetRecord:
 def cancel_dataset(services: Services, dataset_id: str) -> DatasetPublic:
     """Cancel at once (pending shards will be skipped); Conflict for a dataset that already finished."""
     live_record(services, dataset_id)
+    # Noted in the bucket first: a dataset restored after Redis lost its data stays cancelled.
+    marker = cancelled_key(services.records, dataset_id)
+    services.store.put_bytes(marker, b"", "text/plain")
     state = services.records.cancel(dataset_id, time.time())
     if state != CANCELLED:
+        services.store.delete(marker)
         raise Conflict(f"dataset {dataset_id} already {state}; nothing to cancel (DELETE it to remove it)")
     return public(services.records.get(dataset_id), time.time())
 
@@ -348,6 +379,7 @@ def delete_dataset(services: Services, dataset_id: str) -> None:
     services.records.cancel(dataset_id, time.time())
     services.records.mark_purging(dataset_id)
     services.store.delete_prefix(dataset_prefix(dataset_id))
+    forget(services.records, services.store, dataset_id)  # before purged: a purged dataset is never restored
     services.records.mark_purged(dataset_id)
     services.records.unlist(dataset_id)
 
@@ -375,6 +407,7 @@ def manifest(services: Services, dataset_id: str, start: int = 0, limit: int = M
     page["complete"] = rec.shards_done == rec.shards_total
     page["start"], page["limit"] = start, limit
     page["next"] = manifest_page_link(dataset_id, stop, limit) if stop < rec.shards_total else None
+    page["urls_expire_s"] = services.settings.presign_expiry_s if services.settings.storage == "s3" else None
     return page
 
 

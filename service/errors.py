@@ -45,5 +45,14 @@ class Unavailable(SeasynthError):
     """A dependency (Redis, the bucket, a frame worker) did not answer in time; the client may retry later."""
 
 
+class Unreachable(Unavailable):
+    """A dependency could not be reached at all (connection refused, reset or timed out) or answered 5xx: an outage,
+    not a fault of the request, so a shard it interrupts is retried without using up its attempts."""
+
+
 class Unauthorized(SeasynthError):
     """A request without a valid API key."""
+
+
+class CalibrationError(SeasynthError, ValueError):
+    """A photo or range map the water cannot be estimated from; the message names the input and why."""

@@ -39,8 +39,8 @@ class FetchReport:
     files: int
 
 
-# Fields of one manifest page that say which page it is; the assembled manifest drops them.
-PAGE_FIELDS = ("start", "limit", "next")
+# Fields of one manifest page that say which page it is, or how long its urls last; the assembled manifest drops them.
+PAGE_FIELDS = ("start", "limit", "next", "urls_expire_s")
 MAX_PAGES = 1_000_000  # a guard against a server whose `next` links never end
 
 

@@ -6,7 +6,9 @@ Keys (P = settings.key_prefix):
   P:ds:{id}:done      SET   committed shard indices (SADD makes a retry's commit count once)
   P:ds:{id}:failed    SET   shard indices given up on
   P:ds:{id}:shards    HASH  shard index -> commit record JSON (key, sha256, bytes, frames, renderer, export parts)
-  P:ds:{id}:tries     HASH  shard index -> executions started
+  P:ds:{id}:tries     HASH  shard index -> executions counted against max_attempts (one that failed only because
+                            the bucket was unreachable is given back: refund_attempt)
+  P:ds:{id}:outages   HASH  shard index -> executions given back for an outage (their retry backs off by it)
   P:ds:{id}:errors    HASH  shard index -> last error
   P:ds:{id}:shown     ZSET  the first ERRORS_SHOWN failed shard indices (score: the index), whose errors a record
                             carries
@@ -34,8 +36,10 @@ TERMINAL = frozenset({SUCCEEDED, FAILED, CANCELLED})
 # the same however many shards failed (shards_failed counts them all).
 ERRORS_SHOWN = 20
 
-# Counts an execution unless the shard has used up its attempts (then returns -1 and counts nothing).
+# Counts an execution unless the shard has used up its attempts (then returns -1 and counts nothing), or the
+# record is gone (-2: Redis lost it; nothing is written, so no partial record appears).
 _START = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return -2 end
 local tries = tonumber(redis.call('HGET', KEYS[2], ARGV[1]) or '0')
 if tries >= tonumber(ARGV[4]) then return -1 end
 tries = redis.call('HINCRBY', KEYS[2], ARGV[1], 1)
@@ -47,8 +51,10 @@ redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
 return tries
 """
 
-# SADD first: only the first commit of a shard adds its frames, however many times it runs.
+# SADD first: only the first commit of a shard adds its frames, however many times it runs. A record Redis lost
+# is not recreated in part: the commit marker in the bucket is adopted when the record is restored.
 _COMMIT = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return {0, 0, 0} end
 local added = redis.call('SADD', KEYS[2], ARGV[1])
 if added == 1 then
   redis.call('HINCRBY', KEYS[1], 'frames_done', ARGV[2])
@@ -60,6 +66,7 @@ return {added, redis.call('SCARD', KEYS[2]), redis.call('SCARD', KEYS[4])}
 
 # A newly failed shard also joins the ERRORS_SHOWN (ARGV[4]) lowest failed indices, if it is one of them.
 _FAIL = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return {0, 0, 0} end
 redis.call('HSET', KEYS[3], ARGV[1], ARGV[2])
 local added = 0
 if redis.call('SISMEMBER', KEYS[4], ARGV[1]) == 0 then added = redis.call('SADD', KEYS[2], ARGV[1]) end
@@ -107,8 +114,16 @@ redis.call('HSET', KEYS[1], unpack(ARGV))
 return 1
 """
 
+# Recreates a record Redis lost, unless one exists (two restorers race: one wins). ARGV: score, id, fields...
+_RESTORE = """
+if redis.call('EXISTS', KEYS[1]) == 1 then return 0 end
+redis.call('HSET', KEYS[1], unpack(ARGV, 3))
+redis.call('ZADD', KEYS[2], ARGV[1], ARGV[2])
+return 1
+"""
+
 # Every key of a dataset, for discarding one that was never published.
-PARTS = ("done", "failed", "shards", "tries", "errors", "shown", "running", "final", "sweep")
+PARTS = ("done", "failed", "shards", "tries", "outages", "errors", "shown", "running", "final", "sweep")
 
 
 @dataclass(frozen=True)
@@ -135,6 +150,9 @@ class DatasetRecord:
     purged: bool
     # failed shard -> its last error, for the ERRORS_SHOWN failed shards of lowest index only
     errors: dict[int, str] = field(default_factory=dict)
+    # when the record was rebuilt from the bucket after Redis lost it (service.recovery): attempts, errors and
+    # timings from before are lost; None for a record that never was
+    restored_at: float | None = None
 
 
 @dataclass(frozen=True)
@@ -178,6 +196,25 @@ class ShardCommit:
         return cls(**data, exports=tuple(ExportPart(format=f, **parts[f]) for f in order))
 
 
+def _fields(dataset_id: str, spec: dict[str, Any], seed: int, code_version: str, frames: int, shard_size: int,
+            shards: int, now: float) -> dict[str, Any]:
+    """A new record's hash fields."""
+    return {
+        "id": dataset_id,
+        "created_at": repr(now),
+        "spec": json.dumps(spec, sort_keys=True),
+        "seed": seed,
+        "code_version": code_version,
+        "state": QUEUED,
+        "frames_total": frames,
+        "shard_size": shard_size,
+        "shards_total": shards,
+        "frames_done": 0,
+        "attempts": 0,
+        "touched_at": repr(now),
+    }
+
+
 class Records:
     """Dataset records on a Redis client made with decode_responses=True."""
 
@@ -190,6 +227,7 @@ class Records:
         self._errors = redis.register_script(_ERRORS)
         self._finish = redis.register_script(_FINISH)
         self._update = redis.register_script(_UPDATE)
+        self._restore = redis.register_script(_RESTORE)
 
     def _k(self, dataset_id: str, part: str = "") -> str:
         return f"{self.p}:ds:{dataset_id}" + (f":{part}" if part else "")
@@ -207,24 +245,21 @@ class Records:
         shards: int,
         now: float,
     ) -> None:
-        fields = {
-            "id": dataset_id,
-            "created_at": repr(now),
-            "spec": json.dumps(spec, sort_keys=True),
-            "seed": seed,
-            "code_version": code_version,
-            "state": QUEUED,
-            "frames_total": frames,
-            "shard_size": shard_size,
-            "shards_total": shards,
-            "frames_done": 0,
-            "attempts": 0,
-            "touched_at": repr(now),
-        }
+        fields = _fields(dataset_id, spec, seed, code_version, frames, shard_size, shards, now)
         with self.r.pipeline() as pipe:
             pipe.hset(self._k(dataset_id), mapping=fields)
             pipe.zadd(f"{self.p}:datasets", {dataset_id: int(now * 1000)})
             pipe.execute()
+
+    def restore(self, dataset_id: str, spec: dict[str, Any], *, seed: int, code_version: str, frames: int,
+                shard_size: int, shards: int, created_at: float, now: float) -> bool:
+        """Recreate a record Redis lost (service.recovery), queued, marked restored_at `now` and last touched at
+        the epoch, so the reconciler sweeps it at once; False when a record exists (another restorer won)."""
+        fields = _fields(dataset_id, spec, seed, code_version, frames, shard_size, shards, created_at)
+        fields.update(touched_at="0", restored_at=repr(now))
+        flat = [str(x) for kv in fields.items() for x in kv]
+        return bool(self._restore(keys=[self._k(dataset_id), f"{self.p}:datasets"],
+                                  args=[int(created_at * 1000), dataset_id, *flat]))
 
     def discard(self, dataset_id: str) -> None:
         """Remove a dataset and every key it has, as if it had never been created (one whose planner task could
@@ -237,15 +272,43 @@ class Records:
     def get(self, dataset_id: str) -> DatasetRecord:
         """The record, with the errors of the first ERRORS_SHOWN failed shards; NotFound for an id that names no
         dataset."""
-        with self.r.pipeline(transaction=True) as pipe:
-            pipe.hgetall(self._k(dataset_id))
-            pipe.scard(self._k(dataset_id, "done"))
-            pipe.scard(self._k(dataset_id, "failed"))
-            keys = [self._k(dataset_id, "failed"), self._k(dataset_id, "shown"), self._k(dataset_id, "errors")]
-            self._errors(keys=keys, args=[ERRORS_SHOWN], client=pipe)
-            h, done, failed, errors = pipe.execute()
-        if not h:
+        (raw,) = self._read([dataset_id])
+        if raw is None:
             raise NotFound(f"no dataset {dataset_id}")
+        return self._record(*raw)
+
+    def get_many(self, dataset_ids: list[str]) -> list[DatasetRecord | None]:
+        """The records of `dataset_ids` in one round trip (a page of GET /datasets); None for an id that names no
+        dataset."""
+        return [None if raw is None else self._record(*raw) for raw in self._read(dataset_ids)]
+
+    def _read(self, dataset_ids: list[str]) -> list[tuple | None]:
+        """What a record is built from, per id, in one MULTI/EXEC; None where the record's hash is absent.
+
+        EVALSHA rather than the Script object: redis-py asks SCRIPT EXISTS before every pipeline that holds a
+        Script, a second round trip on every status read. A Redis that lost the script answers NOSCRIPT: loaded
+        once, then read again."""
+        import redis
+
+        for attempt in (1, 2):
+            try:
+                with self.r.pipeline(transaction=True) as pipe:
+                    for i in dataset_ids:
+                        pipe.hgetall(self._k(i))
+                        pipe.scard(self._k(i, "done"))
+                        pipe.scard(self._k(i, "failed"))
+                        pipe.evalsha(self._errors.sha, 3, self._k(i, "failed"), self._k(i, "shown"),
+                                     self._k(i, "errors"), ERRORS_SHOWN)
+                    got = pipe.execute()
+                break
+            except redis.exceptions.NoScriptError:
+                if attempt == 2:
+                    raise
+                self.r.script_load(_ERRORS)
+        raws = [tuple(got[k:k + 4]) for k in range(0, len(got), 4)]
+        return [raw if raw[0] else None for raw in raws]
+
+    def _record(self, h: dict[str, str], done: int, failed: int, errors: list[str]) -> DatasetRecord:
         opt = lambda k: float(h[k]) if h.get(k) else None  # noqa: E731
         return DatasetRecord(
             id=h["id"],
@@ -267,6 +330,7 @@ class Records:
             touched_at=float(h.get("touched_at") or h["created_at"]),
             purged=h.get("purged") == "1",
             errors={int(i): e for i, e in zip(errors[::2], errors[1::2])},
+            restored_at=opt("restored_at"),
         )
 
     def exists(self, dataset_id: str) -> bool:
@@ -343,6 +407,14 @@ class Records:
         """Count one execution of a shard and note who runs it; -1 when its attempts are used up."""
         keys = [self._k(dataset_id), self._k(dataset_id, "tries"), self._k(dataset_id, "running")]
         return int(self._start(keys=keys, args=[index, repr(time.time()), json.dumps(running), max_attempts]))
+
+    def refund_attempt(self, dataset_id: str, index: int) -> int:
+        """Give back an execution that failed only because a dependency was unreachable (an outage): it no longer
+        counts towards max_attempts (`attempts` still counts it). Returns the shard's outages so far."""
+        with self.r.pipeline(transaction=True) as pipe:
+            pipe.hincrby(self._k(dataset_id, "tries"), index, -1)
+            pipe.hincrby(self._k(dataset_id, "outages"), index, 1)
+            return int(pipe.execute()[1])
 
     def end_attempt(self, dataset_id: str, index: int) -> None:
         self.r.hdel(self._k(dataset_id, "running"), index)

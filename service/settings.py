@@ -45,6 +45,8 @@ class Settings(BaseSettings):
     # sync routes share while it waits, so this stays well below 40.
     max_frame_waits: int = Field(8, ge=1)
     retry_after_s: int = Field(10, ge=1)
+    # GET /metrics without an API key (for scrapers that send none); by default it is behind the key like any route.
+    metrics_public: bool = False
 
     # --- workers
     task_time_limit_s: int = Field(1800, ge=10)  # hard limit T of one shard task
@@ -54,6 +56,10 @@ class Settings(BaseSettings):
     worker_soft_shutdown_s: float = Field(30.0, ge=0)
     gl_platform: Literal["egl", "osmesa"] = "egl"  # headless GL of the render processes
     asset_cache_dir: Path | None = None  # default: a per-process temporary folder
+    # Prometheus exporter of a worker (its pool processes' counters summed, prometheus_client multiprocess mode);
+    # None: no exporter. worker_metrics_dir: their per-process files, default a fresh temporary folder per start.
+    worker_metrics_port: int | None = Field(None, ge=1, le=65535)
+    worker_metrics_dir: Path | None = None
     shard_compression: Literal["none", "gz"] = "none"  # PNGs do not compress further; gz helps label-heavy sets
     # A live dataset with nothing started, committed or failed for this long and no shard running gets its
     # pending shards published again by the reconciler (default: 2x the hard task time limit).

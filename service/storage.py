@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
-from service.errors import NotFound, OutputError, SeasynthError, Unavailable
+from service.errors import NotFound, OutputError, SeasynthError, Unavailable, Unreachable
 
 if TYPE_CHECKING:
     from service.settings import Settings
@@ -162,12 +162,17 @@ class S3Store:
         self.presign_expiry_s = presign_expiry_s
 
     def _fail(self, err: Exception, key: str) -> SeasynthError:
-        from botocore.exceptions import ClientError
+        from botocore.exceptions import ClientError, HTTPClientError
+        from botocore.exceptions import ConnectionError as BotoConnectionError
 
         if isinstance(err, ClientError):
             code = err.response.get("Error", {}).get("Code", "")
             if code in ("404", "NoSuchKey", "NotFound"):
                 return NotFound(f"no object {key} in bucket {self.bucket}")
+            if err.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0) >= 500:
+                return Unreachable(f"s3://{self.bucket}/{key}: {err}")
+        if isinstance(err, (BotoConnectionError, HTTPClientError)):  # refused, reset, timed out
+            return Unreachable(f"s3://{self.bucket}/{key}: unreachable: {err}")
         return Unavailable(f"s3://{self.bucket}/{key}: {err}")
 
     def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
@@ -273,14 +278,17 @@ class S3Store:
             raise Unavailable(f"bucket {self.bucket} is not reachable: {err}") from err
 
     def ensure_bucket(self) -> None:
-        """Create the bucket unless it exists (SEASYNTH_S3_CREATE_BUCKET)."""
-        from botocore.exceptions import ClientError
+        """Create the bucket unless it exists (SEASYNTH_S3_CREATE_BUCKET); Unreachable when the endpoint is."""
+        from botocore.exceptions import ClientError, HTTPClientError
+        from botocore.exceptions import ConnectionError as BotoConnectionError
 
         try:
             self.client.head_bucket(Bucket=self.bucket)
             return
         except ClientError:
             pass
+        except (BotoConnectionError, HTTPClientError) as err:
+            raise Unreachable(f"bucket {self.bucket} is not reachable: {err}") from err
         region = self.client.meta.region_name
         kwargs = {}
         if region and region != "us-east-1":

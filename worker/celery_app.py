@@ -108,9 +108,16 @@ def run_worker(settings: Settings, concurrency: int, queues: list[str] | None = 
     """Run a worker in the foreground until it is stopped (SIGTERM: soft shutdown, then warm shutdown).
 
     Exits with status 1 when a pool process could not open its renderer (it stopped the worker at once).
+    With settings.worker_metrics_port, serves the pool processes' Prometheus metrics on it meanwhile.
     """
+    from worker.metrics import exporter
+
+    with exporter(settings):  # before anything imports prometheus_client, and before the pool forks
+        _run(settings, concurrency, list(queues or QUEUE_KINDS), loglevel)
+
+
+def _run(settings: Settings, concurrency: int, queues: list[str], loglevel: str) -> None:
     app, resources = _build(settings)
-    queues = list(queues or QUEUE_KINDS)
     resources.takes_shards = "shards" in queues  # before the pool forks: its processes inherit it
     try:
         app.worker_main(worker_argv(concurrency, queues, loglevel))

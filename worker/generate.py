@@ -22,7 +22,8 @@ from worker.export import GENERATED_EXPORTS
 from worker.pipeline import RenderSession, frame_paths
 
 RECORD = "seasynth.json"  # the dataset record: spec, code version, and whether every frame is written
-OUTPUT_DIRS = ("image_2", "label_2", "calib", "meta", "depth", "instance", "clean", "range")
+OUTPUT_DIRS = ("image_2", "label_2", "calib", "meta", "depth", "instance", "clean", "range",
+               "fls", "fls_fan", "fls_label", "sss", "sss_label", "nav")  # from fls: worker.sensors.outputs
 CHUNK = 4  # frames a local worker takes at a time: small enough to balance, large enough to amortise IPC
 
 Mode = Literal["new", "resume", "overwrite"]
@@ -44,7 +45,10 @@ def write_atomic(path: Path, data: bytes) -> None:
             f.write(data)
         os.replace(tmp, path)
     except OSError as err:
-        tmp.unlink(missing_ok=True)
+        # A folder that turned read-only refuses the unlink too: the error to report is the write's, and the next
+        # run (prepare_output) removes the temporary file.
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
     except BaseException:  # Ctrl-C mid-write leaves no temporary file behind
         tmp.unlink(missing_ok=True)

@@ -8,6 +8,7 @@ functions and map `RetryShard` onto a task retry.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -22,7 +23,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from service import __version__
-from service.errors import AssetError, NotFound
+from service.errors import AssetError, NotFound, Unreachable
 from service.manifest import build_manifest, manifest_bytes, pending_manifests_key
 from service.records import CANCELLED, FAILED, SUCCEEDED, TERMINAL, Records, ShardCommit
 from service.settings import Settings
@@ -162,10 +163,31 @@ def run_shard(ctx: ShardContext, dataset_id: str, index: int, sweep: bool = Fals
 
     running = {"pid": os.getpid(), "host": ctx.host, "since": time.time()}
     attempt = ctx.records.start_attempt(dataset_id, index, ctx.settings.max_attempts, running)
+    if attempt == -2:  # the record went between the two reads (Redis lost its data): nothing to count against
+        log.warning("shard %s of dataset %s: the record is gone, dropped", index, dataset_id)
+        return Outcome.MISSING
     if attempt < 0:
         last = ctx.records.last_error(dataset_id, index) or "the worker was lost while rendering it"
         fail_shard(ctx, dataset_id, index, f"gave up after {ctx.settings.max_attempts} attempts; last: {last}")
         return Outcome.FAILED
+    try:
+        outcome = _attempt(ctx, dataset_id, index, attempt)
+    except Exception:
+        ctx.records.end_attempt(dataset_id, index)
+        raise
+    except BaseException:
+        # SystemExit mid-frame (Celery terminating the task, whose pool process is to exit, e.g. on a broker
+        # connection loss) must reach the process. Were an unreachable Redis here to replace it with an Exception,
+        # the process would live on with its GL state cut mid-draw, and the next frame it rendered would differ.
+        with contextlib.suppress(Exception):
+            ctx.records.end_attempt(dataset_id, index)
+        raise
+    ctx.records.end_attempt(dataset_id, index)
+    return outcome
+
+
+def _attempt(ctx: ShardContext, dataset_id: str, index: int, attempt: int) -> Outcome:
+    """The body of a counted attempt: adopt a marker Redis missed, or render and commit."""
     try:
         _renderer_found(ctx, dataset_id, index)
         if _adopt_marker(ctx, dataset_id, index):
@@ -177,8 +199,6 @@ def run_shard(ctx: ShardContext, dataset_id: str, index: int, sweep: bool = Fals
     except Exception as err:
         log.exception("shard %s of dataset %s failed", index, dataset_id)
         return _attempt_failed(ctx, dataset_id, index, attempt, err)
-    finally:
-        ctx.records.end_attempt(dataset_id, index)
 
 
 def _before_attempt(ctx: ShardContext, dataset_id: str, index: int, sweep: bool) -> Outcome | None:
@@ -212,8 +232,18 @@ def _before_attempt(ctx: ShardContext, dataset_id: str, index: int, sweep: bool)
 
 
 def _attempt_failed(ctx: ShardContext, dataset_id: str, index: int, attempt: int, err: Exception) -> Outcome:
-    """Record a counted attempt's error; RetryShard while attempts are left, else mark the shard failed."""
+    """Record a counted attempt's error; RetryShard while attempts are left, else mark the shard failed.
+
+    An attempt that failed because the bucket was unreachable (Unreachable: refused, reset, timed out, 5xx) is
+    given back instead: an outage says nothing of the shard, and a bucket away for longer than three quick retries
+    (about 10 s) would otherwise fail every shard in flight. Its retries back off up to retry_backoff_max_s, for as
+    long as the outage lasts.
+    """
     msg = f"attempt {attempt}: {type(err).__name__}: {err}"
+    if isinstance(err, Unreachable):
+        outages = ctx.records.refund_attempt(dataset_id, index)
+        ctx.records.record_error(dataset_id, index, f"{msg} (an outage: retried without using up an attempt)")
+        raise RetryShard(msg, countdown=min(2.0 ** (outages - 1), ctx.settings.retry_backoff_max_s)) from err
     ctx.records.record_error(dataset_id, index, msg)
     if attempt >= ctx.settings.max_attempts:
         fail_shard(ctx, dataset_id, index, f"gave up after {attempt} attempts; last: {msg}")

@@ -356,11 +356,13 @@ def hardening_keys(services) -> set[str]:
 def test_a_dataset_the_broker_cannot_take_is_503_and_leaves_no_record(serve, services, settings):
     url = serve(producer=dead_producer())
     before_ids, before_keys = services.records.list_ids(0, 10**6), hardening_keys(services)
+    bucket_records = {o.key for o in services.store.list("records/")}  # service.recovery's creation records
     r = httpx.post(f"{url}/datasets", json=tiny_spec(), headers={"X-API-Key": KEY}, timeout=60)
     assert r.status_code == 503 and r.headers["retry-after"] == str(settings.retry_after_s), r.text
     assert r.json()["detail"].startswith("task broker unavailable: could not publish seasynth.plan_dataset (")
     assert services.records.list_ids(0, 10**6) == before_ids
     assert hardening_keys(services) == before_keys
+    assert {o.key for o in services.store.list("records/")} == bucket_records
 
 
 def new_record(records: Records, *, frames: int, shard_size: int = 1, age_s: float = 0.0) -> str:

@@ -1,0 +1,329 @@
+"""Load on the API while a dataset renders: status reads and dataset lists at a fixed request rate, POST /datasets
+throughput, and /metrics read during the run, over loopback against real components.
+
+    seasynth bench load [--rate 200] [--duration 20] [--out bench/results/cpu]
+
+Starts redis-server, moto's S3 server, the API (`seasynth serve`, one uvicorn process) and one render worker
+(`seasynth worker --concurrency 1`, metrics on), all on this machine, so the client, the API and the renderer
+share its CPUs. The client is open-loop: request i is due at start + i / rate whatever earlier ones are doing, and
+its latency runs from when it was due, so a server that falls behind shows it (no coordinated omission).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import platform
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+KEY = "bench-load-key"
+# Tiny frames: the worker renders for the whole run without the renderer being what is measured.
+RENDERING_SPEC: dict[str, Any] = {
+    "seed": 11, "frames": 100_000, "shard_size": 20, "quality": "draft", "camera": {"width": 32, "height": 24},
+    "terrain": {"cells": 16, "variants": 1},
+    "targets": {"count": [1, 2], "assets": [{"procedural": "urchin", "variants": 1}]},
+    "distractors": {"count": [1, 2], "assets": [{"procedural": "rock", "variants": 1}]},
+}
+LIST_SHARE = 5  # one request in LIST_SHARE is GET /datasets, the rest GET /datasets/{id}
+# Requests in flight at most (each sender keeps one keep-alive connection busy). More requests than this wait in
+# the client's own queue, still timed from when they were due: httpx's pool slows down quadratically with the
+# requests waiting in it (thousands of them stalled it outright on this machine).
+SENDERS = 32
+WORKER_NICE = 19
+METRICS_EVERY_S = 1.0
+
+
+@dataclass
+class Kind:
+    """What one kind of request got: latencies (s, from when each was due) and statuses."""
+
+    latencies: list[float] = field(default_factory=list)
+    statuses: dict[int, int] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)  # transport errors and undeclared or 5xx statuses
+
+    def add(self, status: int | None, latency: float, error: str | None = None) -> None:
+        self.latencies.append(latency)
+        if status is not None:
+            self.statuses[status] = self.statuses.get(status, 0) + 1
+        if error is not None:
+            self.errors.append(error)
+
+    def summary(self) -> dict[str, Any]:
+        ms = sorted(x * 1e3 for x in self.latencies)
+        pick = (lambda q: round(ms[min(len(ms) - 1, int(q * len(ms)))], 2)) if ms else (lambda q: None)
+        return {"requests": len(ms), "errors": len(self.errors), "statuses": {str(k): v for k, v in
+                sorted(self.statuses.items())}, "p50_ms": pick(0.5), "p90_ms": pick(0.9), "p99_ms": pick(0.99),
+                "max_ms": round(ms[-1], 2) if ms else None, "error_examples": self.errors[:5]}
+
+
+def declared_statuses(openapi: dict) -> dict[tuple[str, str], set[int]]:
+    """(METHOD, path template) -> the statuses its OpenAPI operation declares."""
+    return {(method.upper(), path): {int(s) for s in op["responses"] if s.isdigit()}
+            for path, item in openapi["paths"].items() for method, op in item.items() if "responses" in op}
+
+
+async def _timed(client: httpx.AsyncClient, kind: Kind, method: str, url: str, template: str, due: float,
+                 declared: dict, **kw: Any) -> httpx.Response | None:
+    """One request, recorded in `kind`: an error unless its status is declared for (method, template) and < 500."""
+    try:
+        r = await client.request(method, url, **kw)
+    except httpx.HTTPError as err:
+        kind.add(None, time.perf_counter() - due, f"{method} {template}: {type(err).__name__}: {err}")
+        return None
+    allowed = declared.get((method, template), set())
+    bad = r.status_code >= 500 or r.status_code not in allowed
+    kind.add(r.status_code, time.perf_counter() - due,
+             f"{method} {template}: {r.status_code} (declared {sorted(allowed)})" if bad else None)
+    return r
+
+
+async def _posts(client: httpx.AsyncClient, count: int, declared: dict) -> tuple[Kind, float, list[str]]:
+    """POST `count` datasets one after another; (what they got, datasets/s, ids accepted)."""
+    kind, ids = Kind(), []
+    spec = {**RENDERING_SPEC, "frames": 10, "shard_size": 5}
+    started = time.perf_counter()
+    for _ in range(count):
+        r = await _timed(client, kind, "POST", "/datasets", "/datasets", time.perf_counter(), declared, json=spec)
+        if r is not None and r.status_code == 202:
+            ids.append(r.json()["id"])
+    return kind, count / (time.perf_counter() - started), ids
+
+
+async def _scrapes(client: httpx.AsyncClient, stop: asyncio.Event, kind: Kind, declared: dict) -> None:
+    """GET /metrics every METRICS_EVERY_S until `stop`, as a scraper would."""
+    declared = {**declared, ("GET", "/metrics"): {200}}  # /metrics is kept out of the OpenAPI schema
+    while not stop.is_set():
+        await _timed(client, kind, "GET", "/metrics", "/metrics", time.perf_counter(), declared)
+        try:
+            await asyncio.wait_for(stop.wait(), METRICS_EVERY_S)
+        except asyncio.TimeoutError:
+            pass
+
+
+async def load(api_url: str, key: str, rate: float, duration_s: float, posts: int = 50,
+               worker_metrics_url: str | None = None) -> dict[str, Any]:
+    """The measurement against a running API: a dataset rendering meanwhile, `posts` sequential POSTs (then
+    cancelled), then `rate` requests/s of status reads and lists for `duration_s`, with /metrics read each second."""
+    headers = {"X-API-Key": key}
+    limits = httpx.Limits(max_connections=SENDERS + 2, max_keepalive_connections=SENDERS + 2)
+    async with httpx.AsyncClient(base_url=api_url, headers=headers, timeout=30, limits=limits) as client:
+        declared = declared_statuses((await client.get("/openapi.json")).json())
+        r = await client.post("/datasets", json=RENDERING_SPEC)
+        r.raise_for_status()
+        rendering = r.json()["id"]
+        post_kind, post_rate, ids = await _posts(client, posts, declared)
+        for i in ids:
+            (await client.post(f"/datasets/{i}/cancel")).raise_for_status()
+        kinds = {"status": Kind(), "list": Kind(), "metrics": Kind()}
+        before = (await client.get("/metrics")).text
+        stop = asyncio.Event()
+        scraper = asyncio.create_task(_scrapes(client, stop, kinds["metrics"], declared))
+        total = int(rate * duration_s)
+        due_queue: asyncio.Queue = asyncio.Queue()
+
+        async def sender() -> None:
+            while (item := await due_queue.get()) is not None:
+                i, due = item
+                if i % LIST_SHARE == LIST_SHARE - 1:
+                    await _timed(client, kinds["list"], "GET", "/datasets", "/datasets", due, declared,
+                                 params={"limit": 20})
+                else:
+                    await _timed(client, kinds["status"], "GET", f"/datasets/{targets[i % len(targets)]}",
+                                 "/datasets/{id}", due, declared)
+
+        targets = ids + [rendering]
+        senders = [asyncio.create_task(sender()) for _ in range(SENDERS)]
+        start = time.perf_counter() + 0.05
+        late = 0.0
+        for i in range(total):
+            due = start + i / rate
+            await asyncio.sleep(max(0.0, due - time.perf_counter()))  # also yields to the senders when late
+            late = max(late, time.perf_counter() - due)
+            due_queue.put_nowait((i, due))
+        for _ in senders:
+            due_queue.put_nowait(None)
+        await asyncio.gather(*senders)
+        elapsed = time.perf_counter() - start
+        stop.set()
+        await scraper
+        after = (await client.get("/metrics")).text  # every request of the load phase answered by now
+        status = (await client.get(f"/datasets/{rendering}")).json()
+        (await client.post(f"/datasets/{rendering}/cancel")).raise_for_status()
+    worker_frames = None
+    if worker_metrics_url is not None:
+        # A labelled counter has no sample until its first increment: none means none committed yet.
+        worker_frames = _sample(httpx.get(worker_metrics_url, timeout=10).text, "seasynth_worker_frames_total",
+                                outcome="committed") or 0.0
+    return {
+        "rate_rps": rate, "duration_s": duration_s, "achieved_rps": round(total / elapsed, 1),
+        "client_max_late_ms": round(late * 1e3, 2),
+        "kinds": {k: v.summary() for k, v in kinds.items()},
+        "errors": sum(len(v.errors) for v in [*kinds.values(), post_kind]),
+        "post": {**post_kind.summary(), "datasets_per_s": round(post_rate, 1)},
+        "rendering": {"frames_done": status["frames_done"], "state": status["state"],
+                      "worker_frames_committed": worker_frames},
+        # The API's own view (its latency histogram, from the request's arrival to its last byte) of the load phase.
+        "server_side": {name: _bucket_quantiles(before, after, route) for name, route in
+                        (("status", "/datasets/{id}"), ("list", "/datasets"))},
+    }
+
+
+def _buckets(text: str, route: str) -> dict[float, float]:
+    """Cumulative bucket counts of seasynth_api_request_seconds for GET `route` answered 200: le -> count."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    return {float(s.labels["le"]): s.value for family in text_string_to_metric_families(text) for s in family.samples
+            if s.name == "seasynth_api_request_seconds_bucket" and s.labels.get("route") == route
+            and s.labels.get("method") == "GET" and s.labels.get("status") == "200"}
+
+
+def _bucket_quantiles(before: str, after: str, route: str) -> dict[str, Any]:
+    """Requests between two scrapes, and the upper bounds (ms) of the buckets holding their p50 and p99."""
+    a, b = _buckets(after, route), _buckets(before, route)
+    delta = sorted((le, n - b.get(le, 0.0)) for le, n in a.items())
+    total = delta[-1][1] if delta else 0
+    bound = lambda q: next((le * 1e3 for le, n in delta if n >= q * total), None) if total else None  # noqa: E731
+    return {"requests": int(total), "p50_ms_at_most": bound(0.5), "p99_ms_at_most": bound(0.99)}
+
+
+def _sample(text: str, name: str, **labels: str) -> float | None:
+    from prometheus_client.parser import text_string_to_metric_families
+
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            if s.name == name and s.labels == labels:
+                return s.value
+    return None
+
+
+# --- the stack, on this machine
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait(pred: Callable[[], Any], timeout: float, what: str, procs: list[subprocess.Popen]) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if any(p.poll() is not None for p in procs):
+            raise RuntimeError(f"a component exited while waiting for {what}")
+        try:
+            if pred():
+                return
+        except Exception:  # still starting
+            pass
+        time.sleep(0.1)
+    raise TimeoutError(f"{what} did not come up in {timeout} s")
+
+
+@contextmanager
+def local_stack(folder: Path) -> Iterator[dict[str, str]]:
+    """redis-server, moto_server, the API and one worker on free loopback ports; yields their URLs."""
+    import redis
+
+    bin_dir = Path(sys.executable).parent
+    moto = shutil.which("moto_server") or str(bin_dir / "moto_server")
+    rport, sport, aport, mport = (_free_port() for _ in range(4))
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith(("SEASYNTH_", "AWS_"))},
+           "SEASYNTH_REDIS_URL": f"redis://127.0.0.1:{rport}/0",
+           "SEASYNTH_S3_ENDPOINT_URL": f"http://127.0.0.1:{sport}",
+           "SEASYNTH_S3_BUCKET": "bench-load", "SEASYNTH_S3_CREATE_BUCKET": "true", "SEASYNTH_API_KEYS": KEY,
+           "AWS_ACCESS_KEY_ID": "bench", "AWS_SECRET_ACCESS_KEY": "bench-secret", "AWS_DEFAULT_REGION": "us-east-1"}
+    cli = [sys.executable, "-m", "service.cli"]
+    argvs = {
+        "redis": ["redis-server", "--port", str(rport), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+                  "--dir", str(folder)],
+        "s3": [moto, "-H", "127.0.0.1", "-p", str(sport)],
+        "api": [*cli, "serve", "--host", "127.0.0.1", "--port", str(aport)],
+        # Niced: on a machine this small the renderer would otherwise take the CPU the API is measured on (where
+        # they are deployed, the API and the workers have CPUs of their own).
+        "worker": ["nice", "-n", str(WORKER_NICE), *cli, "worker", "--concurrency", "1", "--queues", "shards"],
+    }
+    procs: list[subprocess.Popen] = []
+    try:
+        for name, argv in argvs.items():
+            log = open(folder / f"{name}.log", "wb")
+            procs.append(subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, cwd=folder,
+                                          env={**env, "SEASYNTH_WORKER_METRICS_PORT": str(mport)}))
+            log.close()
+            if name == "redis":
+                _wait(lambda: redis.Redis(port=rport).ping(), 15, "redis-server", procs)
+            elif name == "s3":
+                _wait(lambda: httpx.get(f"http://127.0.0.1:{sport}", timeout=2).status_code < 500, 30, "moto", procs)
+        api = f"http://127.0.0.1:{aport}"
+        _wait(lambda: httpx.get(f"{api}/readyz", timeout=2).status_code == 200, 60, "the API", procs)
+        worker = f"http://127.0.0.1:{mport}"
+        _wait(lambda: "render session ready" in (folder / "worker.log").read_text(errors="replace"), 120,
+              "the worker", procs)
+        yield {"api": api, "worker_metrics": worker, "redis": env["SEASYNTH_REDIS_URL"],
+               "s3": env["SEASYNTH_S3_ENDPOINT_URL"]}
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in reversed(procs):
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def table(result: dict[str, Any]) -> str:
+    rows = ["| requests | rate (rps) | count | errors | p50 ms | p90 ms | p99 ms | max ms |",
+            "|---|---|---|---|---|---|---|---|"]
+    names = {"status": "GET /datasets/{id}", "list": "GET /datasets?limit=20", "metrics": "GET /metrics (1/s)"}
+    for k, name in names.items():
+        s = result["kinds"][k]
+        rate = result["achieved_rps"] if k != "metrics" else "-"
+        rows.append(f"| {name} | {rate} | {s['requests']} | {s['errors']} | {s['p50_ms']} | {s['p90_ms']} | "
+                    f"{s['p99_ms']} | {s['max_ms']} |")
+    p = result["post"]
+    rows.append(f"| POST /datasets (sequential) | {p['datasets_per_s']} | {p['requests']} | {p['errors']} | "
+                f"{p['p50_ms']} | {p['p90_ms']} | {p['p99_ms']} | {p['max_ms']} |")
+    r = result["rendering"]
+    return "\n".join([
+        "# Load: the API under status reads and lists while a dataset renders", "",
+        f"machine: {result['machine']}  ",
+        f"{result['rate_rps']} requests/s offered for {result['duration_s']} s ({result['achieved_rps']} achieved; one "
+        f"in {LIST_SHARE} a list), open loop: latency from when each request was due (client at most "
+        f"{result['client_max_late_ms']} ms late). API: one uvicorn process; one worker rendering meanwhile "
+        f"({r['frames_done']} frames committed during the run, {r['worker_frames_committed']} by its metrics). "
+        f"Errors: transport errors, 5xx, or a status the route does not declare: {result['errors']}.", "",
+        *rows, "",
+        "The API's own view (seasynth_api_request_seconds, arrival to last byte, so without the time a request "
+        "waited for a connection; bucket bounds): " + "; ".join(
+            f"{name}: p50 <= {v['p50_ms_at_most']} ms, p99 <= {v['p99_ms_at_most']} ms of {v['requests']}"
+            for name, v in result["server_side"].items()) + ".", ""])
+
+
+def run(rate: float = 200, duration_s: float = 20, posts: int = 50, out: Path | None = None,
+        machine: str | None = None) -> dict[str, Any]:
+    """Start the stack, measure, print the table, and write load.json and load.md to `out` when given."""
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # stop the components on the way out, too
+    with tempfile.TemporaryDirectory(prefix="seasynth-load-") as tmp, local_stack(Path(tmp)) as urls:
+        result = asyncio.run(load(urls["api"], KEY, rate, duration_s, posts, urls["worker_metrics"]))
+    result["machine"] = machine or f"{platform.node()} ({os.cpu_count()} CPUs, {platform.machine()})"
+    text = table(result)
+    print(text)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "load.json").write_text(json.dumps(result, indent=2) + "\n")
+        (out / "load.md").write_text(text)
+    return result
