@@ -13,6 +13,7 @@ from starlette.routing import Match
 
 from service.errors import (
     AssetError,
+    CalibrationError,
     Conflict,
     LimitExceeded,
     NotFound,
@@ -30,6 +31,7 @@ log = logging.getLogger(__name__)
 STATUS: list[tuple[type[Exception], int]] = [
     (SpecError, 422),
     (AssetError, 422),
+    (CalibrationError, 422),
     (LimitExceeded, 413),
     (NotFound, 404),
     (Conflict, 409),

@@ -16,8 +16,13 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
-PUBLIC_PATHS = frozenset({"/healthz", "/readyz"})  # liveness and readiness probes carry no key
+# Liveness and readiness probes carry no key, nor does the playground's static page: it holds no data, and asks
+# the user for a key that its calls then send.
+PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/playground", "/playground/static/app.js",
+                          "/playground/static/style.css"})
+METRICS_PATH = "/metrics"  # public only with SEASYNTH_METRICS_PUBLIC=true
 UPLOAD_PATH = "/assets"
+CALIBRATE_PATH = "/calibrate"  # a photo and its range map: the upload limit holds for the whole body
 # A multipart body holds the file plus its part headers and boundaries: room for those over the file limit.
 UPLOAD_FRAMING_BYTES = 64 * 1024
 
@@ -27,17 +32,24 @@ class BodyTooLarge(Exception):
 
 
 def api_key_ok(headers: dict[str, str], keys: frozenset[str]) -> bool:
-    """True when X-API-Key or Authorization: Bearer holds one of `keys`; an empty header counts as absent."""
+    """True when X-API-Key or Authorization: Bearer holds one of `keys`; an empty header counts as absent.
+
+    Every given value is compared with every key in constant time, with no early exit: how long the check takes
+    tells nothing about which key matched, or how much of one."""
     given = [headers.get("x-api-key", "").strip()]
     auth = headers.get("authorization", "")
     if auth[:7].lower() == "bearer ":
         given.append(auth[7:].strip())
-    return any(g and hmac.compare_digest(g.encode(), k.encode()) for g in given for k in keys)
+    matched = False
+    for g in given:
+        for k in keys:
+            matched |= hmac.compare_digest(g.encode(), k.encode()) & bool(g)
+    return matched
 
 
 def body_limit(settings: Settings, method: str, path: str) -> tuple[int, str]:
     """The most bytes a request's body may have, and how to name that limit in a 413."""
-    if method == "POST" and path.rstrip("/") == UPLOAD_PATH:
+    if method == "POST" and path.rstrip("/") in (UPLOAD_PATH, CALIBRATE_PATH):
         named = (f"{settings.max_asset_bytes} bytes of file (SEASYNTH_MAX_ASSET_BYTES) plus "
                  f"{UPLOAD_FRAMING_BYTES} bytes of multipart framing")
         return settings.max_asset_bytes + UPLOAD_FRAMING_BYTES, named
@@ -61,6 +73,7 @@ class Gate:
         self.app = app
         self.settings = settings
         self.keys = settings.api_key_set
+        self.public = PUBLIC_PATHS | ({METRICS_PATH} if settings.metrics_public else set())
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -71,7 +84,7 @@ class Gate:
         if root and path.startswith(root):
             path = path[len(root):] or "/"
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
-        if self.keys and path not in PUBLIC_PATHS and not api_key_ok(headers, self.keys):
+        if self.keys and path not in self.public and not api_key_ok(headers, self.keys):
             await answer(send, 401, "a valid API key is required (X-API-Key header or Authorization: Bearer)",
                          {"WWW-Authenticate": 'Bearer realm="seasynth"'})
             return

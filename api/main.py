@@ -10,13 +10,25 @@ from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 
-from api import errors
+from api import errors, metrics
 from api.deps import Services, open_services
 from api.gate import Gate
-from api.routes import assets, datasets, health
+from api.operations import check_files, check_limits
+from api.playground import ServicePreviewer, playground_router
+from api.routes import assets, calibrate, datasets, health
 from api.waits import FrameWaits
 from service import __version__
 from service.settings import Settings
+
+
+# The spec the service's playground opens with: the built-in defaults at a size that previews quickly.
+PLAYGROUND_SPEC = {"frames": 100, "camera": {"width": 640, "height": 480}}
+
+
+def _servable(request: Request, spec) -> None:
+    """What POST /datasets refuses, the playground refuses too: limits, local paths, unknown assets."""
+    check_limits(spec, request.app.state.services.settings)
+    check_files(spec, request.app.state.services)
 
 
 def create_app(settings: Settings, services: Services | None = None) -> FastAPI:
@@ -46,11 +58,16 @@ def create_app(settings: Settings, services: Services | None = None) -> FastAPI:
     app.include_router(health.router)
     app.include_router(datasets.router)
     app.include_router(assets.router)
+    app.include_router(calibrate.router)
+    app.include_router(playground_router(
+        lambda request: ServicePreviewer(request.app.state.services), mode="service", start_spec=PLAYGROUND_SPEC,
+        slots=settings.max_frame_waits, check=_servable))
     _install_docs(app)
-    # The last added runs first: the key and body gate, then the bound on frame requests.
+    # The last added runs first: request timing, the key and body gate, then the bound on frame requests.
     frames = next(r for r in datasets.router.routes if r.endpoint is datasets.get_frame)  # included as it is
     app.add_middleware(FrameWaits, route=frames, limit=settings.max_frame_waits, retry_after_s=settings.retry_after_s)
     app.add_middleware(Gate, settings=settings)
+    metrics.install(app, settings)  # GET /metrics, and the timing middleware outside the gate
     return app
 
 

@@ -53,6 +53,9 @@ class DatasetPublic(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     purged: bool
+    restored_at: datetime | None = Field(
+        None, description="When this record was rebuilt from the bucket after Redis lost its data: the committed "
+        "shards and the state are back, the attempts, errors and timings from before are not")
     links: DatasetLinks
 
 
@@ -105,6 +108,9 @@ class ManifestPublic(BaseModel):
     start: int = Field(description="First shard index this page covers")
     limit: int = Field(description="Shard indices this page covers")
     next: str | None = Field(description="The next page (same limit), or null on the last page")
+    urls_expire_s: int | None = Field(
+        description="Seconds each url of this page stays valid from this answer (SEASYNTH_PRESIGN_EXPIRY_S, "
+        "60 s to 7 days; ask for the page again for fresh ones); null where urls do not expire (local storage)")
     shards: list[ManifestShard] = Field(description="The committed shards of this page, in shard order")
 
 
@@ -144,3 +150,45 @@ ERROR_WHY = {
 def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI `responses` entries for these error statuses, each with the one error body model."""
     return {code: {"model": ErrorPublic, "description": ERROR_WHY[code]} for code in codes}
+
+
+RGBOrNone = list[float | None]
+
+
+class WaterEstimatePublic(BaseModel):
+    """A water estimate: per coefficient its (R, G, B) value, 1-sigma (`_sd`) and which channels are identified
+    (`_identified`); a value and its sigma are null in a channel where it is not identified."""
+
+    beta_D: RGBOrNone = Field(description="Direct attenuation, 1/m (identified only with a range map)")
+    beta_D_sd: RGBOrNone
+    beta_D_identified: list[bool]
+    beta_B: RGBOrNone = Field(description="Backscatter coefficient, 1/m (identified only with a range map)")
+    beta_B_sd: RGBOrNone
+    beta_B_identified: list[bool]
+    B_inf: RGBOrNone = Field(description="Veiling light, linear RGB")
+    B_inf_sd: RGBOrNone
+    B_inf_identified: list[bool]
+    beta_D_ratio: RGBOrNone = Field(description="beta_D per channel over green's")
+    beta_D_ratio_sd: RGBOrNone
+    beta_D_ratio_identified: list[bool]
+    beta_B_ratio: RGBOrNone = Field(description="beta_B per channel over green's")
+    beta_B_ratio_sd: RGBOrNone
+    beta_B_ratio_identified: list[bool]
+    a: RGBOrNone = Field(description="Absorption, 1/m: not separable from one photo (always null)")
+    a_sd: RGBOrNone
+    b: RGBOrNone = Field(description="Scattering, 1/m: not separable from one photo (always null)")
+    b_sd: RGBOrNone
+    nearest_jerlov: str | None
+    with_range: bool
+    method: str
+    notes: list[str] = Field(description="What could not be identified, and why")
+    pixels_used: int
+    open_water_pixels: int
+    range_span_m: list[float] | None
+    bootstrap: int
+    seed: int
+
+
+class CalibrationPublic(BaseModel):
+    estimate: WaterEstimatePublic
+    water: dict[str, Any] = Field(description="A spec water: section (paper model) built from the estimate")

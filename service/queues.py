@@ -20,6 +20,7 @@ TASK_PLAN = "seasynth.plan_dataset"  # (dataset_id, first_shard[, sweep]): publi
 TASK_SHARD = "seasynth.render_shard"  # (dataset_id, shard_index[, sweep]); sweep: a reconciler's copy
 TASK_FRAME = "seasynth.render_frame"  # (dataset_id, frame_index, part, reply_key)
 TASK_RECONCILE = "seasynth.reconcile_dataset"  # (dataset_id, requeue)
+TASK_PREVIEW = "seasynth.render_preview"  # (kind "preview" | "strip", spec_json, args, reply_key): the playground
 
 
 def shard_queue(version: str) -> str:

@@ -17,11 +17,14 @@ from celery.exceptions import Reject, Retry
 from celery.signals import worker_process_init, worker_process_shutdown
 
 from service import __version__
-from service.errors import NotFound
-from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, TASK_SHARD, frame_queue, shard_queue
+from service.errors import NotFound, Unreachable
+from service.queues import TASK_FRAME, TASK_PLAN, TASK_PREVIEW, TASK_RECONCILE, TASK_SHARD, frame_queue, shard_queue
 from service.records import TERMINAL, Records, push_reply
 from service.settings import Settings
+from service.shards import shard_at
 from service.storage import open_store
+from worker.metrics import TimedFrames, TimedStore, WorkerMetrics
+from worker.playground import preview_reply
 from worker.shard import (
     HEARTBEAT_S,
     AssetCache,
@@ -105,6 +108,8 @@ class ProcessResources:
         # workers count as live workers of their renderer.
         self.takes_shards = True
         self._ctx: ShardContext | None = None
+        self.metrics: WorkerMetrics | None = None
+        self.frames: TimedFrames | None = None
         self._stack: contextlib.ExitStack | None = None
         self.broken: str | None = None
         # Shared with the pool processes forked later: set when one of them could not open its renderer.
@@ -124,11 +129,13 @@ class ProcessResources:
             session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=s.gl_platform))
             records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
             raw = redis.Redis.from_url(s.redis_url)
-            ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=store, session=session,
-                               renderer_wait_s=self.renderer_wait_s)
+            metrics = WorkerMetrics()  # after the fork: multiprocess mode writes this process's own files
+            frames = TimedFrames(session, metrics)
+            ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=TimedStore(store, metrics),
+                               session=frames, renderer_wait_s=self.renderer_wait_s)
             if self.takes_shards:
                 stack.enter_context(Heartbeat(records.r, s.key_prefix, ctx.code_version, session.renderer_name))
-            self._ctx = ctx
+            self._ctx, self.metrics, self.frames = ctx, metrics, frames
             self._stack = stack.pop_all()
         log.info("render session ready: %s", session.renderer_name)
 
@@ -136,6 +143,12 @@ class ProcessResources:
         """worker_process_init: open, or stop the worker that this pool process belongs to."""
         try:
             self.open()
+        except Unreachable as err:
+            # The bucket is away (an outage), not the renderer: this process opens on its first task instead (the
+            # `ctx` property), and until then hands tasks back. Stopping the worker here would take a healthy
+            # worker out whenever a pool process is replaced during an outage.
+            log.warning("pool process resources not opened, the bucket is unreachable (%s: %s); opening on the "
+                        "first task", type(err).__name__, err)
         except Exception as err:
             self.broken = f"{type(err).__name__}: {err}"
             self.renderer_failed.value = 1
@@ -148,6 +161,23 @@ class ProcessResources:
             self._stack.close()
         self._stack = self._ctx = None
 
+    def count_shard(self, dataset_id: str, shard_index: int, outcome: str, rendered: int) -> None:
+        """Count one shard execution that ended with `outcome`; `rendered`: frames it rendered."""
+        if self.metrics is None:
+            return
+        self.metrics.shards.labels(outcome).inc()
+        if outcome == Outcome.COMMITTED.value:  # this execution rendered the shard's frames, each once
+            self.metrics.frames.labels("committed").inc(rendered)
+        elif outcome == Outcome.FAILED.value:
+            try:
+                rec = self.ctx.records.get(dataset_id)
+            except Exception as err:  # the dataset was deleted meanwhile, or Redis is away: the shard count stands
+                log.warning("frames of failed shard %s of dataset %s not counted: %s: %s", shard_index, dataset_id,
+                            type(err).__name__, err)
+                return
+            self.metrics.frames.labels("failed").inc(shard_at(rec.frames_total, rec.shard_size, shard_index)
+                                                     .frame_count)
+
     @property
     def ctx(self) -> ShardContext:
         if self._ctx is None:
@@ -155,6 +185,8 @@ class ProcessResources:
                 raise RendererUnavailable(self.broken)
             try:
                 self.open()  # a solo/threads pool or a test never fires worker_process_init
+            except Unreachable as err:  # an outage: the next task tries again
+                raise RendererUnavailable(f"{type(err).__name__}: {err}") from err
             except Exception as err:
                 self.broken = f"{type(err).__name__}: {err}"
                 raise RendererUnavailable(self.broken) from err
@@ -177,9 +209,11 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
     @app.task(name=TASK_SHARD, shared=False, bind=True, acks_late=True, reject_on_worker_lost=True, max_retries=None)
     def render_shard(self, dataset_id: str, shard_index: int, sweep: bool = False) -> str:
         ctx = ctx_or_reject()
+        rendered = res.frames.rendered if res.frames is not None else 0
         try:
-            return run_shard(ctx, dataset_id, shard_index, sweep).value
+            ended = run_shard(ctx, dataset_id, shard_index, sweep).value
         except RetryShard as retry:
+            res.count_shard(dataset_id, shard_index, "retry", 0)
             # Our attempt counter bounds retries; the delay stays far below the visibility timeout.
             raise self.retry(countdown=retry.countdown, exc=retry) from None
         except WrongVersion as wrong:
@@ -210,6 +244,9 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
             except Exception:
                 time.sleep(1)  # the broker is probably down too: do not spin
                 raise Reject(f"{type(err).__name__}: {err}", requeue=True) from err
+        # Outside the try: counting never sends an ended shard round again.
+        res.count_shard(dataset_id, shard_index, ended, res.frames.rendered - rendered if res.frames else 0)
+        return ended
 
     @app.task(name=TASK_PLAN, shared=False, acks_late=True, reject_on_worker_lost=True)
     def plan_dataset(dataset_id: str, first_shard: int = 0, sweep: bool = False) -> int:
@@ -258,6 +295,17 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
         except Exception as err:
             log.exception("frame %s of dataset %s failed", frame_index, dataset_id)
             header, body = {"ok": False, "status": 500, "error": f"{type(err).__name__}: {err}"}, b""
+        push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=int(settings.frame_timeout_s) + 60)
+
+    @app.task(name=TASK_PREVIEW, shared=False, acks_late=False)
+    def render_preview_task(kind: str, spec_json: dict, args: list, reply_key: str) -> None:
+        """A playground render (worker.playground), answered on `reply_key` as JSON."""
+        try:
+            ctx = res.ctx
+        except RendererUnavailable:
+            app.send_task(TASK_PREVIEW, args=[kind, spec_json, args, reply_key], queue=frame_queue(__version__))
+            return
+        header, body = preview_reply(ctx.session, kind, spec_json, args)
         push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=int(settings.frame_timeout_s) + 60)
 
     @app.task(name=TASK_RECONCILE, shared=False, acks_late=True)

@@ -13,13 +13,20 @@ from collections.abc import Iterator
 
 import pytest
 
-from service.queues import frame_queue
+from service.queues import TASK_PREVIEW, frame_queue
 from service.records import push_reply
 from service.shards import frame_file
 from service_stack import Proc, Stack
 
 VERSION = "0.0.0-fuzz"  # no render worker consumes these queues; the frame answerer below plays the frame worker
 MIN_REQUESTS = 1000
+PNG_URL = "data:image/png;base64,iVBORw0KGgo="
+# The playground's renders, answered in the shape worker.playground gives them.
+PREVIEW_REPLY = {
+    "preview": lambda a: {"frame": a[0], "seed": 0, "width": 8, "height": 8, "images": {"image": PNG_URL},
+                          "boxes": [], "render_ms": 0.0},
+    "strip": lambda a: {"frames": [{"frame": a[0] + k, "image": PNG_URL} for k in range(a[1])]},
+}
 ACCESS = re.compile(r'"[A-Z]+ \S+ HTTP/1\.1" (\d{3})')
 # The spec's cross-field rules (exactly one asset source, count ranges), configured limits and whether an upload
 # decodes cannot be written in JSON Schema: a schema-valid request may still be refused with 413 or 422.
@@ -39,8 +46,8 @@ def fuzz_api(infra: Stack) -> Iterator[tuple[str, Proc]]:
 
 @pytest.fixture(scope="module")
 def frame_answerer(services) -> Iterator[None]:
-    """Answer every frame task of VERSION's queue with a few bytes named as the worker would name them: the API's
-    contract, not the renderer, is under test (a frame with no worker is an honest 503, tested elsewhere)."""
+    """Answer every frame task of VERSION's queue with a few bytes named as the worker would name them, and every
+    playground render with a reply of its shape: the API's contract, not the renderer, is under test (a frame with no worker is an honest 503, tested elsewhere)."""
     raw, stop = services.raw_redis, threading.Event()
 
     def serve() -> None:
@@ -48,7 +55,13 @@ def frame_answerer(services) -> Iterator[None]:
             got = raw.blpop([frame_queue(VERSION)], timeout=1)
             if got is None:
                 continue
-            dataset_id, index, part, reply_key = json.loads(base64.b64decode(json.loads(got[1])["body"]))[0]
+            message = json.loads(got[1])
+            args = json.loads(base64.b64decode(message["body"]))[0]
+            if message["headers"]["task"] == TASK_PREVIEW:
+                kind, _, task_args, reply_key = args
+                push_reply(raw, reply_key, {"ok": True}, json.dumps(PREVIEW_REPLY[kind](task_args)).encode(), ttl_s=60)
+                continue
+            dataset_id, index, part, reply_key = args
             push_reply(raw, reply_key, {"ok": True, "name": frame_file(part, index)}, b"\x89PNG", ttl_s=60)
 
     thread = threading.Thread(target=serve, daemon=True)

@@ -1,0 +1,44 @@
+"""Water calibration: estimate the water of an uploaded photo (and its range map) and answer a spec water: section.
+Needs no Redis or bucket: the estimate is computed here from the upload (numpy and Pillow only)."""
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, UploadFile
+
+from api.models import CalibrationPublic, WaterEstimatePublic, error_responses
+from service.calibration import WaterEstimate, estimate_water, to_spec_water
+from service.calibration_io import read_inputs
+
+router = APIRouter(tags=["calibration"])
+
+
+def estimate_public(e: WaterEstimate) -> WaterEstimatePublic:
+    fields: dict = {}
+    for key, c in (("beta_D", e.beta_D), ("beta_B", e.beta_B), ("B_inf", e.B_inf), ("beta_D_ratio", e.beta_D_ratio),
+                   ("beta_B_ratio", e.beta_B_ratio), ("a", e.absorption), ("b", e.scattering)):
+        fields[key], fields[f"{key}_sd"] = list(c.value), list(c.sigma)
+        if key not in ("a", "b"):
+            fields[f"{key}_identified"] = list(c.identified)
+    return WaterEstimatePublic(
+        **fields, nearest_jerlov=e.nearest_jerlov, with_range=e.with_range, method=e.method, notes=list(e.notes),
+        pixels_used=e.pixels_used, open_water_pixels=e.open_water_pixels,
+        range_span_m=None if e.range_span_m is None else list(e.range_span_m), bootstrap=e.bootstrap, seed=e.seed)
+
+
+@router.post("/calibrate", response_model=CalibrationPublic, responses=error_responses(400, 401, 413, 422))
+def calibrate(
+    photo: UploadFile,
+    depth: UploadFile | None = None,
+    range_spread: Annotated[float, Query(ge=0.0, lt=1.0, description="Relative half-width of each coefficient's "
+                                         "range in the answered water section (0: fixed water)")] = 0.1,
+    prior: Annotated[Literal["jerlov"] | None, Query(description="jerlov (with a range map): beta_D from the Jerlov "
+                                                    "family, more accurate on Jerlov-like water, biased off it")] = None,
+) -> CalibrationPublic:
+    """Estimate the water of an underwater photo (multipart field `photo`, 8-bit sRGB PNG or JPEG), optionally with a
+    range map of the same size (field `depth`; its file name's suffix gives the format: .png 16-bit millimetres,
+    .npy or .tif float metres, range along the line of sight). Without a range map only B_inf and the channel
+    ratios of beta_B can be estimated; the answer says what was not identified."""
+    image, range_m = read_inputs(photo.file.read(), photo.filename or "photo",
+                                 None if depth is None else depth.file.read(), (depth and depth.filename) or "depth")
+    estimate = estimate_water(image, range_m, prior=prior)
+    return CalibrationPublic(estimate=estimate_public(estimate), water=to_spec_water(estimate, spread=range_spread))

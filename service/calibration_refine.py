@@ -1,0 +1,107 @@
+"""Second-stage fits behind service.calibration: beta_D refined with the backscatter taken off, and the first stage
+under a stated Jerlov-family prior. Free functions on service.calibration_fit's records."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.calibration_fit import (
+    BETA_GRID,
+    FINE_POINTS,
+    FLAT_SPREAD,
+    GROUPS,
+    MIN_BIN_PIXELS,
+    MIN_BINS,
+    RangeData,
+    RangeFit,
+    fit_range,
+    grid_sse,
+    restrict_ratio,
+)
+
+
+PRIOR_SCALE = np.geomspace(0.25, 4.0, 97)  # family prior: beta_D = s * a member's beta, s on this grid (3% steps)
+
+
+def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[RangeFit, str]:
+    """The first stage under a stated prior: beta_D = s * family[type] (one type and one scale s in PRIOR_SCALE for
+    all channels), beta_B_c / beta_D_c within calibration_fit.BACKSCATTER_PRIOR per channel. family: type name ->
+    (3,) beta, 1/m. Each channel's SSE is scaled by its own free fit's residual variance, so the channels weigh
+    alike. Returns the fit (sigma: the scale's profile width where the scaled SSE <= min + 4, the same relative sigma
+    for every channel) and the type ("" when no channel varies with range: then the free fit)."""
+    has_open = data.open_pixels >= MIN_BIN_PIXELS
+    rows = data.y[0].size
+    w2 = float(rows) if has_open else 0.0
+    ch = [c for c in range(3) if data.y[c].shape[1] > 0 and np.ptp(data.y[c]) >= FLAT_SPREAD]
+    if not ch:  # nothing varies with range: the free fit says so (not identified)
+        return fit_range(data), ""
+    free = {}
+    for c in ch:
+        y = data.y[c]
+        sse = grid_sse(y, data.h[c], data.z_nodes, BETA_GRID, BETA_GRID, float(data.open_mean[c]), w2)[0]
+        low = float(restrict_ratio(sse, BETA_GRID, BETA_GRID).min())
+        free[c] = (low, max(low / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2))
+    best = (np.inf, "", 0, None)
+    totals = {}
+    for name, beta in family.items():
+        total = np.zeros(PRIOR_SCALE.size)
+        per = []
+        for c in ch:
+            y, h, y_inf = data.y[c], data.h[c], float(data.open_mean[c])
+            bd = PRIOR_SCALE * beta[c]
+            sse, B = grid_sse(y, h, data.z_nodes, bd, BETA_GRID, y_inf, w2)
+            sse = restrict_ratio(sse, bd, BETA_GRID)
+            j = np.argmin(sse, axis=1)
+            total += (sse[np.arange(bd.size), j] - free[c][0]) / free[c][1]
+            per.append((c, bd, BETA_GRID[j], B[np.arange(bd.size), j]))
+        totals[name] = total
+        k = int(np.argmin(total))
+        if total[k] < best[0]:
+            best = (float(total[k]), name, k, per)
+    score, name, k, per = best
+    bd, bb, binf = np.zeros(3), np.zeros(3), data.open_mean.astype(np.float64).copy()
+    for c, bdc, bbc, Bc in per:
+        bd[c], bb[c], binf[c] = bdc[k], bbc[k], Bc[k]
+    for c in set(range(3)) - set(ch):
+        bd[c] = PRIOR_SCALE[k] * family[name][c]
+        bb[c] = bd[c]
+    ok = np.flatnonzero(totals[name] <= score + 4.0)
+    rel = float(np.log(PRIOR_SCALE[ok[-1]] / PRIOR_SCALE[ok[0]]) / 4)
+    inside = bool(ok[0] > 0 and ok[-1] < PRIOR_SCALE.size - 1)
+    in_ch = np.isin(np.arange(3), ch)
+    return RangeFit(bd, bb, binf, rel * bd, rel * bb, in_ch & inside, in_ch & inside,
+                    np.full(3, has_open) | (in_ch & inside)), name
+
+
+REFINE_MIN_DIRECT = 0.004  # linear: a bin whose direct signal (mean minus backscatter) is below this is left out
+
+
+def refine_beta_D(data: RangeData, rf: RangeFit) -> RangeFit:
+    """Second stage: with the backscatter of `rf` (beta_B, B_inf) taken off each range bin's mean, fit
+    ln(direct) = ln m - ln <exp(-beta_D z)> per channel over BETA_GRID (m in closed form); bins whose direct signal
+    is below REFINE_MIN_DIRECT are left out. A channel with fewer than MIN_BINS such bins keeps rf's beta_D, marked
+    not inside (too little direct signal to measure its attenuation).
+
+    Why: with the backscatter removed the bin means follow one exponential when J's mean does not depend on range,
+    a weaker prior than the first stage's (which also needs beta_D and beta_B apart in one curve)."""
+    bd, inside = rf.beta_D.copy(), rf.beta_D_inside.copy()
+    for c in range(3):
+        if data.y[c].shape[1] == 0:
+            continue
+        h = data.h[c].mean(axis=0)  # (K, Z): each bin's range distribution (equal-count groups)
+        direct = data.y[c].mean(axis=0) - rf.B_inf[c] * (h @ -np.expm1(-rf.beta_B[c] * data.z_nodes))
+        ok = direct > REFINE_MIN_DIRECT
+        if ok.sum() < MIN_BINS:
+            inside[c] = False
+            continue
+        lt = np.log(np.maximum(np.exp(-np.outer(BETA_GRID, data.z_nodes)) @ h[ok].T, 1e-300))  # (nD, K)
+        r = np.log(direct[ok])[None, :] - lt
+        sse = ((r - r.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
+        i = int(np.argmin(sse))
+        inside[c] &= 0 < i < BETA_GRID.size - 1  # at the grid's end: no minimum found
+        fine = np.geomspace(BETA_GRID[max(i - 1, 0)], BETA_GRID[min(i + 1, BETA_GRID.size - 1)], FINE_POINTS)
+        lt = np.log(np.maximum(np.exp(-np.outer(fine, data.z_nodes)) @ h[ok].T, 1e-300))
+        r = np.log(direct[ok])[None, :] - lt
+        bd[c] = fine[int(np.argmin(((r - r.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)))]
+    return RangeFit(bd, rf.beta_B, rf.B_inf, rf.beta_D_sigma, rf.beta_B_sigma, inside, rf.beta_B_inside,
+                    rf.B_inf_inside)

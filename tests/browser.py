@@ -1,0 +1,91 @@
+"""Headless Chromium for the playground's tests: Debian's chromium driven through chromium-driver by Selenium."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import pytest
+
+CHROMIUM = ("/usr/bin/chromium", "/usr/bin/chromium-browser")
+DRIVER = ("/usr/bin/chromedriver", "/usr/lib/chromium/chromedriver")
+
+
+def _first(paths: tuple[str, ...], name: str) -> str:
+    for p in paths:
+        if Path(p).exists():
+            return p
+    found = shutil.which(name)
+    if found is None:
+        pytest.fail(f"{name} is not installed: bash .ci/setup installs Debian's chromium and chromium-driver")
+    return found
+
+
+@contextmanager
+def chromium(downloads: Path, width: int = 1400, height: int = 1000) -> Iterator:
+    """A headless Chromium that saves downloads into `downloads`."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = _first(CHROMIUM, "chromium")
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                f"--window-size={width},{height}"):
+        opts.add_argument(arg)
+    opts.add_experimental_option("prefs", {"download.default_directory": str(downloads),
+                                           "download.prompt_for_download": False})
+    driver = webdriver.Chrome(service=Service(_first(DRIVER, "chromedriver")), options=opts)
+    driver.set_page_load_timeout(60)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def set_value(driver, element_id: str, value) -> None:
+    """Set an input's value as typing would, firing its input and change events."""
+    driver.execute_script(
+        "const e = document.getElementById(arguments[0]); e.value = arguments[1];"
+        "e.dispatchEvent(new Event('input', {bubbles: true})); e.dispatchEvent(new Event('change', {bubbles: true}));",
+        element_id, str(value))
+
+
+def wait(pred, timeout: float, what: str, interval: float = 0.1):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        got = pred()
+        if got:
+            return got
+        time.sleep(interval)
+    raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+
+
+@contextmanager
+def playground_server(spec: Path, port: int, out: Path, log: Path) -> Iterator[str]:
+    """`seasynth playground SPEC` in a child process; yields its base URL once the page answers."""
+    with open(log, "wb") as sink:
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "playground", str(spec), "--no-browser",
+                                 "--port", str(port), "--out", str(out)], stdout=sink, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        def up():
+            if proc.poll() is not None:
+                raise RuntimeError(f"seasynth playground exited {proc.returncode}:\n{log.read_text()}")
+            try:
+                return httpx.get(base + "/playground/config", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+        wait(up, 90, "seasynth playground to answer", interval=0.25)
+        yield base
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()

@@ -1,0 +1,76 @@
+"""The calibration bench on one tiny scene and water: its rows, summary and files, and the committed table."""
+
+import json
+from pathlib import Path
+
+from bench import calibration
+from service.spec import spec_digest
+from service.water import jerlov_beta
+
+RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results" / "cpu"
+
+
+def test_bench_rows_summary_and_files_on_a_tiny_run(tmp_path):
+    result = calibration.run(tmp_path, scenes=["seabed-forward"], waters=["3C"], frames=1, width=96, height=72,
+                             machine="test")
+    rows = result["rows"]
+    # One frame, one water and its off-family copy: each noise level with range (with and without the prior) and
+    # without range.
+    assert sorted((r["water"], r["noise"], r["with_range"], str(r["prior"])) for r in rows) == sorted(
+        (w, n, wr, str(p)) for w in ("3C", "3C~") for n in calibration.NOISE
+        for wr, p in ((True, None), (True, "jerlov"), (False, None)))
+    for r in rows:
+        want = jerlov_beta("3C") if r["water"] == "3C" else calibration.water_beta("3C~")
+        assert r["truth"]["beta_D"] == want.tolist()
+        assert r["truth"]["beta_B"] == (calibration.BACKSCATTER_RATIO * want).tolist()
+        if r["with_range"]:
+            # The frame shows open water: B_inf within the 0.02 target in every channel.
+            assert all(e is not None and e <= calibration.TARGET_B_INF_ABS for e in r["errors"]["B_inf_abs"])
+        else:
+            assert r["errors"]["beta_D_rel"] == [None, None, None]
+            assert r["errors"]["beta_B_ratio_rel"][1] is None
+    assert json.loads((tmp_path / "calibration.json").read_text(), parse_constant=lambda c: 1 / 0) == json.loads(
+        json.dumps(result))
+    table = (tmp_path / "calibration.md").read_text()
+    assert "| all | all | yes | all | B_inf |" in table and "| seabed-forward | all | no | all | beta_B ratio |" in table
+    assert "| all | 3C | yes | all | beta_D |" in table and "| all | all~ | yes+jerlov | all | beta_D |" in table
+    assert "| all | 3C~ | yes | all | beta_D |" in table
+    assert set(result["targets_met"]) == {f"{q} {c}" for q in ("B_inf", "beta_D", "beta_B") for c in "RGB"}
+    assert all(result["targets_met"][f"B_inf {c}"] for c in "RGB")
+    assert set(result["targets_met_other"]) == {"default, off-family waters", "jerlov prior, Jerlov waters",
+                                                "jerlov prior, off-family waters"}
+
+
+def test_off_family_waters_are_seeded_and_15_to_25_percent_off_their_type():
+    for w in calibration.WATERS:
+        ratio = calibration.water_beta(w + "~") / jerlov_beta(w)
+        assert ((abs(ratio - 1) >= 0.15) & (abs(ratio - 1) <= 0.25)).all()
+        assert (calibration.water_beta(w + "~") == calibration.water_beta(w + "~")).all()
+    assert (calibration.water_beta("3C") == jerlov_beta("3C")).all()
+
+
+def test_summarise_takes_median_and_p90_over_identified_estimates_only():
+    def row(err):
+        return {"with_range": True, "noise": 0.0, "scene": "s", "water": "3C", "prior": None,
+                "errors": {"beta_D_rel": [err, None, 0.1], "beta_B_rel": [None] * 3, "B_inf_abs": [0.0] * 3,
+                           "beta_B_ratio_rel": [None] * 3}}
+
+    s = calibration.summarise([row(0.1), row(0.2), row(0.3), row(None)], True, None)
+    assert s["estimates"] == 4
+    assert s["beta_D_rel"]["R"] == {"identified": "3/4", "median": 0.2, "p90": 0.28}
+    assert s["beta_D_rel"]["G"] == {"identified": "0/4", "median": None, "p90": None}
+
+
+def test_committed_table_is_this_bench_on_every_scene_and_water():
+    result = json.loads((RESULTS / "calibration.json").read_text())
+    # Re-run `seasynth bench calibration --out bench/results/cpu` when a scene (or the example) changes.
+    assert result["scene_spec_sha256"] == {s: spec_digest(calibration.scene_spec(s, *result["resolution"]))
+                                           for s in calibration.SCENES}
+    assert result["waters"] == list(calibration.WATERS) and result["noise"] == list(calibration.NOISE)
+    assert result["off_family_beta_D"] == {w + "~": calibration.water_beta(w + "~").round(4).tolist()
+                                           for w in calibration.WATERS}
+    # Per frame: each water and its off-family copy, each noise level, three estimates (range, range + prior, none).
+    n = len(calibration.SCENES) * result["frames_per_scene"] * len(calibration.WATERS) * 2 * len(calibration.NOISE) * 3
+    assert len(result["rows"]) == n
+    table = (RESULTS / "calibration.md").read_text()
+    assert table == calibration.format_table(result) + "\n"

@@ -1,0 +1,382 @@
+"""service.calibration: known water recovered from synthetic hazed photos, what cannot be identified said so, and
+degenerate inputs refused or reported, never NaN."""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from service.calibration import (
+    DEFAULT_BOOTSTRAP,
+    WaterEstimate,
+    describe,
+    estimate_water,
+    half_code,
+    srgb8_to_linear_table,
+    to_spec_water,
+)
+from service.calibration_io import MAX_PHOTO_PIXELS, read_photo, read_range
+from service.errors import CalibrationError
+from service.spec import DatasetSpec, read_spec_file
+from worker.formation import SRGB8_TO_LINEAR, encode_srgb8, haze
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
+BETA_D = np.array([0.34, 0.20, 0.22])  # 1/m, Jerlov 3C
+BETA_B = 0.9 * BETA_D
+B_INF = np.array([0.05, 0.15, 0.23])  # linear; red above 3C's 0.007 so that every channel's backscatter shows
+
+
+def seabed(h: int = 240, w: int = 320, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A scene that meets the estimator's prior: J (h, w, 3) float64, a 3x3-pixel block texture uniform in [0, 0.6]
+    whatever the range; range (h, w) float64 metres, +inf (open water) over the top quarter, then 15 m down to 1 m."""
+    rng = np.random.default_rng(seed)
+    rows = np.arange(h)[:, None] * np.ones((1, w))
+    horizon = h // 4
+    z = np.where(rows < horizon, np.inf, 1.0 + 14.0 * ((h - 1 - rows) / (h - 1 - horizon)) ** 2)
+    blocks = rng.uniform(0.0, 0.6, (h // 3 + 1, w // 3 + 1, 3))
+    return np.repeat(np.repeat(blocks, 3, 0), 3, 1)[:h, :w], z
+
+
+def photo(sigma: float = 0.0, **kw) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w, 3) uint8 sRGB photo of seabed() through the known water, and its range."""
+    J, z = seabed(**kw)
+    linear = haze(J, z, BETA_D, BETA_B, B_INF, np.float64)
+    if sigma:
+        linear = linear + np.random.default_rng(5).normal(0.0, sigma, linear.shape)
+    return encode_srgb8(linear), z
+
+
+def rel(got, want) -> np.ndarray:
+    return np.abs(np.asarray(got, dtype=float) - want) / want
+
+
+def assert_no_nan(e: WaterEstimate) -> None:
+    """Every number finite, JSON without NaN, and None exactly where a channel is not identified."""
+    text = json.dumps(e.as_dict(), allow_nan=False)
+    assert text
+    for c in (e.beta_D, e.beta_B, e.B_inf, e.beta_D_ratio, e.beta_B_ratio, e.absorption, e.scattering):
+        for v, s, ok in zip(c.value, c.sigma, c.identified):
+            assert (v is None) == (not ok) and (s is None) == (not ok), c
+            if ok:
+                assert np.isfinite(v) and np.isfinite(s) and s >= 0, c
+
+
+def test_the_decode_table_is_the_workers_exactly():
+    np.testing.assert_array_equal(srgb8_to_linear_table(), SRGB8_TO_LINEAR)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.01])
+def test_with_range_recovers_the_water_within_tolerance(sigma):
+    image, z = photo(sigma)
+    e = estimate_water(image, z)
+    assert_no_nan(e)
+    assert e.with_range and e.range_span_m[0] >= 1.0 and e.range_span_m[1] <= 15.0
+    assert e.open_water_pixels > 1000
+    # B_inf: the open water shows it, within 0.002 (linear) in every channel.
+    assert all(e.B_inf.identified) and np.abs(np.array(e.B_inf.value) - B_INF).max() <= 0.002
+    # beta_D: every channel identified and within 8%.
+    assert all(e.beta_D.identified) and rel(e.beta_D.value, BETA_D).max() <= 0.08
+    # beta_B: green and blue within 10%; red's backscatter (B_inf 0.05) is weak: identified or not, not both wrong
+    # and confident (within 3 of its sigmas when identified).
+    assert e.beta_B.identified[1] and e.beta_B.identified[2]
+    assert rel(e.beta_B.value[1:], BETA_B[1:]).max() <= 0.10
+    if e.beta_B.identified[0]:
+        assert abs(e.beta_B.value[0] - BETA_B[0]) <= 3 * e.beta_B.sigma[0]
+    np.testing.assert_allclose(e.beta_D_ratio.value, np.array(e.beta_D.value) / e.beta_D.value[1])
+    assert e.nearest_jerlov == "3C"
+    assert e.absorption.identified == (False,) * 3 and "not separable" in e.absorption.note
+
+
+def test_without_range_gives_b_inf_and_says_absolute_beta_is_not_identified():
+    image, _ = photo()
+    e = estimate_water(image, None)
+    assert_no_nan(e)
+    assert not e.with_range and e.range_span_m is None and e.open_water_pixels == 0
+    # The open water is the flattest region: B_inf within 0.002.
+    assert all(e.B_inf.identified) and np.abs(np.array(e.B_inf.value) - B_INF).max() <= 0.002
+    for c in (e.beta_D, e.beta_B, e.beta_D_ratio):
+        assert c.value == (None, None, None) and c.identified == (False, False, False)
+    assert any("not identified without range" in n for n in e.notes)
+    # beta_B ratios from dark pixels: green is 1 by definition; blue (1.1) within 25% (this texture's darkest pixels
+    # are not black, which the prior assumes).
+    assert e.beta_B_ratio.value[1] == 1.0
+    assert e.beta_B_ratio.identified[2] and rel(e.beta_B_ratio.value[2], 1.1) <= 0.25
+    assert "not identified" in describe(e)
+
+
+def test_the_same_inputs_and_seed_give_the_same_estimate_and_another_seed_only_other_sigmas():
+    image, z = photo()
+    a, b = estimate_water(image, z, seed=3), estimate_water(image, z, seed=3)
+    assert a == b
+    c = estimate_water(image, z, seed=4)
+    assert c.beta_D.value == a.beta_D.value and c.B_inf.value == a.B_inf.value
+
+
+def test_large_photos_are_subsampled_to_the_pixel_budget():
+    image, z = photo(h=240, w=320)
+    e = estimate_water(image, z, max_pixels=240 * 320 // 4, bootstrap=4)
+    assert e.pixels_used <= 240 * 320 // 4
+    assert all(e.beta_D.identified) and rel(e.beta_D.value, BETA_D).max() <= 0.15
+
+
+# ------------------------------------------------------------------ degenerate inputs
+
+
+@pytest.mark.parametrize(
+    ("image", "message"),
+    [
+        (np.zeros((8, 8, 3), np.uint8), "too small"),
+        (np.zeros((64, 64), np.uint8), r"need \(h, w, 3\) uint8"),
+        (np.zeros((64, 64, 3), np.float32), r"need \(h, w, 3\) uint8"),
+        (np.full((64, 64, 3), 3, np.uint8), "too dark"),
+        (np.full((64, 64, 3), 255, np.uint8), "below saturation"),
+    ],
+    ids=["tiny", "grey", "float", "dark", "saturated"],
+)
+def test_unusable_images_are_refused_naming_the_image(image, message):
+    with pytest.raises(CalibrationError, match=message) as err:
+        estimate_water(image, None)
+    assert str(err.value).startswith("image:")
+
+
+@pytest.mark.parametrize(
+    "fill", [np.nan, 0.0, -1.0, np.inf, -np.inf], ids=["nan", "zero", "negative", "all-open-water", "minus-inf"]
+)
+def test_a_range_map_with_no_usable_range_is_refused_naming_range_m(fill):
+    image, _ = photo()
+    with pytest.raises(CalibrationError, match="^range_m: only 0 pixels"):
+        estimate_water(image, np.full(image.shape[:2], fill))
+
+
+@pytest.mark.parametrize(("kw", "message"), [({"bootstrap": 1}, "^bootstrap:"), ({"seed": -1}, "^seed:"),
+                                             ({"max_pixels": 0}, "^max_pixels:"), ({"prior": "ocean"}, "^prior:")])
+def test_bad_settings_are_refused_naming_them(kw, message):
+    image, z = photo(h=60, w=80)
+    with pytest.raises(CalibrationError, match=message):
+        estimate_water(image, z, **kw)
+
+
+def test_a_prior_without_range_is_refused_naming_prior():
+    image, _ = photo(h=60, w=80)
+    with pytest.raises(CalibrationError, match="^prior: 'jerlov' needs range_m"):
+        estimate_water(image, None, prior="jerlov")
+
+
+def test_the_jerlov_prior_recovers_a_jerlov_water_and_names_its_type():
+    image, z = photo()
+    e = estimate_water(image, z, prior="jerlov")
+    assert_no_nan(e)
+    assert all(e.beta_D.identified) and rel(e.beta_D.value, BETA_D).max() <= 0.08
+    assert any("prior jerlov: stage 1 chose Jerlov type 3C" in n for n in e.notes)
+    assert "prior jerlov" in e.method and "prior jerlov" not in estimate_water(image, z).method
+
+
+def test_stage_two_fits_the_direct_signal_exactly_once_the_backscatter_is_known():
+    """Bin means of a water with a known backscatter: stage 2 returns beta_D on the fine grid's step, whatever
+    stage 1's beta_D was, and leaves a channel with no direct signal not identified."""
+    from service.calibration_fit import BETA_GRID, FINE_POINTS, RangeData, RangeFit, Z_NODES
+    from service.calibration_refine import refine_beta_D
+
+    nodes = np.geomspace(1.0, 20.0, Z_NODES)
+    h = np.eye(Z_NODES)[::4][None].repeat(2, axis=0)  # (G=2, K=16, Z): each bin at one node
+    zk = nodes[::4]
+    bd, bb, binf = np.array([0.34, 0.2, 0.22]), np.array([0.3, 0.18, 0.2]), np.array([0.05, 0.15, 0.23])
+    m = np.array([0.4, 0.5, 0.0])  # blue: no direct signal at all
+    y = np.stack([np.stack([k * m[c] * np.exp(-bd[c] * zk) + binf[c] * -np.expm1(-bb[c] * zk) for k in (0.5, 1.5)])
+                  for c in range(3)])
+    data = RangeData(y=y, h=np.stack([h] * 3), z_nodes=nodes, open_mean=binf, open_pixels=1000,
+                     finite_pixels=16000, z_lo=1.0, z_hi=20.0)
+    first = RangeFit(bd * 0.5, bb, binf, bd * 0.1, bb * 0.1, np.ones(3, bool), np.ones(3, bool), np.ones(3, bool))
+    out = refine_beta_D(data, first)
+    step = (BETA_GRID[1] / BETA_GRID[0]) ** (2 / (FINE_POINTS - 1))
+    assert (np.abs(np.log(out.beta_D[:2] / bd[:2])) <= np.log(step)).all()
+    assert out.beta_D_inside.tolist() == [True, True, False] and out.beta_D[2] == first.beta_D[2]
+    assert (out.beta_B == bb).all() and (out.B_inf == binf).all()
+
+
+def test_range_of_the_wrong_shape_is_refused():
+    image, z = photo()
+    with pytest.raises(CalibrationError, match=r"^range_m: shape \(240, 319\) does not match"):
+        estimate_water(image, z[:, :-1])
+
+
+def test_nan_zero_and_negative_ranges_are_left_out_and_the_estimate_stays_finite():
+    image, z = photo()
+    holes = z.copy()
+    holes[200:, :40] = np.nan
+    holes[200:, 40:80] = 0.0
+    holes[200:, 80:120] = -3.0
+    e = estimate_water(image, holes)
+    assert_no_nan(e)
+    assert rel(e.beta_D.value, BETA_D).max() <= 0.10
+
+
+def test_a_flat_image_with_range_identifies_no_beta_and_has_no_nan():
+    z = seabed()[1]
+    z[np.isinf(z)] = 20.0  # no open water either
+    e = estimate_water(np.full((240, 320, 3), 120, np.uint8), z)
+    assert_no_nan(e)
+    assert e.beta_D.identified == (False,) * 3 and e.beta_B.identified == (False,) * 3
+    assert e.B_inf.identified == (False,) * 3
+    assert len([n for n in e.notes if "not identified" in n]) == 9
+
+
+def test_an_image_with_no_flat_water_says_b_inf_is_a_guess():
+    rng = np.random.default_rng(1)
+    image = rng.integers(30, 220, (120, 160, 3), dtype=np.uint8)
+    e = estimate_water(image, None)
+    assert_no_nan(e)
+    assert e.B_inf.identified == (False,) * 3 and any("no flat open-water region" in n for n in e.notes)
+
+
+def test_half_code_is_half_an_8bit_step_in_linear_light():
+    v = SRGB8_TO_LINEAR[[10, 128, 250]]
+    got = half_code(v)
+    step = SRGB8_TO_LINEAR[[11, 129, 251]] - v
+    assert np.all(got > 0.45 * step) and np.all(got < 0.55 * step)
+
+
+# ------------------------------------------------------------------ the spec's water section
+
+
+def full_spec(water: dict) -> DatasetSpec:
+    data = read_spec_file(EXAMPLE)
+    data["water"] = json.loads(json.dumps(water))
+    return DatasetSpec.model_validate(data)
+
+
+@pytest.mark.parametrize("spread", [0.0, 0.2])
+def test_to_spec_water_with_range_is_the_estimate_within_spread_and_validates(spread):
+    image, z = photo()
+    e = estimate_water(image, z)
+    water = to_spec_water(e, spread=spread)
+    w = full_spec(yaml.safe_load(yaml.safe_dump(water))).water
+    assert w.resolved_model == "paper" and w.jerlov == []
+    for name, coeff in (("beta_D", e.beta_D), ("B_inf", e.B_inf)):
+        interval = getattr(w, name)
+        np.testing.assert_allclose(interval.min, np.array(coeff.value) * (1 - spread), atol=1e-6)
+        np.testing.assert_allclose(interval.max, np.array(coeff.value) * (1 + spread), atol=1e-6)
+    for c in range(3):  # beta_B: the estimate where identified, else 0.9 beta_D
+        want = e.beta_B.value[c] if e.beta_B.identified[c] else 0.9 * e.beta_D.value[c]
+        assert w.beta_B.min[c] == pytest.approx(want * (1 - spread), abs=1e-6)
+
+
+def test_to_spec_water_without_range_takes_the_betas_of_a_jerlov_type():
+    image, _ = photo()
+    e = estimate_water(image, None)
+    w = full_spec(to_spec_water(e, spread=0.1)).water
+    assert w.beta_D is None and w.beta_B is None and len(w.jerlov) == 1
+    assert w.beta_jitter == (0.9, 1.1)
+    np.testing.assert_allclose(w.B_inf.min, np.array(e.B_inf.value) * 0.9, atol=1e-6)
+
+
+@pytest.mark.parametrize("spread", [-0.1, 1.0, float("nan")])
+def test_to_spec_water_refuses_a_spread_outside_0_1(spread):
+    image, z = photo(h=60, w=80)
+    with pytest.raises(CalibrationError, match="^spread:"):
+        to_spec_water(estimate_water(image, z, bootstrap=2), spread=spread)
+
+
+# ------------------------------------------------------------------ files
+
+
+def png_bytes(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_range_maps_read_as_metres_in_each_format():
+    z = np.array([[1.5, np.nan], [np.inf, 12.25]], np.float32)
+    buf = io.BytesIO()
+    np.save(buf, z)
+    np.testing.assert_array_equal(read_range(buf.getvalue(), "r.npy"), z.astype(np.float64))
+    tif = io.BytesIO()
+    Image.fromarray(z).save(tif, format="TIFF")
+    np.testing.assert_array_equal(read_range(tif.getvalue(), "r.TIFF"), z.astype(np.float64))
+    mm = np.array([[1500, 0], [65535, 12250]], np.uint16)
+    got = read_range(png_bytes(mm), "r.png")
+    np.testing.assert_array_equal(got, [[1.5, np.nan], [65.535, 12.25]])
+
+
+@pytest.mark.parametrize(
+    ("data", "name", "message"),
+    [
+        (b"not an image", "photo.jpg", "^photo.jpg: not an image"),
+        (png_bytes(np.zeros((4, 4), np.uint16)), "photo16.png", "^photo16.png: I;16 .16-bit. images are not taken"),
+    ],
+)
+def test_bad_photos_are_refused_naming_the_file(data, name, message):
+    with pytest.raises(CalibrationError, match=message):
+        read_photo(data, name)
+
+
+@pytest.mark.parametrize(
+    ("data", "name", "message"),
+    [
+        (b"x", "depth.exr", "^depth.exr: unknown range map format '.exr'"),
+        (b"x", "depth", r"^depth: unknown range map format '\(no suffix\)'"),
+        (png_bytes(np.zeros((4, 4, 3), np.uint8)), "depth.png", "^depth.png: a RGB PNG cannot hold range"),
+        (b"\x93NUMPY garbage", "depth.npy", "^depth.npy: not a NumPy .npy array"),
+        (png_bytes(np.zeros((4, 4, 3), np.uint8)), "depth.tif", "^depth.tif: cannot read as an image|^depth.tif: a "),
+    ],
+    ids=["suffix", "no-suffix", "8bit-png", "bad-npy", "png-named-tif"],
+)
+def test_bad_range_maps_are_refused_naming_the_file(data, name, message):
+    with pytest.raises(CalibrationError, match=message):
+        read_range(data, name)
+
+
+def bomb_png(width: int, height: int) -> bytes:
+    """A few hundred bytes of PNG whose header declares width x height 8-bit RGB pixels."""
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+
+
+@pytest.mark.parametrize("side", [8193, 100_000])
+def test_decompression_bombs_are_refused_before_decoding(side):
+    assert side * side > MAX_PHOTO_PIXELS
+    with pytest.raises(CalibrationError, match="^bomb.png: .*(over the limit|DecompressionBomb)"):
+        read_photo(bomb_png(side, side), "bomb.png")
+
+
+def test_default_bootstrap_is_used():
+    image, z = photo(h=60, w=80)
+    assert estimate_water(image, z).bootstrap == DEFAULT_BOOTSTRAP
+
+
+def test_random_small_images_and_ranges_give_an_estimate_without_nan_or_a_calibration_error():
+    """Odd sizes, few pixels, constant channels, ranges full of NaN, 0, inf: never another exception, never NaN."""
+    rng = np.random.default_rng(11)
+    outcomes = {"estimate": 0, "refused": 0}
+    for trial in range(60):
+        h, w = rng.integers(16, 48, 2)
+        image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        if trial % 4 == 1:
+            image[..., rng.integers(3)] = rng.integers(0, 256)  # one constant channel
+        if trial % 4 == 2:
+            image = np.repeat(rng.integers(0, 256, (h, 1, 3), dtype=np.uint8), w, axis=1)  # stripes
+        z = rng.choice([np.nan, 0.0, -1.0, np.inf, 1.0, 5.0, 30.0], size=(h, w)) * rng.uniform(0.5, 2.0, (h, w))
+        for range_m in (None, z):
+            try:
+                prior = "jerlov" if range_m is not None and trial % 2 else None
+                e = estimate_water(image, range_m, seed=trial, bootstrap=3, prior=prior)
+            except CalibrationError as err:
+                assert str(err).split(":")[0] in ("image", "range_m"), err
+                outcomes["refused"] += 1
+            else:
+                assert_no_nan(e)
+                full_spec(to_spec_water(e))
+                outcomes["estimate"] += 1
+    assert outcomes["estimate"] > 0 and outcomes["refused"] > 0

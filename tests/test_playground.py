@@ -1,0 +1,146 @@
+"""The playground's renders and its bound on them: previews equal the frames `generate` writes, views and boxes
+come from the same frame, the strip scales the camera, and the gate lets each client's newest request render."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import io
+import threading
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from api.playground import RenderGate
+from service.errors import Conflict, Unavailable
+from service.kitti import parse_label_file
+from service.spec import parse_spec
+from worker.pipeline import RenderSession
+from worker.playground import STRIP_WIDTH, preview_reply, preview_spec, render_preview, render_strip
+
+SPEC = {
+    "seed": 11,
+    "frames": 20,
+    "camera": {"width": 64, "height": 48},
+    "terrain": {"cells": 16, "variants": 1},
+    "targets": {"count": [2, 3], "assets": [{"procedural": "urchin", "variants": 1}]},
+    "distractors": {"count": [1, 2], "assets": [{"procedural": "rock", "variants": 1}]},
+}
+
+
+def png_of(data_url: str) -> bytes:
+    head, _, b64 = data_url.partition(",")
+    assert head == "data:image/png;base64"
+    return base64.b64decode(b64)
+
+
+def pixels(data_url: str) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(png_of(data_url))))
+
+
+@pytest.fixture(scope="module")
+def session():
+    with RenderSession() as s:
+        yield s
+
+
+def test_a_preview_is_the_draft_frame_generate_writes_with_its_boxes(session):
+    spec = parse_spec(SPEC)  # quality default: the preview renders it at draft all the same
+    got = render_preview(session, spec, 5, ["depth", "instance", "clean", "air"])
+    draft = parse_spec({**SPEC, "quality": "draft", "outputs": {"depth": True, "instance": True, "clean": True}})
+    files = session.frame_files(draft, 5)
+    assert png_of(got["images"]["image"]) == files["image_2/000005.png"]
+    assert png_of(got["images"]["clean"]) == files["clean/000005.png"]
+    labels = parse_label_file(files["label_2/000005.txt"].decode())
+    assert got["boxes"] == [{"class": o["type"], "box": o["bbox"], "truncated": o["truncated"],
+                             "occluded": o["occluded"]} for o in labels]
+    assert len(got["boxes"]) >= 1
+    assert (got["frame"], got["seed"], got["width"], got["height"]) == (5, 11, 64, 48)
+    # Views line up with the frame: no surface is black in the depth view and dark grey among the instances.
+    instance = np.asarray(Image.open(io.BytesIO(files["instance/000005.png"])))
+    depth_mm = np.asarray(Image.open(io.BytesIO(files["depth/000005.png"])))
+    assert np.array_equal(pixels(got["images"]["depth"]) == 0, depth_mm == 0)
+    colours = pixels(got["images"]["instance"])
+    for i in np.unique(instance):
+        assert len(np.unique(colours[instance == i], axis=0)) == 1  # one colour per instance id
+    # In air: the same frame with the water off.
+    air = parse_spec({**SPEC, "quality": "draft", "water": {"enabled": False}})
+    assert png_of(got["images"]["air"]) == session.frame_files(air, 5)["image_2/000005.png"]
+    assert got["images"]["air"] != got["images"]["image"]
+
+
+def test_only_the_views_asked_for_are_rendered(session):
+    got = render_preview(session, parse_spec(SPEC), 0, [])
+    assert set(got["images"]) == {"image"}
+
+
+def test_the_strip_scales_the_camera_and_its_intrinsics(session):
+    wide = parse_spec({**SPEC, "camera": {"width": 640, "height": 480,
+                                          "intrinsics": {"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0}}})
+    small = preview_spec(wide, ["image"], width=STRIP_WIDTH, labels=False)
+    k = small.camera.intrinsics
+    assert (small.camera.width, small.camera.height) == (160, 120)
+    assert (k.fx, k.fy, k.cx, k.cy) == (125.0, 125.0, 80.0, 60.0)
+    assert small.quality == "draft" and not small.outputs.labels
+    strip = render_strip(session, parse_spec(SPEC), 3, 4)
+    assert [f["frame"] for f in strip["frames"]] == [3, 4, 5, 6]
+    # 64 px cameras are below the strip's width: thumbnails are the draft frames themselves.
+    draft = parse_spec({**SPEC, "quality": "draft", "outputs": {"labels": False}})
+    for f in strip["frames"]:
+        assert png_of(f["image"]) == session.frame_files(draft, f["frame"])[f"image_2/{f['frame']:06d}.png"]
+
+
+def test_a_worker_reply_names_a_spec_error_as_422_and_answers_json(session):
+    header, body = preview_reply(session, "preview", {"camera": {"width": 2}}, [0, []])
+    assert header["ok"] is False and header["status"] == 422 and "camera.width" in header["error"]
+    assert body == b""
+    header, body = preview_reply(session, "strip", SPEC, [0, 2])
+    assert header == {"ok": True}
+    assert [f["frame"] for f in __import__("json").loads(body)["frames"]] == [0, 1]
+
+
+def test_the_gate_renders_each_clients_newest_request_and_says_when_busy():
+    async def scenario():
+        gate = RenderGate(slots=1, wait_s=0.5)
+        release = threading.Event()
+        ran: list[str] = []
+
+        def job(name: str, block: bool = False):
+            def run():
+                if block:
+                    release.wait(10)
+                ran.append(name)
+                return {"name": name}
+            return run
+
+        first = asyncio.create_task(gate.run("a", job("a1", block=True)))
+        await asyncio.sleep(0.05)  # a1 holds the only slot
+        older = asyncio.create_task(gate.run("b", job("b1")))
+        await asyncio.sleep(0.01)
+        newer = asyncio.create_task(gate.run("b", job("b2")))
+        other = asyncio.create_task(gate.run("c", job("c1")))
+        await asyncio.sleep(0.7)  # past wait_s: every waiter gave up
+        release.set()
+        results = await asyncio.gather(first, older, newer, other, return_exceptions=True)
+        return ran, results
+
+    ran, (a1, b1, b2, c1) = asyncio.run(scenario())
+    assert a1 == {"name": "a1"} and ran == ["a1"]
+    assert all(isinstance(r, Unavailable) for r in (b1, b2, c1))
+
+    async def superseded():
+        gate = RenderGate(slots=1, wait_s=5)
+        release = threading.Event()
+        first = asyncio.create_task(gate.run("a", lambda: release.wait(10) and {"n": 1}))
+        await asyncio.sleep(0.05)
+        older = asyncio.create_task(gate.run("b", lambda: {"n": 2}))
+        await asyncio.sleep(0.01)
+        newer = asyncio.create_task(gate.run("b", lambda: {"n": 3}))
+        await asyncio.sleep(0.05)
+        release.set()
+        return await asyncio.gather(first, older, newer, return_exceptions=True)
+
+    first, older, newer = asyncio.run(superseded())
+    assert first == {"n": 1} and newer == {"n": 3}
+    assert isinstance(older, Conflict)

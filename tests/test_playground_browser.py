@@ -1,0 +1,183 @@
+"""The playground driven as a person would, in a real headless Chromium against `seasynth playground` (no servers):
+the page loads and previews, a water type and a count change the preview to exactly the frame the server renders
+for that spec, a bad value shows its error next to its field, and the downloaded YAML is the spec on the page.
+
+The tests run in file order as one person's session on one page (each starts from where the last left it).
+Set SEASYNTH_SCREENSHOTS=DIR to keep the run's screenshots (the README's come from there)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import socket
+from pathlib import Path
+
+import httpx
+import pytest
+import yaml
+
+from browser import chromium, playground_server, set_value, wait
+from service.spec import parse_spec
+from worker.generate import RECORD
+
+SPEC = {
+    "seed": 5,
+    "frames": 8,
+    "camera": {"width": 96, "height": 72},
+    "terrain": {"cells": 16, "variants": 1},
+    "water": {"jerlov": ["II"]},
+    "targets": {"count": [3, 4], "assets": [{"procedural": "urchin", "variants": 1}]},
+    "distractors": {"count": [1, 2], "assets": [{"procedural": "rock", "variants": 1}]},
+}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def page(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("playground")
+    spec_file = tmp / "spec.yaml"
+    spec_file.write_text(yaml.safe_dump(SPEC))
+    downloads = tmp / "downloads"
+    downloads.mkdir()
+    with playground_server(spec_file, free_port(), tmp / "runs", tmp / "server.log") as base:
+        with chromium(downloads) as driver:
+            driver.get(base + "/playground")
+            yield driver, base, downloads
+
+
+def shot(driver, name: str) -> None:
+    folder = os.environ.get("SEASYNTH_SCREENSHOTS")
+    if folder:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(Path(folder) / f"{name}.png"))
+
+
+def status(driver) -> str:
+    return driver.find_element("id", "status").text
+
+
+def preview_src(driver) -> str:
+    return driver.find_element("id", "preview-image").get_attribute("src") or ""
+
+
+def server_preview(base: str, spec: dict, frame: int = 0) -> dict:
+    r = httpx.post(base + "/playground/preview", json={"spec": spec, "frame": frame, "views": []}, timeout=60)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def page_spec(driver) -> dict:
+    return driver.execute_script("return spec;")
+
+
+def test_the_page_previews_the_spec_it_was_started_with(page):
+    driver, base, _ = page
+    wait(lambda: preview_src(driver).startswith("data:image/png") and "rendered" in status(driver), 60,
+         "the first preview")
+    assert page_spec(driver) == SPEC
+    expected = server_preview(base, SPEC)
+    assert preview_src(driver) == expected["images"]["image"]
+    assert int(driver.find_element("id", "preview-boxes").get_attribute("data-boxes")) == len(expected["boxes"])
+    wait(lambda: len(driver.find_elements("css selector", "#strip img")) == 8, 60, "the strip of 8 frames")
+    shot(driver, "playground")
+
+
+def test_changing_the_water_type_and_a_count_re_renders_exactly_that_spec(page):
+    driver, base, _ = page
+    before = preview_src(driver)
+    driver.find_element("id", "f-water.jerlov-9C").click()
+    driver.find_element("id", "f-water.jerlov-II").click()
+    set_value(driver, "f-targets.count.0", 1)
+    set_value(driver, "f-targets.count.1", 1)
+    want = {**SPEC, "water": {"jerlov": ["9C"]}, "targets": {**SPEC["targets"], "count": [1, 1]}}
+    wait(lambda: page_spec(driver) == want, 10, "the page's spec to follow the controls")
+    expected = server_preview(base, want)
+    wait(lambda: preview_src(driver) == expected["images"]["image"], 60, "the preview of the changed spec")
+    assert expected["images"]["image"] != before
+    assert len(expected["boxes"]) <= 1
+    wait(lambda: driver.find_element("id", "preview-boxes").get_attribute("data-boxes") == str(len(expected["boxes"])),
+         10, "the boxes of the changed spec")
+
+
+def test_a_bad_value_shows_its_error_next_to_its_field(page):
+    driver, _, _ = page
+    set_value(driver, "f-camera.width", 3)
+    error = wait(lambda: driver.find_element("id", "e-camera.width").text, 20, "the error beside camera.width")
+    assert "greater than or equal to 8" in error
+    assert "invalid" in driver.find_element("id", "f-camera.width").get_attribute("class")
+    assert driver.find_element("id", "e-camera.height").text == ""
+    shot(driver, "playground-error")
+    set_value(driver, "f-camera.width", 96)
+    wait(lambda: driver.find_element("id", "e-camera.width").text == "", 20, "the error to clear")
+
+
+def test_the_downloaded_yaml_is_the_spec_on_the_page(page):
+    driver, _, downloads = page
+    wait(lambda: driver.find_element("id", "spec-yaml").get_attribute("value"), 20, "the YAML")
+    driver.find_element("id", "download-yaml").click()
+    path = downloads / "spec.yaml"
+    wait(lambda: path.exists() and path.stat().st_size > 0, 20, "the downloaded spec.yaml")
+    data = yaml.safe_load(path.read_text())
+    assert data == page_spec(driver)
+    assert data["water"]["jerlov"] == ["9C"]
+    parse_spec(data)  # validates as POST /datasets and `seasynth generate` read it
+
+
+def test_toggles_show_the_depth_instance_clean_and_in_air_views(page):
+    driver, base, _ = page
+    for view in ("depth", "instance", "clean", "air"):
+        driver.find_element("id", f"view-{view}").click()
+    imgs = wait(lambda: driver.find_elements("css selector", "#extra-views img") if len(
+        driver.find_elements("css selector", "#extra-views img")) == 4 else None, 60, "four extra views")
+    assert [i.get_attribute("id") for i in imgs] == [f"view-image-{v}" for v in ("depth", "instance", "clean", "air")]
+    r = httpx.post(base + "/playground/preview", json={"spec": page_spec(driver), "frame": 0,
+                                                       "views": ["depth", "instance", "clean", "air"]}, timeout=60)
+    for img, view in zip(imgs, ("depth", "instance", "clean", "air")):
+        assert img.get_attribute("src") == r.json()["images"][view]
+    shot(driver, "playground-views")
+    assert base64.b64decode(r.json()["images"]["air"].split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_generate_runs_the_spec_on_the_page_locally_to_completion(page):
+    driver, base, _ = page
+    spec = page_spec(driver)
+    driver.find_element("id", "generate").click()
+    text = wait(lambda: (t := driver.find_element("id", "generate-progress").text) and
+                ("succeeded" in t or "failed" in t) and t, 120, "the local run to finish")
+    assert ": succeeded, 8/8 frames in " in text, text
+    out = Path(text.split(" in ", 1)[1])
+    assert sorted(p.name for p in (out / "image_2").iterdir()) == [f"{i:06d}.png" for i in range(8)]
+    assert yaml.safe_load((out.parent / "spec.yaml").read_text()) == spec
+    assert json.loads((out / RECORD).read_text())["state"] == "complete"
+
+
+def test_a_photo_uploaded_to_the_calibration_gives_an_estimate_the_spec_takes(page, tmp_path):
+    driver, base, _ = page
+    # The photo: a frame of this spec in 3C water, rendered by the server as the page shows it.
+    photo = tmp_path / "site.png"
+    photo.write_bytes(base64.b64decode(server_preview(base, {**SPEC, "water": {"jerlov": ["3C"]}})["images"][
+        "image"].split(",", 1)[1]))
+    driver.find_element("id", "calib-photo").send_keys(str(photo))
+    driver.find_element("id", "calib-run").click()
+    wait(lambda: driver.find_elements("id", "calib-B_inf-R"), 60, "the estimate")
+    with photo.open("rb") as f:
+        want = httpx.post(base + "/calibrate", files={"photo": ("site.png", f, "image/png")}, timeout=60).json()
+    for k, ch in enumerate("RGB"):
+        assert driver.find_element("id", f"calib-B_inf-{ch}").text.startswith(f"{want['estimate']['B_inf'][k]:.3f}")
+        assert driver.find_element("id", f"calib-beta_D-{ch}").text == "not identified"  # no range map given
+    # Side by side: the photo, a seasynth frame in the estimated water, and their colour statistics.
+    wait(lambda: len(driver.find_elements("css selector", "#calib-stats tr")) == 4, 60, "the colour statistics")
+    assert driver.find_element("id", "calib-frame").get_attribute("src").startswith("data:image/png")
+    driver.execute_script("document.getElementById('calibration').scrollIntoView();")
+    shot(driver, "playground-calibration")
+    driver.find_element("id", "calib-apply").click()
+    wait(lambda: page_spec(driver).get("water") == want["water"], 10, "the estimated water in the spec")
+    wait(lambda: yaml.safe_load(driver.find_element("id", "spec-yaml").get_attribute("value")) == page_spec(driver),
+         30, "the YAML of the spec with it")
+    parse_spec(page_spec(driver))
