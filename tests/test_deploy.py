@@ -95,6 +95,7 @@ SETTINGS_KEYS = {
     "AWS_ACCESS_KEY_ID",
     "AWS_SECRET_ACCESS_KEY",
     "AWS_DEFAULT_REGION",
+    "SEASYNTH_WORKER_METRICS_PORT",
 }
 
 
@@ -486,24 +487,33 @@ def _imports(path: Path) -> list[tuple[str, str, int]]:
 # packages they may import that an image lacks. Nothing else is excused.
 COMMANDS_OF_OTHER_IMAGES = {
     "api": {
-        ("service/cli.py", "generate"): {"worker"},
-        ("service/cli.py", "reproduce"): {"worker"},
-        ("service/cli.py", "export"): {"worker"},
-        ("service/cli.py", "preview"): {"worker"},
-        ("service/cli.py", "fetch"): {"worker"},  # --format merges export parts with worker.export
-        ("service/cli.py", "worker"): {"worker"},
-        ("service/cli.py", "bench_throughput"): {"bench"},
-        ("service/cli.py", "bench_accuracy"): {"bench"},
-        ("service/cli.py", "bench_fidelity"): {"bench"},
-        ("service/cli.py", "bench_scale"): {"bench"},
+        ("service/cli/datasets.py", "generate"): {"worker"},
+        ("service/cli/datasets.py", "reproduce"): {"worker"},
+        ("service/cli/datasets.py", "export"): {"worker"},
+        ("service/cli/datasets.py", "preview"): {"worker"},
+        ("service/cli/datasets.py", "waterfall"): {"worker"},
+        ("service/cli/datasets.py", "fetch"): {"worker"},  # --format merges export parts with worker.export
+        ("service/cli/servers.py", "worker"): {"worker"},
+        ("service/cli/servers.py", "playground"): {"worker"},  # the playground with no servers renders in-process
+        ("service/cli/bench.py", "bench_playground"): {"bench"},
+        ("service/cli/bench.py", "bench_throughput"): {"bench"},
+        ("service/cli/bench.py", "bench_accuracy"): {"bench"},
+        ("service/cli/bench.py", "bench_fidelity"): {"bench"},
+        ("service/cli/bench.py", "bench_scale"): {"bench"},
+        ("service/cli/bench.py", "bench_load"): {"bench"},
+        ("service/cli/bench.py", "bench_calibration"): {"bench"},
     },
     "worker": {
-        ("service/cli.py", "serve"): {"api"},
-        ("service/cli.py", "reconcile"): {"api"},
-        ("service/cli.py", "bench_throughput"): {"bench"},
-        ("service/cli.py", "bench_accuracy"): {"bench"},
-        ("service/cli.py", "bench_fidelity"): {"bench"},
-        ("service/cli.py", "bench_scale"): {"bench"},
+        ("service/cli/servers.py", "serve"): {"api"},
+        ("service/cli/servers.py", "reconcile"): {"api"},
+        ("service/cli/servers.py", "playground"): {"api", "uvicorn"},
+        ("service/cli/bench.py", "bench_playground"): {"bench"},
+        ("service/cli/bench.py", "bench_throughput"): {"bench"},
+        ("service/cli/bench.py", "bench_accuracy"): {"bench"},
+        ("service/cli/bench.py", "bench_fidelity"): {"bench"},
+        ("service/cli/bench.py", "bench_scale"): {"bench"},
+        ("service/cli/bench.py", "bench_load"): {"bench"},
+        ("service/cli/bench.py", "bench_calibration"): {"bench"},
     },
 }
 
@@ -721,7 +731,7 @@ def compose() -> dict:
 
 
 def test_compose_services(compose):
-    assert set(compose["services"]) == {"redis", "minio", "minio-init", "api", "reconciler"} | set(WORKERS)
+    assert set(compose["services"]) == {"redis", "minio", "minio-init", "api", "reconciler", "flower"} | set(WORKERS)
     for name, svc in compose["services"].items():
         if name != "minio-init":
             assert "healthcheck" in svc, f"{name}: no healthcheck"
@@ -869,6 +879,99 @@ def test_compose_reconciler_runs_every_minute_and_is_healthy_while_rounds_comple
     assert stale >= 3 * every, "a slow round or two must not make the reconciler unhealthy"
     assert "ports" not in svc and svc["restart"] == "unless-stopped"
     assert _duration_s(svc["healthcheck"]["start_period"]) >= every
+
+
+# A third-party image is pinned by digest, by a full x.y.z version or by a dated release (MinIO's): never `latest`,
+# no tag, or a major or minor tag that moves under the same name.
+PINNED_TAG = re.compile(r"^v?\d+\.\d+\.\d+([-+._][\w.-]+)?$|^RELEASE\.\d{4}-\d{2}-\d{2}T\d{2}-\d{2}-\d{2}Z$")
+
+
+def _pinned(image: str) -> bool:
+    if re.search(r"@sha256:[0-9a-f]{64}$", image):
+        return True
+    name, _, tag = image.rpartition("/")[2].partition(":")
+    return bool(name and PINNED_TAG.match(tag))
+
+
+@pytest.mark.parametrize(("image", "pinned"), [
+    ("redis:7.4.1", True), ("minio/minio:RELEASE.2024-12-18T13-15-44Z", True), ("mher/flower:2.0.1", True),
+    ("registry.example:5000/redis:7.4.1-alpine", True), ("redis@sha256:" + "a" * 64, True),
+    ("redis", False), ("redis:latest", False), ("redis:7", False), ("redis:7.4", False), ("redis:7-alpine", False),
+    ("minio/minio:latest", False), ("minio/minio:RELEASE", False), ("registry.example:5000/redis", False),
+])
+def test_the_pin_rule(image, pinned):
+    assert _pinned(image) is pinned
+
+
+def test_third_party_images_are_pinned(rendered):
+    """Every image not built from this repository, in compose (every profile) and in every kustomization."""
+    full = _compose("--profile", "gpu", "--profile", "monitor", "config")
+    assert full.returncode == 0, full.stderr
+    services = yaml.safe_load(full.stdout)["services"]
+    theirs = {f"compose {n}": svc["image"] for n, svc in services.items() if "build" not in svc}
+    assert {"compose redis", "compose minio", "compose minio-init", "compose flower"} <= set(theirs)
+    ours = {spec["k8s_image"] for spec in IMAGES.values()}
+    for kustomization, docs in rendered.items():
+        for d in docs:
+            for tmpl in _pod_templates(d):
+                for c in tmpl["spec"].get("initContainers", []) + tmpl["spec"]["containers"]:
+                    if c["image"].partition(":")[0] not in ours:
+                        theirs[f"{kustomization} {d['metadata']['name']}/{c['name']}"] = c["image"]
+    assert any(k.startswith("deploy/core redis") for k in theirs)
+    unpinned = {k: v for k, v in theirs.items() if not _pinned(v)}
+    assert not unpinned, f"pin these images to a version (x.y.z, a dated release or a digest): {unpinned}"
+
+
+def test_compose_flower_is_an_opt_in_monitor_with_the_workers_visibility_timeout(compose):
+    import runpy
+
+    from service.settings import Settings
+
+    flower = compose["services"]["flower"]
+    assert flower["profiles"] == ["monitor"], "Flower runs only with --profile monitor"
+    assert flower["restart"] == "unless-stopped" and "healthcheck" in flower
+    # Local only: Flower shows task arguments and can revoke tasks. (v1 prints "IP:PUBLISHED:TARGET/tcp".)
+    ports = [p if isinstance(p, dict) else dict(zip(("host_ip", "published", "target"), p.split("/")[0].split(":")))
+             for p in flower["ports"]]
+    assert [(p.get("host_ip"), str(p["published"]), int(p["target"])) for p in ports] == [("127.0.0.1", "5555", 5555)]
+    assert flower["depends_on"] == {"redis": {"condition": "service_healthy"}}
+    (mount,) = flower["volumes"]
+    source = mount["source"] if isinstance(mount, dict) else mount.split(":")[0]
+    target = mount["target"] if isinstance(mount, dict) else mount.split(":")[1]
+    assert Path(source).resolve() == ROOT / "docker" / "flower" / "celeryconfig.py"
+    assert Path(target).parent.as_posix() == flower["environment"]["PYTHONPATH"]
+    config = runpy.run_path(str(ROOT / "docker" / "flower" / "celeryconfig.py"))
+    assert config["broker_url"] == compose["services"]["worker"]["environment"]["SEASYNTH_REDIS_URL"]
+    assert config["broker_transport_options"] == {"visibility_timeout": Settings().visibility_timeout_s}
+
+
+def test_every_pod_runs_as_non_root(rendered):
+    """Kubernetes refuses to start a container of these pods as root (the images' USER: test_dockerfile_base_...)."""
+    for kustomization, docs in rendered.items():
+        for d in docs:
+            for tmpl in _pod_templates(d):
+                sc = tmpl["spec"].get("securityContext", {})
+                where = f"{kustomization} {d['kind']}/{d['metadata']['name']}"
+                assert sc.get("runAsNonRoot") is True and sc.get("runAsUser", 0) > 0, where
+                for c in tmpl["spec"]["containers"]:
+                    assert c.get("securityContext", {}).get("runAsUser", sc["runAsUser"]) > 0, where
+
+
+def test_every_app_pod_advertises_its_metrics_port(rendered):
+    config = _by(rendered["deploy/base"], "ConfigMap", "seasynth-settings")["data"]
+    port = int(config["SEASYNTH_WORKER_METRICS_PORT"])
+    for kustomization in KUSTOMIZATIONS:
+        for d in rendered[kustomization]:
+            for tmpl in _pod_templates(d):
+                name = d["metadata"]["name"]
+                if name in ("redis", "reconciler"):
+                    continue
+                ann = tmpl["metadata"].get("annotations", {})
+                c = _container(d)
+                want = 8000 if name == "api" else port
+                assert (ann.get("prometheus.io/scrape"), ann.get("prometheus.io/path")) == ("true", "/metrics"), name
+                assert int(ann["prometheus.io/port"]) == want, name
+                assert want in [p["containerPort"] for p in c.get("ports", [])], name
 
 
 def test_compose_file_follows_the_compose_specification():

@@ -1,0 +1,151 @@
+"""`seasynth bench ...`: each benchmark writes its tables where README's Speed and accuracy section says."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from service.cli import PlatformOpt, bench_app
+
+
+@bench_app.command("throughput")
+def bench_throughput(
+    spec: Annotated[Path, typer.Option("--spec", help="Scene spec.")] = Path("examples/urchins.yaml"),
+    frames: Annotated[int, typer.Option("--frames", min=5)] = 50,
+    width: Annotated[int, typer.Option("--width")] = 640,
+    height: Annotated[int, typer.Option("--height")] = 480,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Also write the table and JSON here.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Per-stage times, steady-state seconds per frame, and the ratio to stock pyrender, in one run."""
+    from bench.throughput import run
+
+    run(spec, frames=frames, width=width, height=height, out=out, platform=gl)
+
+
+@bench_app.command("playground")
+def bench_playground(
+    spec: Annotated[Path, typer.Option("--spec", help="Scene spec.")] = Path("examples/urchins.yaml"),
+    frames: Annotated[int, typer.Option("--frames", min=2, help="Frame indices per row.")] = 12,
+    out: Annotated[Path, typer.Option("--out", help="Folder for playground.json and .md.")] = Path("bench/results/cpu"),
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Preview latency of `seasynth playground` over HTTP, per view set, and the strip."""
+    from bench.playground import run
+
+    run(spec, out, frames=frames, platform=gl)
+
+
+@bench_app.command("scale")
+def bench_scale(
+    spec: Annotated[Path, typer.Option("--spec", help="Scene spec.")] = Path("examples/urchins.yaml"),
+    resolution: Annotated[Optional[list[str]], typer.Option("--resolution", help="WIDTHxHEIGHT (repeatable).")] = None,
+    workers: Annotated[str, typer.Option("--workers", help="Comma-separated worker counts.")] = "1,2",
+    frames_per_worker: Annotated[int, typer.Option("--frames-per-worker", min=4)] = 20,
+    preset: Annotated[str, typer.Option("--preset")] = "default",
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for scale.json, .md and .png.")] = None,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Frames per second against worker processes and resolution through generate, with CPU and GPU utilisation."""
+    from bench.scale import run
+
+    try:
+        sizes = [tuple(int(v) for v in r.lower().split("x")) for r in (resolution or ["640x480"])]
+        counts = [int(v) for v in workers.split(",")]
+    except ValueError:
+        raise typer.BadParameter("--resolution takes WIDTHxHEIGHT and --workers comma-separated integers") from None
+    if any(len(s) != 2 or min(s) < 1 for s in sizes) or min(counts) < 1:
+        raise typer.BadParameter("--resolution takes WIDTHxHEIGHT and --workers counts >= 1")
+    run(spec, resolutions=sizes, workers=counts, frames_per_worker=frames_per_worker, preset=preset, out=out,
+        platform=gl, machine=machine)
+
+
+@bench_app.command("load")
+def bench_load(
+    rate: Annotated[float, typer.Option("--rate", min=1, help="Status reads and lists offered per second.")] = 200,
+    duration: Annotated[float, typer.Option("--duration", min=1, help="Seconds of load.")] = 20,
+    posts: Annotated[int, typer.Option("--posts", min=1, help="POST /datasets sent one after another first.")] = 50,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for load.json and load.md.")] = None,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+) -> None:
+    """API latency under status reads and lists while a dataset renders, POST /datasets throughput, /metrics."""
+    from bench.load import run
+
+    run(rate=rate, duration_s=duration, posts=posts, out=out, machine=machine)
+
+
+@bench_app.command("accuracy")
+def bench_accuracy(
+    out: Annotated[Path, typer.Option("--out", help="Folder for accuracy.json, .md and .png.")],
+    scene: Annotated[Optional[list[str]], typer.Option("--scene", help="Scene name (repeatable).")] = None,
+    preset: Annotated[Optional[list[str]], typer.Option("--preset", help="Preset name (repeatable).")] = None,
+    repeats: Annotated[int, typer.Option("--repeats", min=5)] = 5,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Each preset against a 16-sample float64 reference on pinned scenes: time, PSNR, errors."""
+    from bench.accuracy import run
+
+    run(out, scenes=scene, presets=preset, repeats=repeats, machine=machine, platform=gl)
+
+
+@bench_app.command("fidelity")
+def bench_fidelity(
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for fidelity.json, .md and .png.")] = None,
+    config: Annotated[
+        Optional[list[str]],
+        typer.Option("--config", help="A pinned configuration's name, or NAME=WATER:LIGHT[@DEPTH] (repeatable)."),
+    ] = None,
+    spp: Annotated[int, typer.Option("--spp", min=1, help="Path-traced samples per pixel of each half of a "
+                                     "reference rendered here (when none is stored).")] = 1024,
+    references: Annotated[Path, typer.Option(
+        "--references", help="Stored references (NAME.ref.npz), used where they match the scene.",
+    )] = Path("bench/results/cpu/fidelity-references"),
+    export_scenes: Annotated[Optional[Path], typer.Option("--export-scenes", help="Only write each configuration's "
+                             "path-tracer scene (NAME.scene.npz) here, for python -m bench.reference.")] = None,
+    timing_spp: Annotated[int, typer.Option("--timing-spp", min=1, help="Samples per pixel of the path tracer's "
+                                            "timed render on this machine.")] = 64,
+    repeats: Annotated[int, typer.Option("--repeats", min=1)] = 5,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """seasynth's frames against a volumetric path tracer of the same scene: PSNR, MAE, time, per term."""
+    from bench.fidelity import CONFIGS, parse_config, run
+    from bench.fidelity import export_scenes as export
+
+    chosen: dict[str, str] = {}
+    for c in config or list(CONFIGS):
+        name, _, text = c.partition("=")
+        if not text and name not in CONFIGS:
+            raise typer.BadParameter(f"unknown configuration {name!r}; pinned: {', '.join(CONFIGS)}",
+                                     param_hint="--config")
+        chosen[name] = text or CONFIGS[name]
+        parse_config(chosen[name])
+    if export_scenes is not None:
+        for path in export(export_scenes, configs=chosen, platform=gl):
+            typer.echo(str(path))
+        return
+    if out is None:
+        raise typer.BadParameter("give --out (or --export-scenes)", param_hint="--out")
+    run(out, configs=chosen, spp=spp, repeats=repeats, machine=machine, platform=gl, references=references,
+        timing_spp=timing_spp)
+
+
+@bench_app.command("calibration")
+def bench_calibration(
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for calibration.json and .md.")] = None,
+    scene: Annotated[Optional[list[str]], typer.Option("--scene", help="Scene name (repeatable).")] = None,
+    water: Annotated[Optional[list[str]], typer.Option("--water", help="Jerlov type (repeatable).")] = None,
+    frames: Annotated[int, typer.Option("--frames", min=1, help="Frames per scene.")] = 3,
+    width: Annotated[int, typer.Option("--width", min=16)] = 160,
+    height: Annotated[int, typer.Option("--height", min=16)] = 120,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """Water calibration against known water: seasynth's clean frames hazed with Jerlov types, estimated back."""
+    from bench.calibration import run
+
+    run(out, scenes=scene, waters=water, frames=frames, width=width, height=height, machine=machine, platform=gl)
