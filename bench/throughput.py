@@ -25,8 +25,10 @@ CONFIGS: dict[str, dict] = {
     "+instance": {"outputs.depth": True, "outputs.instance": True},
     "+clean/range": {"outputs.depth": True, "outputs.instance": True, "outputs.clean": True, "outputs.range": True},
     "water off": {"water.enabled": False},
-    # Sensors (worker.sensors): the FLS at its defaults (256 beams x 512 bins, a 1454x586 render), then DVL+pressure.
+    # Sensors (worker.sensors), each on its own beside image+labels: the FLS at its defaults (256 beams x 512
+    # bins, a 1454x586 render), the side-scan sonar at its defaults, then DVL+pressure.
     "+fls": {"sensors.fls.enabled": True},
+    "+sss": {"sensors.sss.enabled": True},
     "+dvl+pressure": {"sensors.dvl.enabled": True, "sensors.pressure.enabled": True},
 }
 
