@@ -10,9 +10,10 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, model_validator
+from pydantic import AfterValidator, Field, StrictBool, StrictFloat, StrictInt, model_validator
 
-Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
+from service.spec_types import SpecModel, Vec3
+
 BeamPattern = Literal["sinc2", "gaussian"]
 MAX_BEAMS = 1024
 MAX_RANGE_BINS = 4096
@@ -24,10 +25,6 @@ SSS_DEPRESSION_SPAN_DEG = (-5.0, 89.0)  # depressions each SSS side renders, bel
 DVL_BEAMS = 4  # Janus beams, one one-pixel ray cast each
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
 def _range(v: tuple[float, float]) -> tuple[float, float]:
     if not 0 < v[0] < v[1]:
         raise ValueError(f"need 0 < min < max, got [{v[0]}, {v[1]}]")
@@ -37,7 +34,7 @@ def _range(v: tuple[float, float]) -> tuple[float, float]:
 RangeM = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_range)]
 
 
-class SensorPose(_Model):
+class SensorPose(SpecModel):
     """Where a sensor sits on the vehicle: offset (camera axes, metres), then pitch and yaw (degrees)."""
 
     offset_m: Vec3 = (0.0, 0.0, 0.0)
@@ -45,7 +42,7 @@ class SensorPose(_Model):
     yaw_deg: StrictFloat = Field(0.0, ge=-180, le=180)
 
 
-class Acoustics(_Model):
+class Acoustics(SpecModel):
     """Sea water for sound absorption (Francois-Garrison 1982) and sound speed."""
 
     temperature_c: StrictFloat = Field(10.0, ge=-2, le=35)
@@ -53,7 +50,7 @@ class Acoustics(_Model):
     ph: StrictFloat = Field(8.0, ge=6, le=9)
 
 
-class FLS(_Model):
+class FLS(SpecModel):
     """A forward-looking multibeam imaging sonar. Defaults of the order of a Blueprint Oculus M750d's 750 kHz mode
     (130 x 20 deg fan, ~1 deg horizontal beams; its datasheet was not re-checked here), with 256 beams rather than
     its 512 to keep frames small. worker/sensors/fls.py states the model."""
@@ -103,7 +100,7 @@ class FLS(_Model):
         return 2 * math.ceil(f * math.tan(half_h) + 0.5), 2 * math.ceil(f * y_max + 0.5), f
 
 
-class DVL(_Model):
+class DVL(SpecModel):
     """A Doppler velocity log: four Janus beams at `beam_angle_deg` from its downward axis, 45 deg apart from the
     vehicle's axes (Teledyne Pathfinder/Workhorse layout). Velocity in the vehicle frame (m/s), noise Gaussian."""
 
@@ -115,7 +112,7 @@ class DVL(_Model):
     range_sigma_m: StrictFloat = Field(0.01, ge=0, le=10)
 
 
-class Pressure(_Model):
+class Pressure(SpecModel):
     """A pressure (depth) sensor: absolute pressure, Gaussian noise of `sigma_pa` (Pa)."""
 
     enabled: StrictBool = False
@@ -123,7 +120,7 @@ class Pressure(_Model):
     sigma_pa: StrictFloat = Field(100.0, ge=0, le=1e5)  # 100 Pa ~ 1 cm of water
 
 
-class IMU(_Model):
+class IMU(SpecModel):
     """An inertial unit: angular rate (rad/s) and specific force (m/s^2) from the trajectory's analytic derivatives,
     plus a constant bias drawn per dataset and white noise per frame (Gaussian)."""
 
@@ -135,7 +132,7 @@ class IMU(_Model):
     accel_bias_sigma_m_s2: StrictFloat = Field(1e-2, ge=0, le=10)
 
 
-class SSS(_Model):
+class SSS(SpecModel):
     """A side-scan sonar: one ping per frame, port and starboard beams in the sensor's across-track (x, y) plane,
     narrow along track (z), tilted down by depression_deg. Defaults are typical of a 900 kHz towed or hull unit (not
     one datasheet): 0.5 deg horizontal, 50 deg vertical beams, 20 deg depression, 512 bins per side over 20 m."""
@@ -170,7 +167,7 @@ class SSS(_Model):
         return 2 * math.ceil(f * math.tan(half_h) + 0.5), 2 * math.ceil(f * math.tan(half_v) + 0.5), f
 
 
-class Sensors(_Model):
+class Sensors(SpecModel):
     """Every sensor besides the camera (which stays in `camera:` and is always on)."""
 
     acoustics: Acoustics = Acoustics()
@@ -203,7 +200,7 @@ class Sensors(_Model):
         return n
 
 
-class Trajectory(_Model):
+class Trajectory(SpecModel):
     """How the vehicle (camera) moves between frames. `random`: every frame draws its own pose (the default; frames
     are independent, so a velocity is undefined). `lawnmower`: a survey of parallel legs at a fixed altitude, frame i
     at time i / rate_hz, heading along the legs and pitched down by `pitch_deg`: pose(i) is a pure function of

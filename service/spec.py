@@ -10,8 +10,6 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     AfterValidator,
-    BaseModel,
-    ConfigDict,
     Field,
     StrictBool,
     StrictFloat,
@@ -23,7 +21,15 @@ from pydantic import (
 
 from service.errors import SpecError
 from service.sensors import Sensors, Trajectory
-from service.water import JERLOV_TYPES
+from service.spec_light import Lighting, Water
+from service.spec_types import (
+    MAX_CHOICES,
+    Interval,
+    NonNegInterval,
+    PositiveInterval,
+    SpecModel,
+    Vec3,
+)
 
 # Documented limits. They keep one frame inside memory and one shard inside the task time limit, and every frame
 # name within KITTI's six digits (000000 to 999999).
@@ -36,32 +42,11 @@ MAX_OBJECTS = 64  # per role and frame
 MAX_TERRAIN_CELLS = 1024
 MAX_VARIANTS = 1024
 MAX_ASSETS = 256  # entries in targets.assets and in distractors.assets
-MAX_CHOICES = 64  # entries in water.jerlov and terrain.styles (repeats weight the draw)
 MAX_PATH_CHARS = 4096
 
 Quality = Literal["draft", "fast", "default", "high"]
 ProceduralTarget = Literal["urchin", "rock", "coral", "seaweed", "clam"]
 TerrainStyle = Literal["sand", "pebbles", "rock"]
-
-
-def _ordered(v: tuple[float, float]) -> tuple[float, float]:
-    if not (math.isfinite(v[0]) and math.isfinite(v[1])):
-        raise ValueError("bounds must be finite")
-    if v[0] > v[1]:
-        raise ValueError(f"min {v[0]} > max {v[1]}")
-    return v
-
-
-def _nonneg(v: tuple[float, float]) -> tuple[float, float]:
-    if v[0] < 0:
-        raise ValueError(f"must be >= 0, got min {v[0]}")
-    return v
-
-
-def _positive(v: tuple[float, float]) -> tuple[float, float]:
-    if v[0] <= 0:
-        raise ValueError(f"must be > 0, got min {v[0]}")
-    return v
 
 
 def _count_range(v: tuple[int, int]) -> tuple[int, int]:
@@ -74,23 +59,10 @@ def _count_range(v: tuple[int, int]) -> tuple[int, int]:
     return v
 
 
-# A closed interval [min, max] written as a two-element list in spec files.
-Interval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_ordered)]
-NonNegInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_ordered), AfterValidator(_nonneg)]
-PositiveInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_ordered), AfterValidator(_positive)]
 CountInterval = Annotated[tuple[StrictInt, StrictInt], AfterValidator(_count_range)]
-Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
 
 
-class _Model(BaseModel):
-    # NaN and inf would slip past every bound check (NaN compares false), so no float field takes them.
-    # Integer, float and boolean fields are StrictInt / StrictFloat / StrictBool: true, "7" and 2.0 are not integers,
-    # true and "0.5" are not numbers (an integer is a float), 1 and "yes"
-    # are not booleans (YAML's own true/false and JSON's true/false are).
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-class Box(_Model):
+class Box(SpecModel):
     """An axis-aligned box in world coordinates (metres, z up)."""
 
     min: Vec3
@@ -106,14 +78,14 @@ class Box(_Model):
         return self
 
 
-class Intrinsics(_Model):
+class Intrinsics(SpecModel):
     fx: StrictFloat = Field(gt=0)
     fy: StrictFloat = Field(gt=0)
     cx: StrictFloat
     cy: StrictFloat
 
 
-class Camera(_Model):
+class Camera(SpecModel):
     width: StrictInt = Field(640, ge=MIN_SIDE, le=MAX_SIDE)
     height: StrictInt = Field(480, ge=MIN_SIDE, le=MAX_SIDE)
     # Horizontal field of view; the vertical one follows from the aspect ratio (square pixels).
@@ -145,7 +117,7 @@ class Camera(_Model):
         return [[f, 0.0, (self.width - 1) / 2.0], [0.0, f, (self.height - 1) / 2.0], [0.0, 0.0, 1.0]]
 
 
-class FileRef(_Model):
+class FileRef(SpecModel):
     """A user file: a local path (spec files, CLI) or the sha256 id of an asset uploaded to the service."""
 
     path: str | None = Field(None, min_length=1, max_length=MAX_PATH_CHARS)
@@ -178,7 +150,7 @@ class AssetRef(FileRef):
         return self
 
 
-class Targets(_Model):
+class Targets(SpecModel):
     class_name: str = Field("Urchin", pattern=r"^\S+$", max_length=64)
     assets: list[AssetRef] = Field(
         default_factory=lambda: [AssetRef(procedural="urchin")], min_length=1, max_length=MAX_ASSETS
@@ -187,7 +159,7 @@ class Targets(_Model):
     scale: PositiveInterval = (0.8, 1.25)
 
 
-class Distractors(_Model):
+class Distractors(SpecModel):
     assets: list[AssetRef] = Field(
         default_factory=lambda: [AssetRef(procedural=k) for k in ("rock", "coral", "seaweed", "clam")],
         min_length=1,
@@ -197,7 +169,7 @@ class Distractors(_Model):
     scale: PositiveInterval = (0.7, 1.4)
 
 
-class Terrain(_Model):
+class Terrain(SpecModel):
     styles: list[TerrainStyle] = Field(
         default_factory=lambda: ["sand", "pebbles", "rock"], min_length=1, max_length=MAX_CHOICES
     )
@@ -211,7 +183,7 @@ class Terrain(_Model):
     texture_tile_m: StrictFloat = Field(1.0, gt=0)
 
 
-class Workspaces(_Model):
+class Workspaces(SpecModel):
     """The paper's four workspaces (world metres, z up)."""
 
     targets: Box = Box(min=(-2.0, -2.0, -5.0), max=(2.0, 2.0, 5.0))
@@ -220,153 +192,14 @@ class Workspaces(_Model):
     look_at: Box = Box(min=(-2.0, -2.0, -5.0), max=(2.0, 2.0, 5.0))
 
 
-MAX_LAMPS = 4
-
-
-class Lamp(_Model):
-    """A spot light fixed to the camera (KITTI camera axes: x right, y down, z forward; metres).
-
-    Its profile is the path tracer's (Mitsuba's `spot`): full intensity within beam_width_deg of its axis, then
-    falling linearly in angle to 0 at cutoff_deg. intensity x colour is its radiant intensity on the axis, in the
-    units of lighting.sun_intensity per steradian (a surface 1 m away, facing the lamp, gets that irradiance).
-    """
-
-    offset_m: Vec3 = (0.0, 0.0, 0.0)
-    direction: Vec3 = (0.0, 0.0, 1.0)
-    beam_width_deg: StrictFloat = Field(20.0, gt=0, lt=90)
-    cutoff_deg: StrictFloat = Field(35.0, gt=0, lt=90)
-    colour: Vec3 = (1.0, 1.0, 1.0)
-    intensity: NonNegInterval = (4.0, 4.0)
-
-    @model_validator(mode="after")
-    def _check(self) -> Lamp:
-        if math.hypot(*self.direction) < 1e-6:
-            raise ValueError("direction must not be the zero vector")
-        if self.beam_width_deg > self.cutoff_deg:
-            raise ValueError(f"beam_width_deg {self.beam_width_deg} > cutoff_deg {self.cutoff_deg}")
-        if min(self.colour) < 0:
-            raise ValueError(f"colour must be >= 0 per channel, got {list(self.colour)}")
-        return self
-
-
-class Caustics(_Model):
-    """The sun's beam focused by surface waves (water.model physical; worker/light/caustics.py states the model).
-    Off by default. The waves' wavelength (m) and rms slope are drawn per frame."""
-
-    enabled: StrictBool = False
-    wavelength_m: PositiveInterval = (0.3, 1.0)
-    slope: Annotated[PositiveInterval, AfterValidator(lambda v: _in(v, 0, 1))] = (0.05, 0.15)
-
-
-class Lighting(_Model):
-    # Elevation above the horizon, in air; at or below 0 the sun is down and its term is not rendered.
-    sun_elevation_deg: Annotated[Interval, AfterValidator(lambda v: _in(v, -90, 90))] = (45.0, 85.0)
-    sun_azimuth_deg: Annotated[Interval, AfterValidator(lambda v: _in(v, -360, 360))] = (0.0, 360.0)
-    sun_intensity: NonNegInterval = (0.8, 1.6)
-    # Sky light: the irradiance it gives a horizontal surface just below the water surface (with water.model
-    # paper: a constant term, in air).
-    ambient: NonNegInterval = (0.15, 0.35)
-    # Sun shadows (a shadow map) with water.model physical; lamps always cast shadows there.
-    shadows: StrictBool = True
-    caustics: Caustics = Caustics()
-    lamps: list[Lamp] = Field(default_factory=list, max_length=MAX_LAMPS)
-
-
-def _in(v: tuple[float, float], lo: float, hi: float) -> tuple[float, float]:
-    if v[0] < lo or v[1] > hi:
-        raise ValueError(f"must lie within [{lo}, {hi}]")
-    return v
-
-
-class RGBInterval(_Model):
-    """Per-channel intervals: each of R, G, B drawn independently in [min_c, max_c]."""
-
-    min: Vec3
-    max: Vec3
-
-    @model_validator(mode="after")
-    def _check(self) -> RGBInterval:
-        for c, lo, hi in zip("RGB", self.min, self.max):
-            if not (math.isfinite(lo) and math.isfinite(hi)):
-                raise ValueError(f"channel {c} bounds must be finite")
-            if lo < 0:
-                raise ValueError(f"channel {c}: must be >= 0, got {lo}")
-            if lo > hi:
-                raise ValueError(f"channel {c}: min {lo} > max {hi}")
-        return self
-
-
-WaterModel = Literal["physical", "paper"]
-_PAPER_FIELDS = ("beta_D", "beta_B", "B_inf")
-_PHYSICAL_FIELDS = ("absorption", "scattering")
-
-
-class Water(_Model):
-    """Water: one physical description (absorption, scattering, phase function, depth) from which every light term
-    is derived (model physical), or the paper's deferred model with its three coefficients (model paper).
-
-    model: unset means paper, so every spec written before the physical model keeps its frames; the physical
-    model becomes the default once its fidelity table meets its targets (bench/results/cpu/fidelity.md).
-    """
-
-    enabled: StrictBool = True
-    model: WaterModel | None = None
-    jerlov: list[str] = Field(default_factory=lambda: ["II", "III", "3C", "5C"], max_length=MAX_CHOICES)
-    # Multiplies a type's coefficients per frame (physical: a and b together; paper: beta_D).
-    beta_jitter: PositiveInterval = (0.85, 1.15)
-    # Physical: explicit per-channel absorption a and scattering b (1/m), instead of the Jerlov types' values.
-    absorption: RGBInterval | None = None
-    scattering: RGBInterval | None = None
-    # Henyey-Greenstein asymmetry of the phase function (0.92: Petzold's average particle, b_b/b ~ 0.018).
-    phase_g: Annotated[Interval, AfterValidator(lambda v: _in(v, 0.0, 0.99))] = (0.92, 0.92)
-    # Depth of the seabed (world z = 0) below the water surface, metres; the camera's depth follows.
-    depth_m: Annotated[PositiveInterval, AfterValidator(lambda v: _in(v, 0, 11000))] = (5.0, 20.0)
-    # beta_B = ratio * beta_D per channel when beta_B is not given explicitly.
-    backscatter_ratio: PositiveInterval = (0.8, 1.0)
-    beta_D: RGBInterval | None = None
-    beta_B: RGBInterval | None = None
-    B_inf: RGBInterval | None = None
-    # Multiplies each type's default veiling light per frame (when B_inf is not given).
-    B_inf_jitter: PositiveInterval = (0.8, 1.2)
-
-    @field_validator("jerlov")
-    @classmethod
-    def _known_types(cls, v: list[str]) -> list[str]:
-        for name in v:
-            if name not in JERLOV_TYPES:
-                raise ValueError(f"unknown Jerlov type {name!r}; known: {', '.join(JERLOV_TYPES)}")
-        return v
-
-    @property
-    def resolved_model(self) -> str:
-        """The model frames use: `model`, or paper when unset."""
-        return self.model or "paper"
-
-    @model_validator(mode="after")
-    def _described(self) -> Water:
-        model = self.resolved_model
-        wrong = _PHYSICAL_FIELDS if model == "paper" else _PAPER_FIELDS
-        for name in wrong:
-            if getattr(self, name) is not None:
-                raise ValueError(f"{name} belongs to the {'physical' if model == 'paper' else 'paper'} model, "
-                                 f"but water.model is {model}")
-        if not self.enabled or self.jerlov:
-            return self
-        if model == "paper" and (self.beta_D is None or self.B_inf is None):
-            raise ValueError("with no jerlov types, give beta_D and B_inf explicitly")
-        if model == "physical" and (self.absorption is None or self.scattering is None):
-            raise ValueError("with no jerlov types, give absorption and scattering explicitly")
-        return self
-
-
-class TextureRandomisation(_Model):
+class TextureRandomisation(SpecModel):
     """Per-channel albedo scale and bias, drawn per object (colour changes, pattern stays)."""
 
     scale: NonNegInterval = (0.75, 1.25)
     bias: Interval = (-0.04, 0.04)
 
 
-class Noise(_Model):
+class Noise(SpecModel):
     """Camera noise: off by default; recorded in meta when on."""
 
     gaussian_sigma: StrictFloat = Field(0.0, ge=0, le=0.5)
@@ -389,7 +222,7 @@ def split_problem(fractions: tuple[float, ...]) -> str | None:
     return None
 
 
-class Outputs(_Model):
+class Outputs(SpecModel):
     """The files every frame gets, and the training formats written beside them.
 
     coco, yolo, mcap: each shard of a service dataset also gets that format's files for its frames (one object per
@@ -431,7 +264,7 @@ class Outputs(_Model):
         return tuple(f for f in EXPORT_FORMATS if getattr(self, f))
 
 
-class DatasetSpec(_Model):
+class DatasetSpec(SpecModel):
     """A whole dataset. Every field has a default; unknown fields are refused."""
 
     seed: StrictInt = Field(0, ge=0, lt=2**63)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from service.spec import Lamp as LampSpec
+from service.spec_light import Lamp as LampSpec
 from worker.light import Lamp
 
 # Quadrature nodes of the lamp's single-scattering integral along each view ray, in the equiangular variable

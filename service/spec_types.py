@@ -1,0 +1,51 @@
+"""Field types every section of the spec shares: the strict base model, intervals and vectors."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, StrictFloat
+
+MAX_CHOICES = 64  # entries in water.jerlov and terrain.styles (repeats weight the draw)
+
+
+def ordered(v: tuple[float, float]) -> tuple[float, float]:
+    if not (math.isfinite(v[0]) and math.isfinite(v[1])):
+        raise ValueError("bounds must be finite")
+    if v[0] > v[1]:
+        raise ValueError(f"min {v[0]} > max {v[1]}")
+    return v
+
+
+def nonneg(v: tuple[float, float]) -> tuple[float, float]:
+    if v[0] < 0:
+        raise ValueError(f"must be >= 0, got min {v[0]}")
+    return v
+
+
+def positive(v: tuple[float, float]) -> tuple[float, float]:
+    if v[0] <= 0:
+        raise ValueError(f"must be > 0, got min {v[0]}")
+    return v
+
+
+# A closed interval [min, max] written as a two-element list in spec files.
+Interval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered)]
+NonNegInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered), AfterValidator(nonneg)]
+PositiveInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered), AfterValidator(positive)]
+Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
+
+
+class SpecModel(BaseModel):
+    # NaN and inf would slip past every bound check (NaN compares false), so no float field takes them.
+    # Integer, float and boolean fields are StrictInt / StrictFloat / StrictBool: true, "7" and 2.0 are not integers,
+    # true and "0.5" are not numbers (an integer is a float), 1 and "yes"
+    # are not booleans (YAML's own true/false and JSON's true/false are).
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def within(v: tuple[float, float], lo: float, hi: float) -> tuple[float, float]:
+    if v[0] < lo or v[1] > hi:
+        raise ValueError(f"must lie within [{lo}, {hi}]")
+    return v
