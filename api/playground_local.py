@@ -19,7 +19,7 @@ from api import errors
 from api.models import error_responses
 from api.playground import Previewer, playground_router
 from api.routes import calibrate
-from service.errors import NotFound
+from service.errors import Conflict, NotFound
 from service.spec import parse_spec
 
 ERROR_TAIL = 2000  # characters of a failed run's stderr shown on the page
@@ -43,16 +43,21 @@ class LocalRuns:
         self._lock = threading.Lock()
 
     def start(self, spec_data: dict[str, Any]) -> LocalRunPublic:
+        """Start a run of `spec_data`; Conflict while another is running (one at a time: they share this machine)."""
         spec = parse_spec(spec_data)
-        run_id = uuid.uuid4().hex
-        folder = self.out_root / run_id
-        folder.mkdir(parents=True)
-        (folder / "spec.yaml").write_text(yaml.safe_dump(spec_data, sort_keys=False))
-        out = folder / "dataset"
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "generate", str(folder / "spec.yaml"), "--out", str(out)],
-            stdout=subprocess.DEVNULL, stderr=open(folder / "generate.log", "wb"))
         with self._lock:
+            busy = [rid for rid, (proc, _, _) in self._runs.items() if proc.poll() is None]
+            if busy:
+                raise Conflict(f"local run {busy[0]} is still running; generate again once it has finished")
+            run_id = uuid.uuid4().hex
+            folder = self.out_root / run_id
+            folder.mkdir(parents=True)
+            (folder / "spec.yaml").write_text(yaml.safe_dump(spec_data, sort_keys=False))
+            out = folder / "dataset"
+            with open(folder / "generate.log", "wb") as log:  # the child keeps its own copy of the descriptor
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", "service.cli", "generate", str(folder / "spec.yaml"), "--out", str(out)],
+                    stdout=subprocess.DEVNULL, stderr=log)
             self._runs[run_id] = (proc, spec.frames, out)
         return self.status(run_id)
 
@@ -93,7 +98,7 @@ def create_local_app(previewer: Previewer, start_spec: dict[str, Any], out_root:
         return RedirectResponse("/playground")
 
     @app.post("/playground/generate", response_model=LocalRunPublic, status_code=202,
-              responses=error_responses(422))
+              responses=error_responses(409, 422))
     def generate(spec: dict[str, Any]) -> LocalRunPublic:
         return runs.start(spec)
 

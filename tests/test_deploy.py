@@ -1366,3 +1366,23 @@ def test_image_tags_follow_the_code_version(rendered, kustomization):
                 name, _, tag = c["image"].partition(":")
                 if name in ours:
                     assert tag == _project_version(), f"{c['image']}: tag it {_project_version()} (pyproject.toml)"
+
+
+def test_package_data_covers_every_non_python_file_the_packages_hold():
+    """The images install with `pip install .` (not editable): a file a package reads at run time (the playground's
+    page) must be listed in [tool.setuptools.package-data], or the installed package lacks it."""
+    import fnmatch
+    import tomllib
+
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    missing = []
+    for package in ("service", "worker", "api"):  # what the images install (bench/ and its results stay in the repo)
+        for path in (ROOT / package).rglob("*"):
+            if not path.is_file() or path.suffix in (".py", ".pyc") or "__pycache__" in path.parts:
+                continue
+            rel = path.relative_to(ROOT)
+            owner = ".".join(rel.parent.parts)
+            if not any(fnmatch.fnmatch(path.name, pattern) for pattern in data.get(owner, [])):
+                missing.append(str(rel))
+    assert "api/static/playground/index.html" not in missing
+    assert not missing, f"not in [tool.setuptools.package-data]: {missing}"

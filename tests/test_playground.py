@@ -144,3 +144,19 @@ def test_the_gate_renders_each_clients_newest_request_and_says_when_busy():
     first, older, newer = asyncio.run(superseded())
     assert first == {"n": 1} and newer == {"n": 3}
     assert isinstance(older, Conflict)
+
+
+def test_local_runs_go_one_at_a_time_and_report_their_progress(tmp_path):
+    from api.playground_local import LocalRuns
+
+    runs = LocalRuns(tmp_path)
+    first = runs.start({**SPEC, "frames": 200})
+    try:
+        assert (first.state, first.frames_total) == ("running", 200)
+        assert first.out == str(tmp_path / first.id / "dataset")
+        with pytest.raises(Conflict, match=f"local run {first.id} is still running"):
+            runs.start(SPEC)
+        assert len(list(tmp_path.iterdir())) == 1  # the refused run made no folder
+    finally:
+        runs.close()
+    assert runs.status(first.id).state == "failed"  # terminated, and the dataset says incomplete

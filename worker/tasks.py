@@ -275,13 +275,20 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
                 plan_dataset.apply_async((dataset_id, end, sweep), queue=bulk, producer=producer)
         return len(batch)
 
+    def frame_ctx(task: str, args: list) -> ShardContext | None:
+        """This process's resources; None when it has no renderer, after publishing the task again for another
+        frame worker (frames-queue tasks are acknowledged early)."""
+        try:
+            return res.ctx
+        except RendererUnavailable:
+            app.send_task(task, args=args, queue=frame_queue(__version__))
+            return None
+
+    reply_ttl_s = int(settings.frame_timeout_s) + 60
+
     @app.task(name=TASK_FRAME, shared=False, acks_late=False)
     def render_frame_task(dataset_id: str, frame_index: int, part: str, reply_key: str) -> None:
-        try:
-            ctx = res.ctx
-        except RendererUnavailable:
-            # Acknowledged already (early ack): publish it again for another frame worker.
-            app.send_task(TASK_FRAME, args=[dataset_id, frame_index, part, reply_key], queue=frame_queue(__version__))
+        if (ctx := frame_ctx(TASK_FRAME, [dataset_id, frame_index, part, reply_key])) is None:
             return
         try:
             header, body = render_frame(ctx, dataset_id, frame_index, part)
@@ -295,18 +302,15 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
         except Exception as err:
             log.exception("frame %s of dataset %s failed", frame_index, dataset_id)
             header, body = {"ok": False, "status": 500, "error": f"{type(err).__name__}: {err}"}, b""
-        push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=int(settings.frame_timeout_s) + 60)
+        push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=reply_ttl_s)
 
     @app.task(name=TASK_PREVIEW, shared=False, acks_late=False)
     def render_preview_task(kind: str, spec_json: dict, args: list, reply_key: str) -> None:
         """A playground render (worker.playground), answered on `reply_key` as JSON."""
-        try:
-            ctx = res.ctx
-        except RendererUnavailable:
-            app.send_task(TASK_PREVIEW, args=[kind, spec_json, args, reply_key], queue=frame_queue(__version__))
+        if (ctx := frame_ctx(TASK_PREVIEW, [kind, spec_json, args, reply_key])) is None:
             return
         header, body = preview_reply(ctx.session, kind, spec_json, args)
-        push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=int(settings.frame_timeout_s) + 60)
+        push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=reply_ttl_s)
 
     @app.task(name=TASK_RECONCILE, shared=False, acks_late=True)
     def reconcile_dataset(dataset_id: str, requeue: bool = False) -> int:
