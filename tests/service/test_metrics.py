@@ -134,7 +134,8 @@ def test_failed_shards_count_their_frames(infra: Stack):
         worker = None
         try:
             with httpx.Client(base_url=url, headers={"X-API-Key": KEY}, timeout=30) as client:
-                mesh = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+                # Bytes of this test's own (assets are stored by content, and this one is then overwritten).
+                mesh = b"# test_failed_shards_count_their_frames\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
                 asset_id = client.post("/assets", files={"file": ("m.obj", mesh)}).json()["asset_id"]
                 spec = tiny_spec(frames=6, shard_size=2, targets={"count": [1, 1], "assets": [{"asset_id": asset_id}]})
                 r = client.post("/datasets", json=spec)

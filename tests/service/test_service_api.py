@@ -67,7 +67,8 @@ def test_every_route_with_garbage_never_500(client):
         r = client.request(method, path, **kw)
         assert 400 <= r.status_code < 500, (method, path, kw, r.status_code, r.text)
     # A path in an upload's name is reduced to its last component.
-    r = client.post("/assets", files={"file": ("../../x.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")})
+    mesh = b"# test_every_route_with_garbage_never_500\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"  # a new asset: 201
+    r = client.post("/assets", files={"file": ("../../x.obj", mesh)})
     assert r.status_code == 201 and r.json()["filename"] == "x.obj"
 
 

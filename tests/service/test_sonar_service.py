@@ -108,3 +108,23 @@ def test_the_frame_api_offers_exactly_the_frame_parts(client):
     params = client.get("/openapi.json").json()["paths"]["/datasets/{id}/frames/{index}"]["get"]["parameters"]
     (part,) = [p for p in params if p["name"] == "part"]
     assert part["schema"]["enum"] == list(FRAME_PARTS) and set(SONAR_PARTS) <= set(FRAME_PARTS)
+
+
+def test_the_survey_example_runs_through_the_service_as_locally(stack: Stack, tmp_path):
+    """examples/survey-sonar.yaml (camera, FLS, SSS, DVL, pressure, IMU on a lawnmower), its first frames at a small
+    camera: the service's dataset is the local one, byte for byte."""
+    from pathlib import Path
+
+    from service.spec import read_spec_file
+
+    example = read_spec_file(Path(__file__).resolve().parents[2] / "examples" / "survey-sonar.yaml")
+    spec = {**example, "frames": 2, "shard_size": 1,
+            "camera": {**example["camera"], "width": 64, "height": 48}}
+    with httpx.Client(base_url=stack.api_url, timeout=60) as client:
+        dataset_id = post(client, spec)
+        final = wait_state(client, dataset_id, {"succeeded", "failed"}, timeout=240)
+    assert final["state"] == "succeeded", final
+    fetch_dataset(stack.api_url, dataset_id, tmp_path / "fetched", progress=False)
+    got = tree(tmp_path / "fetched")
+    assert {name.split("/")[0] for name in got} >= {"image_2", "fls", "fls_fan", "sss", "nav"}
+    assert got == local_generate(spec, tmp_path / "local")
