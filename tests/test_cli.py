@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -195,3 +196,16 @@ def test_generate_with_workers_auto_writes_the_same_files_as_one_worker(tmp_path
     files = sorted(p.relative_to(one) for p in one.rglob("*") if p.is_file() and p.name != "seasynth.json")
     assert len(files) >= 9
     assert all((one / f).read_bytes() == (auto / f).read_bytes() for f in files)
+
+
+def test_a_command_whose_extra_is_missing_says_which_extra_to_install(tmp_path):
+    """`seasynth playground` after `bash .ci/setup local` (the worker's packages only): one line naming the missing
+    package and the extra that has it, exit 1, no traceback."""
+    blocker = tmp_path / "fastapi"
+    blocker.mkdir()
+    (blocker / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'fastapi'\", name='fastapi')\n")
+    r = subprocess.run([sys.executable, "-m", "service.cli", "playground", "--no-browser"], capture_output=True,
+                       text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(tmp_path)})
+    assert r.returncode == 1, r.stderr
+    assert r.stderr == ("error: this command needs the Python package 'fastapi', which is not installed (the 'api' "
+                        "extra: pip install -c constraints.txt -e '.[api]', or bash .ci/setup for all)\n")

@@ -59,8 +59,14 @@ def test_a_preview_is_the_draft_frame_generate_writes_with_its_boxes(session):
     assert (got["frame"], got["seed"], got["width"], got["height"]) == (5, 11, 64, 48)
     # Views line up with the frame: no surface is black in the depth view and dark grey among the instances.
     instance = np.asarray(Image.open(io.BytesIO(files["instance/000005.png"])))
-    depth_mm = np.asarray(Image.open(io.BytesIO(files["depth/000005.png"])))
-    assert np.array_equal(pixels(got["images"]["depth"]) == 0, depth_mm == 0)
+    depth_z = np.asarray(Image.open(io.BytesIO(files["depth/000005.png"])))
+    grey = pixels(got["images"]["depth"])
+    hit = depth_z > 0
+    assert np.array_equal(grey == 0, ~hit)
+    # Nearest white, farthest dark grey, and never brighter farther away.
+    assert (grey[hit].max(), grey[hit].min()) == (255, 40)
+    by_depth = grey[hit][np.argsort(depth_z[hit], kind="stable")]
+    assert np.all(np.diff(by_depth.astype(int)) <= 0)
     colours = pixels(got["images"]["instance"])
     for i in np.unique(instance):
         assert len(np.unique(colours[instance == i], axis=0)) == 1  # one colour per instance id

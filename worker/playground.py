@@ -59,13 +59,14 @@ def _png(array: np.ndarray) -> bytes:
 
 
 def depth_view(depth_png16: bytes) -> bytes:
-    """The 16-bit depth PNG (mm, 0 where no surface) as 8-bit grey: near is bright, far dark, no surface black."""
-    mm = np.asarray(Image.open(io.BytesIO(depth_png16))).astype(np.float32)
-    hit = mm > 0
-    out = np.zeros(mm.shape, np.uint8)
+    """The 16-bit depth PNG (z in m x 256, 0 where no surface) as 8-bit grey scaled to the frame's own depth span:
+    the nearest surface white, the farthest dark grey (40), no surface black."""
+    z = np.asarray(Image.open(io.BytesIO(depth_png16))).astype(np.float32)
+    hit = z > 0
+    out = np.zeros(z.shape, np.uint8)
     if hit.any():
-        near, far = float(mm[hit].min()), float(mm[hit].max())
-        out[hit] = (255 - 215 * (mm[hit] - near) / max(far - near, 1.0)).astype(np.uint8)
+        near, far = float(z[hit].min()), float(z[hit].max())
+        out[hit] = (255 - 215 * (z[hit] - near) / max(far - near, 1.0)).astype(np.uint8)
     return _png(out)
 
 

@@ -106,6 +106,10 @@ def main() -> None:
     except SeasynthError as err:
         typer.echo(f"error: {err}", err=True)
         sys.exit(1)
+    except ModuleNotFoundError as err:  # a command's adapter needs an extra this install lacks
+        typer.echo(f"error: this command needs the Python package {err.name!r}, which is not installed"
+                   f"{_extra_hint(err.name)}", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         _interrupted()
     except exits as err:
@@ -120,6 +124,19 @@ def main() -> None:
         _interrupted()
     if isinstance(code, int) and code:
         sys.exit(code)
+
+
+# Top-level modules of each extra in pyproject.toml: where a missing one comes from.
+EXTRA_OF = {"fastapi": "api", "uvicorn": "api", "multipart": "api", "pyrender": "worker", "trimesh": "worker",
+            "OpenGL": "worker", "celery": "worker", "imagecodecs": "worker", "scipy": "worker", "mcap": "export",
+            "mcap_ros2": "export", "matplotlib": "bench", "mitsuba": "bench", "selenium": "test"}
+
+
+def _extra_hint(module: str | None) -> str:
+    extra = EXTRA_OF.get((module or "").split(".")[0])
+    if extra is None:
+        return ""
+    return f" (the {extra!r} extra: pip install -c constraints.txt -e '.[{extra}]', or bash .ci/setup for all)"
 
 
 def _interrupted(detail: str | None = None) -> NoReturn:
