@@ -183,3 +183,16 @@ def test_each_nav_sensor_draws_from_its_own_stream(survey, tmp_path):
         assert alone["pressure"] == navs[i]["pressure"]
         for rel in (f"image_2/{i:06d}.png", f"label_2/{i:06d}.txt"):
             assert (tmp_path / rel).read_bytes() == (out / rel).read_bytes()
+
+
+def test_a_surveys_frames_share_one_water_surface_and_random_frames_draw_their_own():
+    """Under the paper model the surface depth is drawn from water.depth_m: once per world. A survey's frames share
+    frame 0's world, so pressure follows the vehicle alone; independent random frames each draw their own."""
+    from worker.sensors.outputs import surface_z
+
+    no_light = SimpleNamespace(light=None)
+    survey = parse_spec({"water": {"depth_m": [5.0, 30.0]}, "trajectory": {"kind": "lawnmower"}})
+    random = parse_spec({"water": {"depth_m": [5.0, 30.0]}})
+    assert len({surface_z(survey, no_light, i) for i in range(6)}) == 1
+    assert surface_z(survey, no_light, 0) == surface_z(random, no_light, 0)
+    assert len({surface_z(random, no_light, i) for i in range(6)}) == 6

@@ -33,9 +33,11 @@ def sensor_paths(s: Sensors, index: int) -> list[str]:
 
 
 def surface_z(spec: DatasetSpec, scene: Scene, index: int) -> float:
-    """World z of the water surface: the physical model's (drawn with the scene), else the first draw of the frame's
-    nav stream from water.depth_m (the paper model draws no depth; that draw changes no camera output)."""
-    drawn = float(frame_rng(spec.seed, index, STREAM_NAV).uniform(*spec.water.depth_m))
+    """World z of the water surface: the physical model's (drawn with the scene), else the first draw of the nav
+    stream of the frame whose world this is from water.depth_m (the paper model draws no depth; that draw changes no
+    camera output). A survey's frames share frame 0's world, so they share its surface too."""
+    world = index if spec.trajectory.kind == "random" else 0
+    drawn = float(frame_rng(spec.seed, world, STREAM_NAV).uniform(*spec.water.depth_m))
     return scene.light.medium.surface_z if scene.light is not None else drawn
 
 
