@@ -205,21 +205,33 @@ class FlsEcho:
     alpha_db_per_m: float
 
 
+def pixel_echoes(range_m: np.ndarray, instance: np.ndarray, dirs: np.ndarray, weight: np.ndarray,
+                 edges: np.ndarray, reflectivity: np.ndarray, exponent: float, alpha_db_per_m: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each rendered pixel's echo before binning, for either sonar: rho cos^n(theta) weight 10^(-2 alpha r/10) r^-2.
+
+    range_m (h, w) float32 metres, +inf where no hit; instance (h, w) uint32; dirs and weight: the render grid's
+    ray directions and per-pixel weights; edges: range-bin edges (m); reflectivity (max id + 1,) float64 per
+    instance id (0 = seabed). Returns inrange (h, w) bool (pixels inside the bins with weight), then per such pixel
+    as flat arrays: r float64 m, ids uint32, half float64 (half the range footprint, m), echo float64."""
+    inrange = np.isfinite(range_m) & (range_m >= edges[0]) & (range_m < edges[-1]) & (weight > 0)
+    cos, half = surface_terms(range_m, instance, dirs)
+    r = range_m[inrange].astype(np.float64)
+    ids = instance[inrange]
+    c = cos[inrange].astype(np.float64)
+    echo = (reflectivity[np.minimum(ids, len(reflectivity) - 1)] * (c if exponent == 1 else c**exponent)
+            * weight[inrange] * 10 ** (-alpha_db_per_m * r / 5) / (r * r))
+    return inrange, r, ids, half[inrange].astype(np.float64), echo
+
+
 def fls_echo(fls: FLS, grid: FlsGrid, range_m: np.ndarray, instance: np.ndarray, reflectivity: np.ndarray,
              alpha_db_per_m: float) -> FlsEcho:
     """The noiseless polar image of one ping from the rendered geometry (range_m (h, w) float32 metres, +inf where
     no hit; instance (h, w) uint32) and reflectivity (max id + 1,) float64 per instance id (0 = seabed)."""
     edges = grid.range_edges
-    inrange = np.isfinite(range_m) & (range_m >= edges[0]) & (range_m < edges[-1]) & (grid.weight > 0)
-    cos, half = surface_terms(range_m, instance, grid.dirs)
-    # Per pixel in range, as flat float64 arrays from here on.
-    r = range_m[inrange].astype(np.float64)
-    ids = instance[inrange]
-    c = cos[inrange].astype(np.float64)
-    echo = (reflectivity[np.minimum(ids, len(reflectivity) - 1)] * (c if fls.incidence_exponent == 1 else
-            c**fls.incidence_exponent) * grid.weight[inrange] * 10 ** (-alpha_db_per_m * r / 5) / (r * r))
-    polar = bin_echoes(echo, r, half[inrange].astype(np.float64), grid.fine[inrange], edges,
-                       fls.beams * FINE_PER_BEAM) @ grid.W
+    inrange, r, ids, half, echo = pixel_echoes(range_m, instance, grid.dirs, grid.weight, edges, reflectivity,
+                                               fls.incidence_exponent, alpha_db_per_m)
+    polar = bin_echoes(echo, r, half, grid.fine[inrange], edges, fls.beams * FINE_PER_BEAM) @ grid.W
     if fls.tvg:
         rc = (edges[:-1] + edges[1:]) / 2
         polar *= (rc * rc * 10 ** (alpha_db_per_m * rc / 5))[:, None]

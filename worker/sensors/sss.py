@@ -33,8 +33,8 @@ from worker.sensors.fls import (
     absorption_db_per_m,
     beam_pattern,
     bin_echoes,
+    pixel_echoes,
     speckle_and_noise,
-    surface_terms,
     to_uint16,
 )
 
@@ -94,14 +94,9 @@ def side_echo(sss: SSS, grid: SssGrid, range_m: np.ndarray, instance: np.ndarray
     """(range_bins,) float64 noiseless intensity of one side after TVG and gain, and instance id -> (first, last)
     slant-range bin its pixel centres fall in. range_m, instance: (h, w) as rendered (float32 m, +inf; uint32)."""
     edges = grid.edges
-    inrange = np.isfinite(range_m) & (range_m >= edges[0]) & (range_m < edges[-1]) & (grid.weight > 0)
-    cos, half = surface_terms(range_m, instance, grid.dirs)
-    r = range_m[inrange].astype(np.float64)
-    ids = instance[inrange]
-    c = cos[inrange].astype(np.float64)
-    echo = (reflectivity[np.minimum(ids, len(reflectivity) - 1)] * c**sss.incidence_exponent * grid.weight[inrange]
-            * 10 ** (-alpha_db_per_m * r / 5) / (r * r))
-    line = bin_echoes(echo, r, half[inrange].astype(np.float64), np.zeros(len(r), np.int64), edges, 1)[:, 0]
+    _, r, ids, half, echo = pixel_echoes(range_m, instance, grid.dirs, grid.weight, edges, reflectivity,
+                                         sss.incidence_exponent, alpha_db_per_m)
+    line = bin_echoes(echo, r, half, np.zeros(len(r), np.int64), edges, 1)[:, 0]
     if sss.tvg:
         rc = (edges[:-1] + edges[1:]) / 2
         line = line * rc * rc * 10 ** (alpha_db_per_m * rc / 5)
