@@ -211,19 +211,35 @@ def _sensor(scene: PTScene, far_clip: float, mi) -> dict:
     }
 
 
-def _lamp(lamp: PTLamp, mi) -> dict:
+def _lamp(lamp: PTLamp, mi, scene: PTScene, housing_m: float) -> dict[str, dict]:
+    """The spot emitter, and with housing_m > 0 a water-free sphere of that radius around it (a null boundary):
+    no scattering vertex can then lie closer to the lamp than housing_m, which bounds the inverse-square weight of
+    next-event estimation there. Without it multiply scattered lamp light has unbounded variance (fireflies that
+    never average out). The lamp's intensity is scaled by exp(-a housing_m) per channel, what the water would have
+    absorbed on the way out; the light it would have scattered within housing_m (b * housing_m of it, nearly all
+    forwards at g ~ 0.9) is what the housing changes."""
     p = np.asarray(lamp.position_world, dtype=np.float64)
     d = np.asarray(lamp.direction_world, dtype=np.float64)
     up = [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0]
-    return {
+    intensity = np.asarray(lamp.intensity_rgb, dtype=np.float64)
+    out: dict[str, dict] = {}
+    if housing_m > 0:
+        intensity = intensity * np.exp(-np.asarray(scene.sigma_a, dtype=np.float64) * housing_m)
+        out["housing"] = {"type": "sphere", "center": p.tolist(), "radius": float(housing_m),
+                          "bsdf": {"type": "null"}, "exterior": {"type": "ref", "id": "water"}}
+    out["spot"] = {
         "type": "spot", "to_world": mi.ScalarTransform4f().look_at(origin=p.tolist(), target=(p + d).tolist(), up=up),
-        "intensity": _rgb(lamp.intensity_rgb), "cutoff_angle": float(lamp.cutoff_deg),
-        "beam_width": float(lamp.beam_width_deg), "medium": {"type": "ref", "id": "water"},
+        "intensity": _rgb(intensity), "cutoff_angle": float(lamp.cutoff_deg), "beam_width": float(lamp.beam_width_deg),
     }
+    if housing_m <= 0:
+        out["spot"]["medium"] = {"type": "ref", "id": "water"}
+    return out
 
 
-def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, variant: str = VARIANT):
-    """The mi.Scene for `scene`: water box, meshes (shape ids "mesh_0000", ... in order), sun, sky, lamps, camera."""
+def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, variant: str = VARIANT,
+                  lamp_housing_m: float = 0.0):
+    """The mi.Scene for `scene`: water box, meshes (shape ids "mesh_0000", ... in order), sun, sky, lamps (each in
+    a water-free sphere of radius lamp_housing_m when > 0: `_lamp`), camera."""
     _check(scene)
     mi = load_mitsuba(variant)
     box, half = _water_box(scene, mi)
@@ -242,19 +258,20 @@ def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, varian
                     # the lat-long map's pole is local +y: turn it to world +z
                     "to_world": mi.ScalarTransform4f().rotate(axis=[1.0, 0.0, 0.0], angle=90.0)}
     for i, lamp in enumerate(scene.lamps):
-        d[f"lamp_{i:04d}"] = _lamp(lamp, mi)
+        for part, value in _lamp(lamp, mi, scene, lamp_housing_m).items():
+            d[f"lamp_{i:04d}_{part}"] = value
     return mi.load_dict(d)
 
 
 def render(scene: PTScene, spp: int, seed: int = 0, max_depth: int = 64, rr_depth: int = 5,
-           variant: str = VARIANT) -> np.ndarray:
+           variant: str = VARIANT, lamp_housing_m: float = 0.0) -> np.ndarray:
     """(h, w, 3) float32 linear radiance, the mean of `spp` box-filtered samples per pixel.
 
     Runs in calls of at most MAX_SAMPLES_PER_CALL samples in all (bounding memory), each seeded from (seed, call
     index) through np.random.SeedSequence, so different seeds give independent noise."""
     if spp < 1:
         raise ValueError(f"render: spp must be >= 1, got {spp}")
-    ms = mitsuba_scene(scene, max_depth=max_depth, rr_depth=rr_depth, variant=variant)
+    ms = mitsuba_scene(scene, max_depth=max_depth, rr_depth=rr_depth, variant=variant, lamp_housing_m=lamp_housing_m)
     mi = load_mitsuba(variant)
     per_call = max(1, MAX_SAMPLES_PER_CALL[variant] // (scene.width * scene.height))
     counts = [min(per_call, spp - start) for start in range(0, spp, per_call)]

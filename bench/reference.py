@@ -89,6 +89,7 @@ class Reference:
     host: str
     scene_sha256: str
     seed_bases: tuple[int, ...] = (0,)  # half k of base s was seeded with 2 s + k
+    lamp_housing_m: float = 0.0  # radius of the water-free sphere round each lamp (pathtracer._lamp); 0: none
 
     @property
     def mean(self) -> np.ndarray:
@@ -96,13 +97,15 @@ class Reference:
 
 
 def render_reference(scene: PTScene, spp: int, variant: str = pathtracer.VARIANT, host: str = "",
-                     seed_base: int = 0) -> Reference:
+                     seed_base: int = 0, lamp_housing_m: float = 0.0) -> Reference:
     halves, seconds = [], 0.0
     for k in (0, 1):
         t0 = time.perf_counter()
-        halves.append(pathtracer.render(scene, spp, seed=2 * seed_base + k, variant=variant))
+        halves.append(pathtracer.render(scene, spp, seed=2 * seed_base + k, variant=variant,
+                                        lamp_housing_m=lamp_housing_m))
         seconds += time.perf_counter() - t0
-    return Reference(tuple(halves), spp, variant, seconds, host, scene_digest(scene), (seed_base,))
+    return Reference(tuple(halves), spp, variant, seconds, host, scene_digest(scene), (seed_base,),
+                     lamp_housing_m if scene.lamps else 0.0)
 
 
 def merge(a: Reference, b: Reference) -> Reference:
@@ -110,6 +113,8 @@ def merge(a: Reference, b: Reference) -> Reference:
     have been seeded apart."""
     if a.scene_sha256 != b.scene_sha256:
         raise ValueError("merge: the references were rendered for different scenes")
+    if a.lamp_housing_m != b.lamp_housing_m:
+        raise ValueError(f"merge: lamp housings differ ({a.lamp_housing_m} m and {b.lamp_housing_m} m)")
     if set(a.seed_bases) & set(b.seed_bases):
         raise ValueError(f"merge: both used seed bases {sorted(set(a.seed_bases) & set(b.seed_bases))}")
     n = a.spp + b.spp
@@ -117,22 +122,23 @@ def merge(a: Reference, b: Reference) -> Reference:
                    for x, y in zip(a.halves, b.halves))
     variant = a.variant if a.variant == b.variant else f"{a.variant}+{b.variant}"
     host = a.host if a.host == b.host else f"{a.host}; {b.host}"
-    return Reference(halves, n, variant, a.seconds + b.seconds, host, a.scene_sha256, a.seed_bases + b.seed_bases)
+    return Reference(halves, n, variant, a.seconds + b.seconds, host, a.scene_sha256, a.seed_bases + b.seed_bases,
+                     a.lamp_housing_m)
 
 
-def budget_spp(scene: PTScene, seconds: float, variant: str) -> int:
+def budget_spp(scene: PTScene, seconds: float, variant: str, lamp_housing_m: float = 0.0) -> int:
     """Samples per pixel per half that fill about `seconds` for both halves, from one timed call (whole calls)."""
     per_call = max(1, pathtracer.MAX_SAMPLES_PER_CALL[variant] // (scene.width * scene.height))
-    pathtracer.render(scene, 1, seed=99, variant=variant)  # compiles the kernels
+    pathtracer.render(scene, 1, seed=99, variant=variant, lamp_housing_m=lamp_housing_m)  # compiles the kernels
     t0 = time.perf_counter()
-    pathtracer.render(scene, per_call, seed=98, variant=variant)
+    pathtracer.render(scene, per_call, seed=98, variant=variant, lamp_housing_m=lamp_housing_m)
     calls = int(seconds / 2 / max(time.perf_counter() - t0, 1e-3))
     return per_call * max(1, calls)
 
 
 def save_reference(ref: Reference, path: Path) -> None:
     meta = {"spp": ref.spp, "variant": ref.variant, "seconds": ref.seconds, "host": ref.host,
-            "scene_sha256": ref.scene_sha256, "seed_bases": list(ref.seed_bases)}
+            "scene_sha256": ref.scene_sha256, "seed_bases": list(ref.seed_bases), "lamp_housing_m": ref.lamp_housing_m}
     np.savez_compressed(path, half0=ref.halves[0], half1=ref.halves[1], meta=np.array(json.dumps(meta)))
 
 
@@ -154,14 +160,16 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, help="folder for the references (default: DIR)")
     p.add_argument("--seed-base", type=int, default=0, help="halves are seeded 2 BASE and 2 BASE + 1")
     p.add_argument("--merge-with", type=Path, help="a folder of references: each one found is merged in")
+    p.add_argument("--lamp-housing-m", type=float, default=0.0,
+                   help="radius of a water-free sphere round each lamp, bounding its fireflies (0: none)")
     args = p.parse_args(argv)
     out = args.out or args.dir
     out.mkdir(parents=True, exist_ok=True)
     for path in sorted(args.dir.glob(f"*{SCENE_SUFFIX}")):
         name = path.name[: -len(SCENE_SUFFIX)]
         scene = load_scene(path)
-        spp = args.spp or budget_spp(scene, args.seconds, args.variant)
-        ref = render_reference(scene, spp, args.variant, args.host, args.seed_base)
+        spp = args.spp or budget_spp(scene, args.seconds, args.variant, args.lamp_housing_m)
+        ref = render_reference(scene, spp, args.variant, args.host, args.seed_base, args.lamp_housing_m)
         earlier = args.merge_with / f"{name}{REF_SUFFIX}" if args.merge_with else None
         if earlier is not None and earlier.exists():
             ref = merge(load_reference(earlier), ref)

@@ -53,6 +53,13 @@ def test_merging_refuses_reused_seeds_and_other_scenes():
         merge(ref(1.0, 10, [0, 2]), ref(1.0, 10, [2]))
     with pytest.raises(ValueError, match="different scenes"):
         merge(ref(1.0, 10, [0]), ref(1.0, 10, [1], digest="y"))
+    import dataclasses
+
+    housed = dataclasses.replace(ref(1.0, 10, [1]), lamp_housing_m=0.02)
+    with pytest.raises(ValueError, match="lamp housings differ"):
+        merge(ref(1.0, 10, [0]), housed)
+    both = merge(dataclasses.replace(ref(1.0, 10, [0]), lamp_housing_m=0.02), housed)
+    assert both.lamp_housing_m == 0.02
 
 
 def test_the_stored_fidelity_references_are_of_the_scenes_the_bench_exports_today(tmp_path):

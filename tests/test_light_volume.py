@@ -8,7 +8,7 @@ import pytest
 from scipy.integrate import quad
 
 from worker.light import SNELL_CONE_DEG, WATER_INDEX, Lamp, Medium, PhysicalLight, Terms
-from worker.light.lamps import profile
+from worker.light.lamps import light_factor, profile
 from worker.light.sun import fresnel_transmittance, refract_down, sun_in_water
 from worker.light.sky import SKY_PHASE_NODES, sky_phase, sky_phase_table
 from worker.light.volume import MU_SKY, segment, volume
@@ -214,16 +214,17 @@ def test_the_sky_phase_table_is_the_phase_function_integrated_over_snells_window
 
 # --- volume: lamps ---------------------------------------------------------------------------------------------
 
-def lamp_brute_force(lp, w_cam, z, K, b, g, steps=400_000):
-    """b HG(cos) pi I profile / r^2 exp(-K (t + r)) by the midpoint rule on [0, min(z, 60 / K)]."""
+def lamp_brute_force(lp, w_cam, z, medium, steps=400_000):
+    """b HG(cos) pi I light_factor / r^2 exp(-K t) by the midpoint rule on [0, min(z, 60 / K)]."""
+    K, b, g = medium.k, medium.b, medium.g
     end = min(z, 60.0 / K.min())
     h = end / steps
     t = (np.arange(steps) + 0.5) * h
     to_x = t[:, None] * w_cam - lp.position_cam
     r = np.linalg.norm(to_x, axis=1)
     cos_scatter = -(to_x @ w_cam) / r
-    f = hg(cos_scatter, g) * profile(lp, (to_x @ lp.direction_cam) / r) / r**2
-    return b * math.pi * lp.intensity * ((f[:, None] * np.exp(-K * (t + r)[:, None])).sum(axis=0) * h)
+    f = light_factor(lp, (to_x @ lp.direction_cam) / r, r, medium.c, K, b, g) * np.exp(-K * t[:, None])
+    return b * math.pi * lp.intensity * ((hg(cos_scatter, g) / r**2)[:, None] * f).sum(axis=0) * h
 
 
 # rays through the beam, along its edge, and beside it; the lamp 0.4 m right of the camera, toed in
@@ -237,25 +238,26 @@ def lamp_case(z):
     lt = light(a, b, g=0.9, lamps=(lp,), sun=False, sky=False)
     dw, dc = rays(LAMP_DIRS)
     got = volume(np.zeros((len(dc), 3)), np.full(len(dc), z), dw, dc, 10.0, lt)
-    expected = np.array([lamp_brute_force(lp, w, z, lt.medium.k, b, 0.9) for w in dc])
-    # every ray meets the beam but the leftmost one within 0.5 m; there both are exactly 0
-    lit = np.ones(len(dc), bool) if z > 0.5 else np.arange(len(dc)) != 3
-    assert np.all(expected[lit] > 0) and np.all(got[~lit] == 0) and np.all(expected[~lit] == 0)
+    expected = np.array([lamp_brute_force(lp, w, z, lt.medium) for w in dc])
+    # every ray meets the beam or its forward-scattered glow (the leftmost one only the glow within 0.5 m)
+    assert np.all(expected > 0) and np.all(got > 0)
     return got, expected
 
 
 @pytest.mark.parametrize("z", [0.5, 3.0, math.inf])
-def test_lamp_backscatter_is_the_brute_force_integral_to_1e_2_and_converges_to_it_with_nodes(z, monkeypatch):
-    """24 equiangular nodes (the shader's) are within 1e-2 of the integral; 384 within 2e-4: the same integrand."""
+def test_lamp_backscatter_is_the_brute_force_integral_to_5e_3_and_converges_to_it_with_nodes(z, monkeypatch):
+    """24 equiangular nodes (the shader's) over the part of the ray the light reaches are within 5e-3 of the
+    integral; 384 within 1e-4: the same integrand."""
     got, expected = lamp_case(z)
-    np.testing.assert_allclose(got, expected, rtol=1e-2, atol=0)
+    np.testing.assert_allclose(got, expected, rtol=5e-3, atol=0)
     monkeypatch.setattr("worker.light.volume.BACKSCATTER_NODES", 384)
     fine, _ = lamp_case(z)
-    np.testing.assert_allclose(fine, expected, rtol=2e-4, atol=0)
+    np.testing.assert_allclose(fine, expected, rtol=1e-4, atol=0)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG (accuracy) worker/light/lamps.py:15 BACKSCATTER_NODES = 24: the "
-                   "equiangular midpoint rule misses the lamp's single scattering by up to 6.7e-3 relative")
+@pytest.mark.xfail(strict=True, reason="BUG (accuracy) worker/light/lamps.py BACKSCATTER_NODES = 24: the "
+                   "equiangular midpoint rule misses the lamp's single scattering by up to 4.1e-3 relative (the "
+                   "profile's kinks inside the lit part of a ray)")
 @pytest.mark.parametrize("z", [0.5, 3.0, math.inf])
 def test_lamp_backscatter_matches_a_brute_force_integral_to_1e_3(z):
     got, expected = lamp_case(z)
@@ -287,9 +289,12 @@ def test_a_lamp_at_the_camera_on_a_ray_or_far_away_gives_finite_non_negative_glo
 def test_the_glow_falls_off_across_the_frame_away_from_the_beam():
     """A lamp 0.5 m right of the camera with a 20 degree cutoff, pointing ahead: a ray at tan u right of the axis
     meets the cone at 0.5 / (u + tan 20) metres, so each step left meets it farther away and glows less; rays at
-    u <= -tan 20 never meet it and get exactly nothing."""
+    u <= -tan 20 never meet it and, in water that forward-scatters nothing it keeps (K = c: scattering well below
+    absorption), get exactly nothing."""
     lp = lamp((0.5, 0.0, 0.0), beam_deg=10.0, cutoff_deg=20.0)
-    lt = light([0.3, 0.1, 0.05], [0.2, 0.3, 0.4], lamps=(lp,), sun=False, sky=False)
+    a = np.array([0.3, 0.1, 0.05])
+    lt = light(a, 0.02 * a, lamps=(lp,), sun=False, sky=False)
+    assert np.array_equal(lt.medium.k, lt.medium.c)
     u = np.linspace(0.5, -0.6, 12)
     dw, dc = rays(np.stack([u, np.zeros_like(u), np.ones_like(u)], axis=-1))
     out = volume(np.zeros((len(u), 3)), np.full(len(u), math.inf), dw, dc, 10.0, lt)

@@ -149,3 +149,19 @@ def test_spot_lamp_follows_mitsubas_linear_falloff():
     # the spread of per_ray over the pixel / sqrt(spp); 1e-3 covers the 16 x 16 quadrature and float32.
     tolerance = 5.0 * per_ray.std(axis=2) / np.sqrt(spp) + 1e-3 * per_ray.max()
     np.testing.assert_array_less(np.abs(image - per_ray.mean(axis=2)), tolerance)
+
+
+def test_a_lamp_housing_keeps_the_light_that_leaves_it_in_absorbing_water():
+    """A water-free sphere round the lamp (which bounds multiply scattered fireflies in the references) with the
+    lamp's intensity scaled by exp(-a R): in water that only absorbs, the plane gets what it gets without a housing,
+    I falloff cos / (pi d^2) exp(-a d) on the lamp's leg and exp(-a d) on the view's."""
+    intensity, cutoff, beam, a = np.array([2.0, 1.0, 0.5]), 30.0, 18.0, np.array([0.05, 0.1, 0.2])
+    lamp = pt.PTLamp(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, -1.0]), cutoff, beam, intensity)
+    scene = flat_scene(lamps=[lamp], sigma_a=a)
+    image = pt.render(scene, spp=256, seed=4, lamp_housing_m=0.3)
+    d, cos = view_distance(scene)
+    falloff = np.clip((cutoff - np.degrees(np.arccos(cos))) / (cutoff - beam), 0.0, 1.0)
+    expected = intensity * (falloff * cos / (np.pi * d**2)) * np.exp(-2.0 * a * d)
+    lit = falloff[..., 0] == 1.0
+    assert lit.sum() >= 20
+    assert_mean_ratio_one((image[lit] / expected[lit]), max_se=0.01)

@@ -3,7 +3,7 @@ rays (`VOLUME`, the twin of `worker.light.volume`). Terms are compiled in or out
 WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
 
 from worker.light import caustics
-from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M
+from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M, REACH_MARGIN_RAD
 from worker.light.sky import SKY_PHASE_NODES
 from worker.light.volume import MU_SKY
 
@@ -20,7 +20,7 @@ UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
     "u_sun_shadow", "u_sun_soft", "u_sun_from_cam", "u_sun_texel_m", "u_sun_soft_texel_m", "u_pixel_angle", "u_cam_depth",
     "u_world_from_cam", "u_K_inv", "u_sky_phase", "u_world_x", "u_world_y", *caustics.UNIFORMS,
-    *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "from_cam", "shadow", "texel")
+    *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "energy", "from_cam", "shadow", "texel")
       for i in range(MAX_LAMPS)),
 )
 
@@ -34,9 +34,26 @@ const float SNELL_COS = 0.66131187;       // cos(48.6 deg)
 const float SNELL_SIN2 = 0.56266999;      // sin(48.6 deg)^2
 float exp_neg(float x) {{ return x >= X_MAX ? 0.0 : exp(-x); }}
 vec3 exp_neg3(vec3 x) {{ return vec3(exp_neg(x.x), exp_neg(x.y), exp_neg(x.z)); }}
-float lamp_profile(float cos_axis, vec2 cone) {{   // cone: (beam, cutoff) half angles, radians
+// lamps.light_factor: the unscattered beam with the sharp profile, the forward-scattered rest spread in angle
+vec3 edge_energy(vec3 lo, vec3 hi) {{
+    vec3 m = 0.5 * (lo + hi), x = 0.5 * (hi - lo), x2 = x * x;
+    vec3 small = x2 / 6.0 * (1.0 - x2 / 20.0);
+    vec3 one_minus_sinc = mix(1.0 - sin(x) / max(x, vec3(0.1)), small, lessThan(x, vec3(0.1)));
+    vec3 s = sin(0.5 * m);
+    return 2.0 * s * s + cos(m) * one_minus_sinc;
+}}
+vec3 lamp_light(float cos_axis, float d, vec2 cone, float energy,   // cone: (beam, cutoff) half angles
+                vec3 c, vec3 K, vec3 b, float g) {{
     float ang = acos(clamp(cos_axis, -1.0, 1.0));
-    return ang <= cone.x ? 1.0 : clamp((cone.y - ang) / max(cone.y - cone.x, 1e-9), 0.0, 1.0);
+    vec3 direct = exp_neg3(c * d);
+    vec3 outv = direct * clamp((cone.y - ang) / max(cone.y - cone.x, 1e-9), 0.0, 1.0);
+    vec3 bd = b * d;
+    vec3 n = mix(bd / max(1.0 - exp(-bd), vec3(1e-30)), vec3(1.0), lessThan(bd, vec3(1e-4)));
+    float w = cone.y - cone.x, m = 0.5 * (cone.x + cone.y);
+    vec3 w2 = sqrt(w * w + 4.0 * (1.0 - g) * n);
+    vec3 lo = max(m - 0.5 * w2, 0.0), hi = min(m + 0.5 * w2, PI);
+    vec3 spread = energy / edge_energy(lo, hi) * clamp((hi - ang) / max(hi - lo, vec3(1e-9)), 0.0, 1.0);
+    return outv + (exp_neg3(K * d) - direct) * spread;
 }}
 """
 
@@ -53,6 +70,8 @@ uniform vec4 u_world_z;        // row z of world_from_cam: world z of a camera-f
 uniform float u_surface_z;
 uniform vec3 u_c;
 uniform vec3 u_K;
+uniform vec3 u_b;
+uniform float u_g;
 uniform vec3 u_sun_cam;        // towards the sun, refracted, camera frame
 uniform float u_mu_w;          // its cosine to the vertical
 uniform vec3 u_E0;
@@ -68,6 +87,7 @@ uniform vec3 u_lamp_pos[LAMPS];
 uniform vec3 u_lamp_dir[LAMPS];
 uniform vec3 u_lamp_I[LAMPS];
 uniform vec2 u_lamp_cone[LAMPS];
+uniform float u_lamp_energy[LAMPS];   // lamps.cone_energy: the profile's solid angle over 2 pi
 uniform mat4 u_lamp_from_cam[LAMPS];
 uniform sampler2DShadow u_lamp_shadow[LAMPS];
 uniform float u_lamp_texel[LAMPS];   // metres per lamp-map texel per metre from the lamp
@@ -91,17 +111,23 @@ float shadow_tap(sampler2DShadow map, vec3 p) {
         ? 1.0 : texture(map, p);
 }
 #if LAMPS > 0
+// A lamp's map covers its cone and a margin (shadows.lamp_clip_from_cam); light spread past it by scattering
+// (lamps.light_factor) is left out there rather than left unshadowed: a lamp inside an object lights nothing.
+float lamp_tap(sampler2DShadow map, vec3 p) {
+    return (any(lessThan(p.xy, vec2(0.0))) || any(greaterThan(p.xy, vec2(1.0)))) ? 0.0
+        : (p.z >= 1.0 ? 1.0 : texture(map, p));
+}
 // Sampler arrays take constant indices only (GLSL 1.30 and later).
 float lamp_visibility(int l, vec3 p) {
-    if (l == 0) return shadow_tap(u_lamp_shadow[0], p);
+    if (l == 0) return lamp_tap(u_lamp_shadow[0], p);
 #if LAMPS > 1
-    if (l == 1) return shadow_tap(u_lamp_shadow[1], p);
+    if (l == 1) return lamp_tap(u_lamp_shadow[1], p);
 #endif
 #if LAMPS > 2
-    if (l == 2) return shadow_tap(u_lamp_shadow[2], p);
+    if (l == 2) return lamp_tap(u_lamp_shadow[2], p);
 #endif
 #if LAMPS > 3
-    if (l == 3) return shadow_tap(u_lamp_shadow[3], p);
+    if (l == 3) return lamp_tap(u_lamp_shadow[3], p);
 #endif
     return 0.0;
 }
@@ -150,11 +176,11 @@ void main() {
         float d = max(length(to_p), 1e-3);
         vec3 wi = to_p / d;
         float cos_n = max(dot(n, -wi), 0.0);
-        float prof = lamp_profile(dot(wi, u_lamp_dir[l]), u_lamp_cone[l]);
-        if (cos_n <= 0.0 || prof <= 0.0) continue;
+        if (cos_n <= 0.0) continue;
+        vec3 lit = lamp_light(dot(wi, u_lamp_dir[l]), d, u_lamp_cone[l], u_lamp_energy[l], u_c, u_K, u_b, u_g);
         vec4 q = u_lamp_from_cam[l] * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_lamp_texel[l] * d + pixel_m), 1.0);
         float vis = q.w > 0.0 ? lamp_visibility(l, q.xyz / q.w) : 0.0;
-        E += u_lamp_I[l] * (prof * cos_n * vis / (d * d)) * exp_neg3(u_K * d);
+        E += u_lamp_I[l] * (cos_n * vis / (d * d)) * lit;
     }
 #endif
     o_J = vec4(albedo * E, 1.0);
@@ -171,6 +197,7 @@ void main() {
 VOLUME = (
     _COMMON
     + f"""
+uniform vec3 u_c;
 uniform vec3 u_K;
 uniform vec3 u_b;
 uniform float u_g;
@@ -185,6 +212,7 @@ uniform vec3 u_lamp_pos[LAMPS];
 uniform vec3 u_lamp_dir[LAMPS];
 uniform vec3 u_lamp_I[LAMPS];
 uniform vec2 u_lamp_cone[LAMPS];
+uniform float u_lamp_energy[LAMPS];   // lamps.cone_energy: the profile's solid angle over 2 pi
 #endif
 float hg(float mu, float g) {{
     float d = max(1.0 + g * g - 2.0 * g * mu, 1e-12);
@@ -228,6 +256,36 @@ void water_pixel(vec3 w) {{
     g_sky = inscatter(u_b * (u_Esky / SNELL_SIN2 * p_sky), MU_SKY, w.z);
 #endif
 }}
+#if defined(WITH_SCATTER) && LAMPS > 0
+float lamp_reach(vec2 cone, float d_max) {{   // lamps.reach
+    float r = cone.y;
+    if (any(lessThan(u_K, u_c))) {{
+        float bd = max(u_b.x, max(u_b.y, u_b.z)) * d_max;
+        float n = bd < 1e-4 ? 1.0 : bd / max(1.0 - exp(-bd), 1e-30);
+        float w = cone.y - cone.x;
+        r = clamp(0.5 * (cone.x + cone.y) + 0.5 * sqrt(w * w + 4.0 * (1.0 - u_g) * n), cone.y, PI);
+    }}
+    return r + {REACH_MARGIN_RAD!r};
+}}
+vec2 cone_interval(vec3 w, vec3 apex, vec3 axis, float half_angle, float t_end) {{   // lamps.cone_interval
+    if (half_angle >= 0.5 * PI) return vec2(0.0, t_end);
+    vec3 q = -apex;
+    float k = cos(half_angle);
+    float A = dot(w, axis), B = dot(q, axis), C = dot(w, q), D = dot(q, q);
+    float a2 = A * A - k * k, b2 = A * B - k * k * C, c2 = B * B - k * k * D;
+    float sq = sqrt(max(b2 * b2 - a2 * c2, 0.0));
+    float qq = -(b2 + (b2 < 0.0 ? -sq : sq));
+    float r1 = clamp(qq / (abs(a2) < 1e-30 ? 1e-30 : a2), 0.0, t_end);
+    float r2 = clamp(c2 / (abs(qq) < 1e-30 ? 1e-30 : qq), 0.0, t_end);
+    float cuts[4] = float[4](0.0, min(r1, r2), max(r1, r2), t_end);
+    float t0 = 1e30, t1 = -1e30;
+    for (int i = 0; i < 3; ++i) {{
+        float mid = 0.5 * (cuts[i] + cuts[i + 1]);
+        if (mid * A + B >= k * length(w * mid + q)) {{ t0 = min(t0, cuts[i]); t1 = max(t1, cuts[i + 1]); }}
+    }}
+    return t0 > t1 ? vec2(0.0) : vec2(t0, t1);
+}}
+#endif
 vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
     vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(u_K * z);
     float zs = min(z, g_to_surface);
@@ -246,18 +304,20 @@ vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
     float t_end = min(zs, {CUTOFF_OPTICAL_DEPTH!r} / max(kmin, 1e-30));
     for (int l = 0; l < LAMPS; ++l) {{
         vec3 p = u_lamp_pos[l];
+        float d_max = max(length(p), length(w_cam * t_end - p));
+        vec2 seg = cone_interval(w_cam, p, u_lamp_dir[l], lamp_reach(u_lamp_cone[l], d_max), t_end);
         float tc = dot(w_cam, p);
         float h = max(length(w_cam * tc - p), {MIN_LAMP_DISTANCE_M!r});
-        float u0 = atan(-tc, h);
-        float du = (atan(t_end - tc, h) - u0) / float({BACKSCATTER_NODES});
+        float u0 = atan(seg.x - tc, h);
+        float du = (atan(seg.y - tc, h) - u0) / float({BACKSCATTER_NODES});
         vec3 acc = vec3(0.0);
         for (int i = 0; i < {BACKSCATTER_NODES}; ++i) {{
             float u = u0 + (float(i) + 0.5) * du;
             float t = tc + h * tan(u);
             vec3 to_x = w_cam * t - p;
             float r = max(length(to_x), {MIN_LAMP_DISTANCE_M!r});
-            float f = hg(-dot(to_x, w_cam) / r, u_g) * lamp_profile(dot(to_x, u_lamp_dir[l]) / r, u_lamp_cone[l]) / h;
-            acc += f * exp_neg3(u_K * (t + r));
+            float f = hg(-dot(to_x, w_cam) / r, u_g) / h;
+            acc += f * lamp_light(dot(to_x, u_lamp_dir[l]) / r, r, u_lamp_cone[l], u_lamp_energy[l], u_c, u_K, u_b, u_g) * exp_neg3(u_K * t);
         }}
         I += acc * du * u_b * (PI * u_lamp_I[l]);
     }}

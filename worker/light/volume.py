@@ -18,7 +18,8 @@ import math
 import numpy as np
 
 from worker.light import SNELL_CONE_DEG, PhysicalLight
-from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M, profile
+from worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M, cone_interval,
+                                light_factor, reach)
 from worker.light.sky import sky_phase, sky_phase_table, window_radiance
 
 MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
@@ -81,22 +82,26 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
             out = out + np.where(window, L * np.exp(-K * np.where(window, to_surface[..., None], 0.0)), 0.0)
     if t.scattering:
         for lamp in light.lamps[: t.lamps]:
-            out = out + lamp_backscatter(lamp, dirs_cam, zs[..., 0], K, b, m.g)
+            out = out + lamp_backscatter(lamp, dirs_cam, zs[..., 0], m)
     return out
 
 
-def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, K: np.ndarray, b: np.ndarray, g: float):
-    """Single scattering of one lamp's light towards the camera along rays (camera at the origin) up to z.
-    dirs_cam (..., 3) unit, z (...) metres (finite or +inf). Returns (..., 3) float64."""
+def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m):
+    """Single scattering of one lamp's light (`lamps.light_factor` on the lamp's leg, K on the camera's) towards
+    the camera along rays (camera at the origin) up to z. dirs_cam (..., 3) unit, z (...) metres (finite or +inf),
+    m the Medium. Returns (..., 3) float64."""
+    K, b, g = m.k, m.b, m.g
     k_pos = K[b > 0]
     if k_pos.size == 0:
         return np.zeros((*z.shape, 3))
     t_end = np.minimum(z, CUTOFF_OPTICAL_DEPTH / max(float(k_pos.min()), 1e-30))
     p = lamp.position_cam
+    d_max = np.maximum(np.linalg.norm(p), np.linalg.norm(dirs_cam * t_end[..., None] - p, axis=-1))
+    t0, t1 = cone_interval(dirs_cam, p, lamp.direction_cam, reach(lamp, m.c, K, b, g, d_max), t_end)
     tc = dirs_cam @ p  # along-ray position of the point nearest the lamp
     h = np.maximum(np.linalg.norm(dirs_cam * tc[..., None] - p, axis=-1), MIN_LAMP_DISTANCE_M)
-    u0 = np.arctan2(-tc, h)
-    u1 = np.arctan2(t_end - tc, h)
+    u0 = np.arctan2(t0 - tc, h)
+    u1 = np.arctan2(t1 - tc, h)
     du = (u1 - u0) / BACKSCATTER_NODES
     acc = np.zeros((*z.shape, 3))
     for i in range(BACKSCATTER_NODES):
@@ -107,8 +112,8 @@ def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, K: np.ndarray, b
         r = np.maximum(np.linalg.norm(to_x, axis=-1), MIN_LAMP_DISTANCE_M)
         cos_axis = (to_x @ lamp.direction_cam) / r
         cos_scatter = -np.einsum("...i,...i->...", to_x, dirs_cam) / r
-        f = hg(cos_scatter, g) * profile(lamp, cos_axis) / h  # inverse square * dt = du / h
-        acc += f[..., None] * np.exp(-K * (t + r)[..., None])
+        f = hg(cos_scatter, g) / h  # inverse square * dt = du / h
+        acc += f[..., None] * light_factor(lamp, cos_axis, r, m.c, K, b, g) * np.exp(-K * t[..., None])
     return acc * (du[..., None] * b * math.pi * lamp.intensity)
 
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from worker.light import PhysicalLight
 from worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
+from worker.light.lamps import cone_energy
 from worker.light.sky import sky_phase_table
 from worker.light.volume import camera_depth
 from worker.render import DrawItem, View
@@ -122,6 +123,7 @@ def _common(GL, locs, light: PhysicalLight) -> None:
         _vec3(GL, locs, f"u_lamp_dir[{i}]", lamp.direction_cam)
         _vec3(GL, locs, f"u_lamp_I[{i}]", lamp.intensity)
         _set(GL, locs, f"u_lamp_cone[{i}]", GL.glUniform2f, lamp.beam_rad, lamp.cutoff_rad)
+        _set(GL, locs, f"u_lamp_energy[{i}]", GL.glUniform1f, cone_energy(lamp))
 
 
 def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, maps: dict) -> None:
