@@ -21,8 +21,8 @@ MAX_WORK_PIXELS = 250_000  # larger photos are subsampled on a regular grid (eve
 MIN_SIDE = 16
 DARK_CODE = 10  # an image whose 99th percentile of its brightest channel is below this code is refused
 DEFAULT_BOOTSTRAP = 24
-# A beta counts as identified when its bootstrap sigma is at most this fraction of it (and it is off the grid's
-# ends); B_inf when its sigma is at most B_INF_SIGMA_MAX (linear).
+# A beta counts as identified when its sigma (bootstrap, profile, range jackknife) is at most this fraction of it
+# (and it is off the grid's ends); B_inf when its sigma is at most B_INF_SIGMA_MAX (linear).
 BETA_REL_SIGMA_MAX = 0.5
 B_INF_SIGMA_MAX = 0.02
 BACKSCATTER_RATIO_FILL = 0.9  # to_spec_water: beta_B = this * beta_D in a channel whose beta_B is not identified
@@ -36,7 +36,10 @@ METHOD_RANGE = (
     "show B_inf) by least squares over a log grid of beta_D, beta_B with 0.5 <= beta_B / beta_D <= 2 (prior); "
     "stage 2: with stage 1's backscatter taken off, beta_D refitted per channel from ln(bin mean) against range "
     "(prior: the mean of J does not depend on range; bins whose direct signal is below 0.004 linear left out); "
-    "sigma: the larger of a bootstrap over image tiles and stage 1's profile width"
+    "sigma: the largest of a bootstrap over image tiles, stage 1's profile width and a range jackknife (the whole fit "
+    "repeated leaving out each quarter of the range bins in turn: it grows where J's statistics change with range, "
+    "which the priors exclude); a beta is identified when its sigma is at most half its value and its profile "
+    "interval is inside the grid"
 )
 METHOD_JERLOV = ("; prior jerlov: in stage 1, beta_D = s * jerlov_beta(type) for one Jerlov type and one scale s in "
                  "[0.25, 4] shared by the channels (stage 2 then refits beta_D per channel freely)")
@@ -223,8 +226,11 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
     bb = np.array([s.beta_B for s in samples])
     binf = np.array([s.B_inf for s in samples])
     sd = lambda a: np.std(a, axis=0, ddof=1)  # noqa: E731
-    # sigma: the larger of the tile bootstrap's spread and the fit's own profile width (which sees degeneracy).
-    sd_d, sd_b = np.maximum(sd(bd), best.beta_D_sigma), np.maximum(sd(bb), best.beta_B_sigma)
+    jk_d, jk_b = _range_jackknife(data, prior)
+    # sigma: the largest of the tile bootstrap's spread, the fit's own profile width (which sees degeneracy) and the
+    # range jackknife's spread (which sees J's statistics changing with range, the prior's failure).
+    sd_d = np.maximum.reduce([sd(bd), best.beta_D_sigma, jk_d])
+    sd_b = np.maximum.reduce([sd(bb), best.beta_B_sigma, jk_b])
     ok_d = best.beta_D_inside & (sd_d <= BETA_REL_SIGMA_MAX * best.beta_D)
     ok_b = best.beta_B_inside & (sd_b <= BETA_REL_SIGMA_MAX * best.beta_B)
     sd_inf = np.maximum(sd(binf), half_code(best.B_inf))
@@ -232,9 +238,11 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
     notes = []
     for c, name in enumerate(CHANNELS):
         if not ok_d[c]:
-            notes.append(f"beta_D {name}: not identified (range span or contrast too small for this channel)")
+            notes.append(f"beta_D {name}: not identified (range span or contrast too small for this channel, or "
+                         "the fit changes when a range interval is left out)")
         if not ok_b[c]:
-            notes.append(f"beta_B {name}: not identified (too little backscatter against noise in this channel)")
+            notes.append(f"beta_B {name}: not identified (too little backscatter against noise and scene variation "
+                         "in this channel)")
         if not ok_inf[c]:
             notes.append(f"B_inf {name}: not identified (no open water and range too short for the asymptote)")
     if data.open_pixels < fit.MIN_BIN_PIXELS:
@@ -263,6 +271,19 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
         bootstrap=reps,
         seed=seed,
     )
+
+
+JACKKNIFE_BLOCKS = 4  # the range jackknife leaves out each quarter of the range bins (contiguous in range) in turn
+
+
+def _range_jackknife(data: fit.RangeData, prior: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """Jackknife sigma (3,) of beta_D and beta_B over JACKKNIFE_BLOCKS contiguous blocks of range bins: fits that
+    disagree when one range interval is left out show that J's statistics change with range (the prior fails)."""
+    block = np.arange(data.bins) * JACKKNIFE_BLOCKS // data.bins
+    fits = [_fit(data.keep_bins(block != b), prior)[0] for b in range(JACKKNIFE_BLOCKS)]
+    n = JACKKNIFE_BLOCKS
+    jk = lambda a: np.sqrt((n - 1) / n * ((a - a.mean(axis=0)) ** 2).sum(axis=0))  # noqa: E731
+    return jk(np.array([f.beta_D for f in fits])), jk(np.array([f.beta_B for f in fits]))
 
 
 def _ratios(best: np.ndarray, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -72,6 +72,11 @@ class RangeData:
     def bins(self) -> int:
         return self.y.shape[2]
 
+    def keep_bins(self, keep: np.ndarray) -> RangeData:
+        """The same data restricted to the range bins `keep` ((bins,) bool); open water and spans unchanged."""
+        return RangeData(self.y[:, :, keep], self.h[:, :, keep], self.z_nodes, self.open_mean, self.open_pixels,
+                         self.finite_pixels, self.z_lo, self.z_hi)
+
 
 @dataclass(frozen=True)
 class RangeFit:

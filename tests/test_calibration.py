@@ -95,6 +95,23 @@ def test_with_range_recovers_the_water_within_tolerance(sigma):
     assert e.absorption.identified == (False,) * 3 and "not separable" in e.absorption.note
 
 
+@pytest.mark.parametrize("swing", [0.3, 0.6])
+def test_when_j_changes_with_range_the_sigmas_cover_the_errors_and_beta_b_is_not_claimed(swing):
+    """A scene that breaks the prior (J's brightness swings by +-swing along range): the fit is biased, and its
+    sigma (the range jackknife's) says so: each identified beta_D is within 2 sigma of the truth, and no beta_B is
+    identified (the backscatter cannot be told from the swing)."""
+    J, z = seabed()
+    along = np.where(np.isfinite(z), z, 15.0) / 15.0
+    J = J * (1 + swing * np.sin(2 * np.pi * along))[..., None]
+    e = estimate_water(encode_srgb8(haze(J, z, BETA_D, BETA_B, B_INF, np.float64)), z)
+    assert_no_nan(e)
+    assert any(e.beta_D.identified)
+    for v, s, want in zip(e.beta_D.value, e.beta_D.sigma, BETA_D):
+        if v is not None:
+            assert abs(v - want) <= 2 * s
+    assert e.beta_B.identified == (False,) * 3
+
+
 def test_without_range_gives_b_inf_and_says_absolute_beta_is_not_identified():
     image, _ = photo()
     e = estimate_water(image, None)
