@@ -744,7 +744,7 @@ def test_compose_redis_never_evicts_and_persists(compose):
     cmd = redis["command"]
     assert cmd[0] == "redis-server"
     opts = dict(zip(cmd[1::2], cmd[2::2]))
-    assert opts == {"--appendonly": "yes", "--maxmemory-policy": "noeviction"}, cmd
+    assert opts == {"--appendonly": "yes", "--appendfsync": "always", "--maxmemory-policy": "noeviction"}, cmd
     # docker-compose v1 prints short syntax ("redis-data:/data:rw"), v2 the long one.
     mounts = [v if isinstance(v, dict) else dict(zip(("source", "target"), v.split(":"))) for v in redis["volumes"]]
     assert any(m["source"] in compose["volumes"] and m["target"] == "/data" for m in mounts), redis["volumes"]
@@ -1220,6 +1220,7 @@ def test_k8s_redis_never_evicts_and_persists(rendered):
     assert c["image"].startswith("redis:7")
     args = dict(zip(c["args"][::2], c["args"][1::2]))
     assert args["--appendonly"] == "yes" and args["--maxmemory-policy"] == "noeviction", c["args"]
+    assert args["--appendfsync"] == "always", c["args"]  # what the fault suite's Redis restarts are tested with
     (claim,) = sts["spec"]["volumeClaimTemplates"]
     mounts = {m["name"]: m["mountPath"] for m in c["volumeMounts"]}
     assert mounts[claim["metadata"]["name"]] == args["--dir"], "the append-only file must land on the volume"
