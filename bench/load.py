@@ -7,6 +7,13 @@ Starts redis-server, moto's S3 server, the API (`seasynth serve`, one uvicorn pr
 (`seasynth worker --concurrency 1`, metrics on), all on this machine, so the client, the API and the renderer
 share its CPUs. The client is open-loop: request i is due at start + i / rate whatever earlier ones are doing, and
 its latency runs from when it was due, so a server that falls behind shows it (no coordinated omission).
+
+The load phase's client is `Http1`: SENDERS keep-alive connections on one asyncio loop, a request a few prebuilt
+bytes, an answer parsed only as far as its status and length. It replaced httpx there, whose 1.6 to 2 ms of CPU per
+request on a 2-vCPU machine took a CPU from the API and left the client itself seconds behind its schedule (the
+tail it measured was partly its own). Requests due go to the senders in turn, so every connection is reused about
+every SENDERS / rate seconds, as a busy client's pool is, never left idle until the server's keep-alive deadline.
+The setup (the schema, the rendering dataset, the sequential POSTs and their cancels) still goes through httpx.
 """
 
 from __future__ import annotations
@@ -39,11 +46,11 @@ RENDERING_SPEC: dict[str, Any] = {
 }
 LIST_SHARE = 5  # one request in LIST_SHARE is GET /datasets, the rest GET /datasets/{id}
 # Requests in flight at most (each sender keeps one keep-alive connection busy). More requests than this wait in
-# the client's own queue, still timed from when they were due: httpx's pool slows down quadratically with the
-# requests waiting in it (thousands of them stalled it outright on this machine).
+# the client's own queue, still timed from when they were due.
 SENDERS = 32
 WORKER_NICE = 19
 METRICS_EVERY_S = 1.0
+REQUEST_TIMEOUT_S = 30.0
 
 
 @dataclass
@@ -75,19 +82,95 @@ def declared_statuses(openapi: dict) -> dict[tuple[str, str], set[int]]:
             for path, item in openapi["paths"].items() for method, op in item.items() if "responses" in op}
 
 
+class Http1:
+    """One HTTP/1.1 keep-alive connection of the load phase's client (the module docstring says why not httpx):
+    a GET is a few prebuilt bytes, its answer read only as far as the status, the body (Content-Length or
+    chunked) and Connection: close."""
+
+    def __init__(self, url: str, headers: dict[str, str]):
+        parts = httpx.URL(url)
+        self.host, self.port = parts.host, parts.port or 80
+        self.head = "".join(f"{k}: {v}\r\n" for k, v in {"Host": f"{self.host}:{self.port}", **headers}.items())
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    async def open(self) -> None:
+        self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.reader = self.writer = None
+
+    async def get(self, target: str) -> tuple[int, bytes]:
+        """(status, body) of GET `target`; OSError, EOFError or ValueError when the exchange fails (the connection
+        is closed then, and the next request opens another)."""
+        if self.reader is None or self.reader.at_eof():  # none yet, or the server closed it while it was idle
+            self.close()
+            await self.open()
+        assert self.reader is not None and self.writer is not None
+        try:
+            self.writer.write(f"GET {target} HTTP/1.1\r\n{self.head}\r\n".encode("latin-1"))
+            lines = (await self.reader.readuntil(b"\r\n\r\n")).decode("latin-1").split("\r\n")
+            status = int(lines[0].split(" ", 2)[1])
+            fields = {name.strip().lower(): value.strip() for name, _, value in
+                      (line.partition(":") for line in lines[1:] if line)}
+            if "content-length" in fields:
+                body = await self.reader.readexactly(int(fields["content-length"]))
+            elif fields.get("transfer-encoding", "").lower() == "chunked":
+                body = await self._chunked()
+            else:
+                raise ValueError(f"a {status} answer without Content-Length or a chunked body")
+        except BaseException:
+            self.close()
+            raise
+        if fields.get("connection", "").lower() == "close":
+            self.close()
+        return status, body
+
+    async def _chunked(self) -> bytes:
+        assert self.reader is not None
+        body = b""
+        while size := int((await self.reader.readuntil(b"\r\n")).split(b";")[0], 16):
+            body += (await self.reader.readexactly(size + 2))[:-2]
+        await self.reader.readuntil(b"\r\n")  # no trailers are sent to a client that did not ask for them
+        return body
+
+
+# What a failed exchange raises: the connection refused or reset, closed mid-answer, an answer that is no HTTP.
+TRANSPORT_ERRORS = (OSError, EOFError, ValueError, asyncio.LimitOverrunError)
+
+
+def _check(kind: Kind, method: str, template: str, status: int, due: float, declared: dict) -> None:
+    """Record an answer in `kind`: an error unless its status is declared for (method, template) and < 500."""
+    allowed = declared.get((method, template), set())
+    bad = status >= 500 or status not in allowed
+    kind.add(status, time.perf_counter() - due,
+             f"{method} {template}: {status} (declared {sorted(allowed)})" if bad else None)
+
+
 async def _timed(client: httpx.AsyncClient, kind: Kind, method: str, url: str, template: str, due: float,
                  declared: dict, **kw: Any) -> httpx.Response | None:
-    """One request, recorded in `kind`: an error unless its status is declared for (method, template) and < 500."""
+    """One request through httpx (the sequential POSTs), recorded in `kind`."""
     try:
         r = await client.request(method, url, **kw)
     except httpx.HTTPError as err:
         kind.add(None, time.perf_counter() - due, f"{method} {template}: {type(err).__name__}: {err}")
         return None
-    allowed = declared.get((method, template), set())
-    bad = r.status_code >= 500 or r.status_code not in allowed
-    kind.add(r.status_code, time.perf_counter() - due,
-             f"{method} {template}: {r.status_code} (declared {sorted(allowed)})" if bad else None)
+    _check(kind, method, template, r.status_code, due, declared)
     return r
+
+
+async def _timed_get(conn: Http1, kind: Kind, target: str, template: str, due: float, declared: dict) -> None:
+    """One GET of the load phase, recorded in `kind` with its latency from `due`."""
+    try:
+        async with asyncio.timeout(REQUEST_TIMEOUT_S):
+            status, _ = await conn.get(target)
+    except (*TRANSPORT_ERRORS, TimeoutError) as err:
+        conn.close()
+        kind.add(None, time.perf_counter() - due, f"GET {template}: {type(err).__name__}: {err}")
+        return
+    _check(kind, "GET", template, status, due, declared)
 
 
 async def _posts(client: httpx.AsyncClient, count: int, declared: dict) -> tuple[Kind, float, list[str]]:
@@ -102,11 +185,11 @@ async def _posts(client: httpx.AsyncClient, count: int, declared: dict) -> tuple
     return kind, count / (time.perf_counter() - started), ids
 
 
-async def _scrapes(client: httpx.AsyncClient, stop: asyncio.Event, kind: Kind, declared: dict) -> None:
+async def _scrapes(conn: Http1, stop: asyncio.Event, kind: Kind, declared: dict) -> None:
     """GET /metrics every METRICS_EVERY_S until `stop`, as a scraper would."""
     declared = {**declared, ("GET", "/metrics"): {200}}  # /metrics is kept out of the OpenAPI schema
     while not stop.is_set():
-        await _timed(client, kind, "GET", "/metrics", "/metrics", time.perf_counter(), declared)
+        await _timed_get(conn, kind, "/metrics", "/metrics", time.perf_counter(), declared)
         try:
             await asyncio.wait_for(stop.wait(), METRICS_EVERY_S)
         except asyncio.TimeoutError:
@@ -118,8 +201,7 @@ async def load(api_url: str, key: str, rate: float, duration_s: float, posts: in
     """The measurement against a running API: a dataset rendering meanwhile, `posts` sequential POSTs (then
     cancelled), then `rate` requests/s of status reads and lists for `duration_s`, with /metrics read each second."""
     headers = {"X-API-Key": key}
-    limits = httpx.Limits(max_connections=SENDERS + 2, max_keepalive_connections=SENDERS + 2)
-    async with httpx.AsyncClient(base_url=api_url, headers=headers, timeout=30, limits=limits) as client:
+    async with httpx.AsyncClient(base_url=api_url, headers=headers, timeout=REQUEST_TIMEOUT_S) as client:
         declared = declared_statuses((await client.get("/openapi.json")).json())
         r = await client.post("/datasets", json=RENDERING_SPEC)
         r.raise_for_status()
@@ -128,24 +210,26 @@ async def load(api_url: str, key: str, rate: float, duration_s: float, posts: in
         for i in ids:
             (await client.post(f"/datasets/{i}/cancel")).raise_for_status()
         kinds = {"status": Kind(), "list": Kind(), "metrics": Kind()}
+        # The load phase's connections, opened before it (the sequential POSTs use httpx, not these).
+        conns = [Http1(api_url, headers) for _ in range(SENDERS + 1)]
+        await asyncio.gather(*(c.open() for c in conns))
         before = (await client.get("/metrics")).text
         stop = asyncio.Event()
-        scraper = asyncio.create_task(_scrapes(client, stop, kinds["metrics"], declared))
+        scraper = asyncio.create_task(_scrapes(conns[-1], stop, kinds["metrics"], declared))
         total = int(rate * duration_s)
         due_queue: asyncio.Queue = asyncio.Queue()
+        targets = ids + [rendering]
 
-        async def sender() -> None:
+        async def sender(conn: Http1) -> None:
             while (item := await due_queue.get()) is not None:
                 i, due = item
                 if i % LIST_SHARE == LIST_SHARE - 1:
-                    await _timed(client, kinds["list"], "GET", "/datasets", "/datasets", due, declared,
-                                 params={"limit": 20})
+                    await _timed_get(conn, kinds["list"], "/datasets?limit=20", "/datasets", due, declared)
                 else:
-                    await _timed(client, kinds["status"], "GET", f"/datasets/{targets[i % len(targets)]}",
-                                 "/datasets/{id}", due, declared)
+                    await _timed_get(conn, kinds["status"], f"/datasets/{targets[i % len(targets)]}",
+                                     "/datasets/{id}", due, declared)
 
-        targets = ids + [rendering]
-        senders = [asyncio.create_task(sender()) for _ in range(SENDERS)]
+        senders = [asyncio.create_task(sender(c)) for c in conns[:SENDERS]]
         start = time.perf_counter() + 0.05
         late = 0.0
         for i in range(total):
@@ -159,6 +243,8 @@ async def load(api_url: str, key: str, rate: float, duration_s: float, posts: in
         elapsed = time.perf_counter() - start
         stop.set()
         await scraper
+        for c in conns:
+            c.close()
         after = (await client.get("/metrics")).text  # every request of the load phase answered by now
         status = (await client.get(f"/datasets/{rendering}")).json()
         (await client.post(f"/datasets/{rendering}/cancel")).raise_for_status()
@@ -300,8 +386,9 @@ def table(result: dict[str, Any]) -> str:
         "# Load: the API under status reads and lists while a dataset renders", "",
         f"machine: {result['machine']}  ",
         f"{result['rate_rps']} requests/s offered for {result['duration_s']} s ({result['achieved_rps']} achieved; one "
-        f"in {LIST_SHARE} a list), open loop: latency from when each request was due (client at most "
-        f"{result['client_max_late_ms']} ms late). API: one uvicorn process; one worker rendering meanwhile "
+        f"in {LIST_SHARE} a list) over {SENDERS} keep-alive connections of a lean asyncio HTTP/1.1 client, open loop: "
+        f"latency from when each request was due (client at most {result['client_max_late_ms']} ms late). API: one "
+        f"uvicorn process; one worker rendering meanwhile "
         f"({r['frames_done']} frames committed during the run, {r['worker_frames_committed']} by its metrics). "
         f"Errors: transport errors, 5xx, or a status the route does not declare: {result['errors']}.", "",
         *rows, "",

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 from service.errors import NotFound
@@ -132,7 +133,7 @@ class DatasetRecord:
 
     id: str
     created_at: float  # seconds since the epoch
-    spec: dict[str, Any]  # the validated spec, as JSON
+    spec_json: str  # the validated spec, as stored (JSON text): parsed on first use of `spec`
     seed: int
     code_version: str
     renderer: str | None
@@ -153,6 +154,12 @@ class DatasetRecord:
     # when the record was rebuilt from the bucket after Redis lost it (service.recovery): attempts, errors and
     # timings from before are lost; None for a record that never was
     restored_at: float | None = None
+
+    @cached_property
+    def spec(self) -> dict[str, Any]:
+        """The validated spec. Parsed only when asked for: status reads and lists never need it, and parsing it
+        was a quarter of the API's CPU per listed record (bench/load.py)."""
+        return json.loads(self.spec_json)
 
 
 @dataclass(frozen=True)
@@ -313,7 +320,7 @@ class Records:
         return DatasetRecord(
             id=h["id"],
             created_at=float(h["created_at"]),
-            spec=json.loads(h["spec"]),
+            spec_json=h["spec"],
             seed=int(h["seed"]),
             code_version=h["code_version"],
             renderer=h.get("renderer"),
