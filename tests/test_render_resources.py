@@ -170,40 +170,40 @@ def gl_objects_exist(renderer, target) -> list[bool]:
 
 def test_framebuffers_are_kept_a_few_per_kind_and_evicted_ones_are_deleted(renderer):
     renderer._platform.make_current()
-    n = renderer.targets_per_kind
+    n = renderer.targets.per_kind
     sizes = [(11 + i, 5) for i in range(n + 2)]
     built = []
     for i, (w, h) in enumerate(sizes):
-        built.append(renderer._ids_target(w, h, True, False))
+        built.append(renderer.targets.ids(w, h, True, False))
         assert all(gl_objects_exist(renderer, built[-1]))
-        ids_keys = [k for k in renderer._targets if k[0] == "ids"]
+        ids_keys = [k for k in renderer.targets.cache if k[0] == "ids"]
         assert len(ids_keys) <= n and ("ids", w, h, True, False) in ids_keys
         if i >= n:
             # The least recently used is gone, with every GL object it held (checked at once: a driver may hand its
             # names out again to the next objects made).
-            assert ("ids", *sizes[i - n], True, False) not in renderer._targets
+            assert ("ids", *sizes[i - n], True, False) not in renderer.targets.cache
             assert not any(gl_objects_exist(renderer, built[i - n]))
     for t in built[2:]:
         assert all(gl_objects_exist(renderer, t))
     # Using one moves it to the back of the queue.
-    assert renderer._ids_target(*sizes[2], True, False) is built[2]
-    renderer._ids_target(40, 5, True, False)
-    assert ("ids", *sizes[2], True, False) in renderer._targets
-    assert ("ids", *sizes[3], True, False) not in renderer._targets
+    assert renderer.targets.ids(*sizes[2], True, False) is built[2]
+    renderer.targets.ids(40, 5, True, False)
+    assert ("ids", *sizes[2], True, False) in renderer.targets.cache
+    assert ("ids", *sizes[3], True, False) not in renderer.targets.cache
 
 
 def test_a_frame_after_its_framebuffers_were_evicted_has_the_same_pixels(renderer):
     item = draw("test/render-resources/inside", fronto_quad(K, (2.5, 5.5), (1.5, 4.5), 5.0), 6)
     passes = Passes(clean=True, ids=True, range=True)
     first = renderer.render(VIEW, [item], LIGHT, WATER, PRESETS["high"], passes)
-    for w in range(W + 1, W + 2 + renderer.targets_per_kind):  # other sizes push every target of VIEW out
+    for w in range(W + 1, W + 2 + renderer.targets.per_kind):  # other sizes push every target of VIEW out
         renderer.render(camera_view(pinhole(w, H, 60.0), w, H), [item], LIGHT, WATER, PRESETS["high"], passes)
-    assert not any(k[1:3] == (W * 2, H * 2) or k[1:3] == (W, H) for k in renderer._targets)
+    assert not any(k[1:3] == (W * 2, H * 2) or k[1:3] == (W, H) for k in renderer.targets.cache)
     again = renderer.render(VIEW, [item], LIGHT, WATER, PRESETS["high"], passes)
     for name in ("image", "clean", "instance", "range_m"):
         np.testing.assert_array_equal(getattr(again, name), getattr(first, name), err_msg=name)
     for kind in ("surface", "resolve", "ids"):
-        assert len([k for k in renderer._targets if k[0] == kind]) <= renderer.targets_per_kind
+        assert len([k for k in renderer.targets.cache if k[0] == kind]) <= renderer.targets.per_kind
 
 
 def box_item(key: str, offset_x: float, instance_id: int, subdivisions: int = 0):
@@ -253,7 +253,7 @@ def test_cache_bounds_are_checked_before_a_context_is_made(kwargs):
 def test_samples_are_the_same_after_their_framebuffers_were_evicted(renderer):
     item = draw("test/render-resources/inside", fronto_quad(K, (2.5, 5.5), (1.5, 4.5), 5.0), 6)
     J1, R1 = renderer.samples(VIEW, [item], LIGHT, Sampling(msaa=4))
-    for w in range(W + 1, W + 2 + renderer.targets_per_kind):
+    for w in range(W + 1, W + 2 + renderer.targets.per_kind):
         renderer.samples(camera_view(pinhole(w, H, 60.0), w, H), [item], LIGHT, Sampling(msaa=4))
     J2, R2 = renderer.samples(VIEW, [item], LIGHT, Sampling(msaa=4))
     np.testing.assert_array_equal(J1, J2)

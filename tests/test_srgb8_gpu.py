@@ -35,7 +35,7 @@ def gpu_codes(renderer, values: np.ndarray) -> np.ndarray:
         GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, n, 1, 0, GL.GL_RGBA, GL.GL_FLOAT, rgb)
         for k in (GL.GL_TEXTURE_MIN_FILTER, GL.GL_TEXTURE_MAG_FILTER):
             GL.glTexParameteri(GL.GL_TEXTURE_2D, k, GL.GL_NEAREST)
-        target = renderer._resolve_target(n, 1, (GL.GL_RGBA8,))
+        target = renderer.targets.resolve(n, 1, (GL.GL_RGBA8,))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, target.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0])
         GL.glDisable(GL.GL_DEPTH_TEST)

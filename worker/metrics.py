@@ -35,7 +35,7 @@ class WorkerMetrics:
 
         self.shards = Counter("seasynth_worker_shards", "Shard task executions by how they ended (committed, "
                               "failed: the shard was marked failed, retry: an attempt failed with attempts left, "
-                              "and the other outcomes of worker.shard.Outcome)", ["outcome"], registry=None)
+                              "and the other outcomes of worker.shard_context.Outcome)", ["outcome"], registry=None)
         self.frames = Counter("seasynth_worker_frames", "Frames of the shards this worker committed (committed) "
                               "or marked failed (failed)", ["outcome"], registry=None)
         self.render_seconds = Histogram("seasynth_worker_frame_render_seconds", "Rendering one frame's files "
@@ -46,7 +46,7 @@ class WorkerMetrics:
 
 
 class TimedFrames:
-    """A FrameSource (worker.shard) that times each frame into `metrics` and counts the frames it rendered."""
+    """A FrameSource (worker.shard_context) that times each frame into `metrics` and counts the frames it rendered."""
 
     def __init__(self, source: Any, metrics: WorkerMetrics):
         self.source = source

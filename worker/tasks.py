@@ -23,23 +23,12 @@ from service.records import TERMINAL, Records, push_reply
 from service.settings import Settings
 from service.shards import shard_at
 from service.storage import open_store
+from worker.asset_cache import AssetCache
 from worker.metrics import TimedFrames, TimedStore, WorkerMetrics
 from worker.playground import preview_reply
-from worker.shard import (
-    HEARTBEAT_S,
-    AssetCache,
-    Outcome,
-    RetryShard,
-    ShardContext,
-    WrongRenderer,
-    WrongVersion,
-    defer_to_renderer,
-    note_renderer,
-    reconcile,
-    render_frame,
-    run_shard,
-    sweepable,
-)
+from worker.renderer_pinning import HEARTBEAT_S, defer_to_renderer, note_renderer
+from worker.shard import reconcile, render_frame, run_shard, sweepable
+from worker.shard_context import Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +53,8 @@ def renderer_wait_from_env() -> float | None:
 
 class Heartbeat:
     """A thread that notes this process's renderer in Redis every HEARTBEAT_S, so that workers of other renderers
-    can tell whether a dataset pinned to it still has a live shard worker (worker.shard.defer_to_renderer)."""
+    can tell whether a dataset pinned to it still has a live shard worker
+    (worker.renderer_pinning.defer_to_renderer)."""
 
     def __init__(self, redis, prefix: str, version: str, renderer: str):
         self._args = (redis, prefix, version, renderer)

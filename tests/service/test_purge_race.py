@@ -15,7 +15,8 @@ from service.manifest import pending_manifests_key
 from service.shards import commit_key, dataset_prefix, manifest_key, shard_key
 from service.storage import LocalStore, open_store
 from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
-from worker.shard import Outcome, reconcile, run_shard
+from worker.shard import reconcile, run_shard
+from worker.shard_context import Outcome
 
 
 def bucket(infra, tmp_path, kind: str):

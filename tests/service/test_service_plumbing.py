@@ -15,15 +15,10 @@ from service.errors import NotFound
 from service.records import Records
 from service.shards import Shard, commit_key, manifest_key, shard_at, shard_count, shard_key
 from service.storage import LocalStore, open_store
-from worker.shard import (
-    Outcome,
-    RetryShard,
-    ShardContext,
-    maybe_finalise,
-    pack_tar,
-    reconcile,
-    run_shard,
-)
+from worker.finalise import maybe_finalise
+from worker.packing import pack_tar
+from worker.shard import reconcile, run_shard
+from worker.shard_context import Outcome, RetryShard, ShardContext
 
 
 class FakeSession:
@@ -329,7 +324,8 @@ class NamedSession(FakeSession):
 
 
 def test_a_dataset_keeps_the_renderer_it_started_with(infra, records, tmp_path):
-    from worker.shard import WrongRenderer, render_frame
+    from worker.shard import render_frame
+    from worker.shard_context import WrongRenderer
 
     cpu, gpu = NamedSession("llvmpipe (fake)"), NamedSession("NVIDIA H100 (fake)")
     on_cpu, on_gpu = (make_ctx(infra, records, tmp_path, s) for s in (cpu, gpu))
@@ -463,3 +459,15 @@ def test_pool_processes_are_recycled_by_memory(infra, monkeypatch):
     monkeypatch.setenv("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "lots")
     with pytest.raises(ValueError, match="SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB"):
         create_app(infra.settings())
+
+
+def test_a_record_read_leaves_its_spec_unparsed_until_asked_for(records):
+    """Status reads and lists never show the spec, so reading a record does not parse it (bench/load.py); asked
+    for, it is the spec the record was created with, parsed once."""
+    spec = {"frames": 3, "camera": {"width": 32, "height": 24}, "targets": {"count": [1, 2]}}
+    records.create("d" * 32, spec, seed=1, code_version="v", frames=3, shard_size=1, shards=3, now=time.time())
+    rec = records.get("d" * 32)
+    assert "spec" not in vars(rec)  # a cached_property stores its value in the instance once computed
+    assert rec.spec == spec and rec.spec is rec.spec
+    (listed,) = records.get_many(["d" * 32])
+    assert listed.spec_json == rec.spec_json and listed.spec == spec

@@ -26,17 +26,10 @@ from service.shards import manifest_key, shard_count, shard_key
 from service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
-from worker.shard import (
-    RENDERER_LIVE_S,
-    Outcome,
-    WrongRenderer,
-    defer_to_renderer,
-    maybe_finalise,
-    note_renderer,
-    reconcile,
-    run_shard,
-    sweepable,
-)
+from worker.finalise import maybe_finalise
+from worker.renderer_pinning import RENDERER_LIVE_S, defer_to_renderer, note_renderer
+from worker.shard import reconcile, run_shard, sweepable
+from worker.shard_context import Outcome, WrongRenderer
 
 
 @pytest.fixture

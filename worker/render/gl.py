@@ -13,14 +13,15 @@ import math
 import os
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from service.errors import RenderError
-from worker.light import PhysicalLight
 from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
-from worker.render import gl_light, shaders
+from worker.render import shaders
+from worker.render.surface import surface_pass
+from worker.render.targets import Target, Targets
 
 # Cache bounds of a long-lived renderer. Uploaded meshes: least recently drawn first out once their vertex and index
 # buffers pass the budget, never one drawn by the call in progress. Framebuffers: a few of each kind (surface,
@@ -74,17 +75,10 @@ class _GpuMesh:
     used: int  # the renderer call (see GLRenderer._call) that last drew it
 
 
-@dataclass
-class _Target:
-    """A framebuffer and its attachments, keyed by what it holds."""
-
-    fbo: int
-    textures: list[int] = field(default_factory=list)
-    renderbuffers: list[int] = field(default_factory=list)
-
 
 class GLRenderer:
-    """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size.
+    """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size
+    (`targets`, worker.render.targets); the surface pass and its resolve are worker.render.surface.
 
     Both caches are bounded (mesh_budget_bytes of vertex and index buffers, targets_per_kind framebuffers of each
     kind), so a long-lived worker that meets many assets and image sizes does not keep them all; what is evicted is
@@ -104,7 +98,6 @@ class GLRenderer:
         if targets_per_kind < 1:
             raise RenderError(f"targets_per_kind must be >= 1, got {targets_per_kind}")
         self.mesh_budget_bytes = mesh_budget_bytes
-        self.targets_per_kind = targets_per_kind
         # PyOpenGL picks its platform once, at first import.
         os.environ.setdefault("PYOPENGL_PLATFORM", platform)
         os.environ.setdefault("PYGLET_HEADLESS", "1")
@@ -133,7 +126,7 @@ class GLRenderer:
         self._mesh_bytes = 0
         self._call = 0  # counts render/samples/pixels_alone calls: meshes drawn by the current one stay
         self._programs: dict[tuple, tuple[int, dict[str, int]]] = {}
-        self._targets: OrderedDict[tuple, _Target] = OrderedDict()  # least recently used first
+        self.targets = Targets(GL, self.name, targets_per_kind)
         self._empty_vao = GL.glGenVertexArrays(1)
         GL.glEnable(GL.GL_DEPTH_TEST)
         GL.glDepthFunc(GL.GL_LESS)
@@ -151,8 +144,7 @@ class GLRenderer:
             self._drop_mesh(key)
         for prog, _ in self._programs.values():
             GL.glDeleteProgram(prog)
-        for key in list(self._targets):
-            self._drop_target(key)
+        self.targets.clear()
         GL.glDeleteVertexArrays(1, [self._empty_vao])
         self._programs.clear()
         if self._platform_name == "egl":
@@ -236,109 +228,9 @@ class GLRenderer:
         return got
 
     def _ids_program(self, want_ids: bool, want_range: bool) -> tuple[int, dict[str, int]]:
-        """The single-sample pass writing ids (slot 0) and/or range (the slot after them), as _ids_target lays out."""
+        """The single-sample pass writing ids (slot 0) and/or range (the slot after them), as targets.ids lays out."""
         return self._program(shaders.VERTEX, shaders.IDS, WITH_IDS=want_ids, WITH_RANGE=want_range,
                              RANGE_LOCATION=int(want_ids))
-
-    def _target(self, key: tuple, build) -> _Target:
-        """The cached framebuffer `key` (kind, size, ...), built and bound by `build` when absent."""
-        got = self._targets.get(key)
-        if got is not None:
-            self._targets.move_to_end(key)
-            return got
-        got = build()
-        GL = self._gl
-        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
-        if status != GL.GL_FRAMEBUFFER_COMPLETE:
-            self._delete_target(got)
-            raise RenderError(f"framebuffer {key} incomplete on {self.name} (status {status:#x})")
-        self._targets[key] = got
-        same_kind = [k for k in self._targets if k[0] == key[0]]
-        for old in same_kind[: max(len(same_kind) - self.targets_per_kind, 0)]:
-            self._drop_target(old)
-        return got
-
-    def _drop_target(self, key: tuple) -> None:
-        self._delete_target(self._targets.pop(key))
-
-    def _delete_target(self, t: _Target) -> None:
-        GL = self._gl
-        GL.glDeleteFramebuffers(1, [t.fbo])
-        if t.textures:
-            GL.glDeleteTextures(t.textures)
-        if t.renderbuffers:
-            GL.glDeleteRenderbuffers(len(t.renderbuffers), t.renderbuffers)
-
-    def _new_fbo(self) -> _Target:
-        GL = self._gl
-        t = _Target(fbo=GL.glGenFramebuffers(1))
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
-        return t
-
-    def _attach_texture(self, t: _Target, slot: int, fmt: int, w: int, h: int, samples: int) -> None:
-        GL = self._gl
-        tex = GL.glGenTextures(1)
-        if samples > 1:
-            GL.glBindTexture(GL.GL_TEXTURE_2D_MULTISAMPLE, tex)
-            GL.glTexImage2DMultisample(GL.GL_TEXTURE_2D_MULTISAMPLE, samples, fmt, w, h, GL.GL_TRUE)
-            target = GL.GL_TEXTURE_2D_MULTISAMPLE
-        else:
-            GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
-            GL.glTexStorage2D(GL.GL_TEXTURE_2D, 1, fmt, w, h)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
-            target = GL.GL_TEXTURE_2D
-        GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + slot, target, tex, 0)
-        t.textures.append(tex)
-
-    def _attach_renderbuffer(self, t: _Target, attachment: int, fmt: int, w: int, h: int, samples: int) -> None:
-        GL = self._gl
-        rb = GL.glGenRenderbuffers(1)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
-        if samples > 1:
-            GL.glRenderbufferStorageMultisample(GL.GL_RENDERBUFFER, samples, fmt, w, h)
-        else:
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, w, h)
-        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attachment, GL.GL_RENDERBUFFER, rb)
-        t.renderbuffers.append(rb)
-
-    def _surface_target(self, w: int, h: int, msaa: int, with_range: bool) -> _Target:
-        def build() -> _Target:
-            GL = self._gl
-            t = self._new_fbo()
-            self._attach_texture(t, 0, GL.GL_RGBA16F, w, h, msaa)
-            if with_range:
-                self._attach_texture(t, 1, GL.GL_R32F, w, h, msaa)
-            self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, msaa)
-            return t
-
-        return self._target(("surface", w, h, msaa, with_range), build)
-
-    def _resolve_target(self, w: int, h: int, formats: tuple[int, ...]) -> _Target:
-        """One single-sample colour renderbuffer per output, in slot order (GL internal formats)."""
-
-        def build() -> _Target:
-            GL = self._gl
-            t = self._new_fbo()
-            for slot, fmt in enumerate(formats):
-                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0 + slot, fmt, w, h, 1)
-            return t
-
-        return self._target(("resolve", w, h, formats), build)
-
-    def _ids_target(self, w: int, h: int, with_ids: bool, with_range: bool) -> _Target:
-        """Single-sample ids (slot 0, when drawn) and/or range (the next slot) at pixel centres, and depth."""
-
-        def build() -> _Target:
-            GL = self._gl
-            t = self._new_fbo()
-            formats = [GL.GL_R32UI] * with_ids + [GL.GL_R32F] * with_range
-            for slot, fmt in enumerate(formats):
-                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0 + slot, fmt, w, h, 1)
-            self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, 1)
-            return t
-
-        return self._target(("ids", w, h, with_ids, with_range), build)
 
     # ---- drawing ---------------------------------------------------------------------------------------------
     def _draw(self, view: View, items: list[DrawItem], locs: dict[str, int], *, lit: bool, ids: bool) -> None:
@@ -372,7 +264,7 @@ class GLRenderer:
         proj = projection(view.K, view.width, view.height, view.near, view.far)
         GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, proj.astype(np.float32))
 
-    def _bind_and_clear(self, t: _Target, clears: tuple[str, ...]) -> None:
+    def _bind_and_clear(self, t: Target, clears: tuple[str, ...]) -> None:
         """Bind a geometry target and draw into its colour attachments in slot order, each cleared as named:
         "ids" to 0, "colour" to 0, "range" to +inf; depth to far."""
         GL = self._gl
@@ -416,9 +308,9 @@ class GLRenderer:
         self._call += 1
         done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
         log: list[str] = []
-        image, clean, nearest = self._surface(
-            view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done, log=log,
-            srgb8=passes.srgb8,
+        image, clean, nearest = surface_pass(
+            self, view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done,
+            log=log, srgb8=passes.srgb8,
         )
         centres = passes.range and sampling.per_pixel > 1
         instance = centre = None
@@ -437,134 +329,17 @@ class GLRenderer:
         self._call += 1
         Js, Rs = [], []
         for k in range(sampling.per_pixel):
-            J, R, _ = self._surface(view, items, lighting, None, sampling, False, k, sample_range=True)
+            J, R, _ = surface_pass(self, view, items, lighting, None, sampling, False, k, sample_range=True)
             Js.append(J)
             Rs.append(R[..., 0])
         return np.stack(Js), np.stack(Rs)
-
-    def _surface(
-        self, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, want_nearest=False,
-        done=None, log=None, srgb8=False,
-    ):
-        """Draw the surface pass and resolve it: (image, clean or the one sample's range, nearest sample range), the
-        last two None unless asked. log (if given) gets the passes drawn and attachments read."""
-        GL = self._gl
-        log = [] if log is None else log
-        if sampling.msaa > self.max_samples:
-            raise RenderError(f"{sampling.msaa}x MSAA asked for, {self.name} supports at most {self.max_samples}")
-        ss, msaa = sampling.supersample, sampling.msaa
-        W, H = view.width * ss, view.height * ss
-        physical = isinstance(lighting, PhysicalLight)
-        with_range = water is not None or physical or sample_range or want_nearest
-        maps = gl_light.shadow_maps(self, view, items, lighting, log) if physical else None
-        surf = self._surface_target(W, H, msaa, with_range)
-        self._bind_and_clear(surf, ("colour", "range")[: 1 + with_range])
-        if physical:
-            from worker.light.glsl import SURFACE as PHYSICAL_SURFACE
-
-            prog, locs = self._program(shaders.VERTEX, PHYSICAL_SURFACE, WITH_RANGE=with_range,
-                                       **gl_light.defines(lighting))
-            GL.glUseProgram(prog)
-            self._set_view(locs, view, W, H)
-            gl_light.surface_uniforms(self, locs, view, lighting, maps)
-        else:
-            prog, locs = self._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
-            GL.glUseProgram(prog)
-            self._set_view(locs, view, W, H)
-            sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
-            GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
-            GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
-            GL.glUniform1f(locs["u_ambient"], lighting.ambient)
-        if msaa > 1 and sampling.per_sample_shading:
-            GL.glEnable(GL.GL_SAMPLE_SHADING)
-            GL.glMinSampleShading(1.0)
-        self._draw(view, items, locs, lit=True, ids=False)
-        GL.glDisable(GL.GL_SAMPLE_SHADING)
-        log.append("surface+range" if len(surf.textures) > 1 else "surface")  # what the target holds
-        if done is not None:
-            done("render")
-
-        from worker.formation import GLSL_HAZE, GLSL_SRGB8, SRGB8_THRESHOLDS_F32
-
-        second = want_clean or sample_range
-        formats = ((GL.GL_RGBA8 if srgb8 else GL.GL_RGBA32F,) + (GL.GL_RGBA32F,) * second
-                   + (GL.GL_R32F,) * want_nearest)
-        res = self._resolve_target(view.width, view.height, formats)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
-        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
-        GL.glDisable(GL.GL_DEPTH_TEST)
-        volume = physical and not sample_range  # audits (samples()) read J and range before any water
-        if volume:
-            from worker.light.glsl import VOLUME
-
-            src = shaders.RESOLVE.replace("HAZE_FUNCTION", VOLUME)
-            extra_defines = {"PHYSICAL": True, **gl_light.defines(lighting)}
-        else:
-            src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
-            extra_defines = {}
-        src = src.replace("SRGB8_FUNCTION", GLSL_SRGB8)
-        prog, locs = self._program(
-            shaders.FULLSCREEN,
-            src,
-            **extra_defines,
-            SAMPLES=msaa,
-            SUPERSAMPLE=ss,
-            WITH_HAZE=water is not None,
-            WITH_CLEAN=want_clean and not sample_range,
-            WITH_SAMPLE_RANGE=sample_range,
-            WITH_NEAREST=want_nearest,
-            NEAREST_LOCATION=1 + second,
-            SRGB8_OUT=srgb8,
-        )
-        GL.glUseProgram(prog)
-        GL.glViewport(0, 0, view.width, view.height)
-        tex_target = GL.GL_TEXTURE_2D_MULTISAMPLE if msaa > 1 else GL.GL_TEXTURE_2D
-        for unit, (name, tex) in enumerate(zip(("u_J", "u_R"), surf.textures)):
-            GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
-            GL.glBindTexture(tex_target, tex)
-            if name in locs:
-                GL.glUniform1i(locs[name], unit)
-        if water is not None:
-            GL.glUniform3fv(locs["u_betaD"], 1, np.asarray(water.beta_D, np.float32))
-            GL.glUniform3fv(locs["u_betaB"], 1, np.asarray(water.beta_B, np.float32))
-            GL.glUniform3fv(locs["u_Binf"], 1, np.asarray(water.B_inf, np.float32))
-        if volume:
-            gl_light.volume_uniforms(self, locs, view, lighting)
-        GL.glUniform1i(locs["u_only_sample"], only_sample)
-        if srgb8:
-            GL.glUniform1fv(locs["u_srgb_thr"], len(SRGB8_THRESHOLDS_F32), SRGB8_THRESHOLDS_F32)
-        GL.glBindVertexArray(self._empty_vao)
-        GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
-        GL.glBindVertexArray(0)
-        GL.glEnable(GL.GL_DEPTH_TEST)
-        log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
-        w, h = view.width, view.height
-        if srgb8:
-            codes = self._read(0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, np.uint8, 4)
-            if codes[..., 3].any():
-                raise ValueError("encode_srgb8: linear image contains NaN")  # as the CPU encoder says it
-            image = np.ascontiguousarray(codes[..., :3])
-            log.append("read image srgb8")
-        else:
-            image = self._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
-            log.append("read image")
-        extra = nearest = None
-        if second:
-            extra = self._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
-            log.append("read sample range" if sample_range else "read clean")
-        if want_nearest:
-            nearest = self._read(1 + second, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
-            log.append("read nearest range")
-        if done is not None:
-            done("formation")
-        return image, extra, nearest
 
     def _ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool, log: list[str] | None = None):
         """Draw ids and/or range at pixel centres (one sample); log (if given) gets the pass and the reads."""
         GL = self._gl
         log = [] if log is None else log
         w, h = view.width, view.height
-        t = self._ids_target(w, h, want_ids, want_range)
+        t = self.targets.ids(w, h, want_ids, want_range)
         self._bind_and_clear(t, ("ids",) * want_ids + ("range",) * want_range)
         prog, locs = self._ids_program(want_ids, want_range)
         GL.glUseProgram(prog)
@@ -601,7 +376,7 @@ class GLRenderer:
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
         if x1 < x0 or y1 < y0:
             return 0
-        t = self._ids_target(w, h, True, False)
+        t = self.targets.ids(w, h, True, False)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0])
         GL.glEnable(GL.GL_SCISSOR_TEST)

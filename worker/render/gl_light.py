@@ -37,7 +37,7 @@ def _shadow_target(r, size: int, slot: int):
     GL = r._gl
 
     def build():
-        t = r._new_fbo()
+        t = r.targets.new_fbo()
         tex = GL.glGenTextures(1)
         GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
         GL.glTexStorage2D(GL.GL_TEXTURE_2D, 1, GL.GL_DEPTH_COMPONENT32F, size, size)
@@ -52,7 +52,7 @@ def _shadow_target(r, size: int, slot: int):
         t.textures.append(tex)
         return t
 
-    return r._target(("shadow", size, slot), build)
+    return r.targets.get(("shadow", size, slot), build)
 
 
 def _draw_depth(r, clip_from_world: np.ndarray, items: list[DrawItem], size: int, slot: int) -> int:

@@ -1,0 +1,130 @@
+"""The surface pass and its resolve: the frame shaded (with range) into a multisampled float target, then the water
+applied to each sample, each pixel's samples averaged and the outputs read back. Used by GLRenderer (worker.render.gl).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.errors import RenderError
+from worker.light import PhysicalLight
+from worker.render import gl_light, shaders
+
+
+def surface_pass(
+    r, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, want_nearest=False,
+    done=None, log=None, srgb8=False,
+):
+    """Draw the surface pass and resolve it on GLRenderer `r` (its context current): (image, clean or the one
+    sample's range, nearest sample range), the last two None unless asked. log (if given) gets the passes drawn and
+    attachments read."""
+    GL = r._gl
+    log = [] if log is None else log
+    if sampling.msaa > r.max_samples:
+        raise RenderError(f"{sampling.msaa}x MSAA asked for, {r.name} supports at most {r.max_samples}")
+    ss, msaa = sampling.supersample, sampling.msaa
+    W, H = view.width * ss, view.height * ss
+    physical = isinstance(lighting, PhysicalLight)
+    with_range = water is not None or physical or sample_range or want_nearest
+    maps = gl_light.shadow_maps(r, view, items, lighting, log) if physical else None
+    surf = r.targets.surface(W, H, msaa, with_range)
+    r._bind_and_clear(surf, ("colour", "range")[: 1 + with_range])
+    if physical:
+        from worker.light.glsl import SURFACE as PHYSICAL_SURFACE
+
+        prog, locs = r._program(shaders.VERTEX, PHYSICAL_SURFACE, WITH_RANGE=with_range,
+                                **gl_light.defines(lighting))
+        GL.glUseProgram(prog)
+        r._set_view(locs, view, W, H)
+        gl_light.surface_uniforms(r, locs, view, lighting, maps)
+    else:
+        prog, locs = r._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
+        GL.glUseProgram(prog)
+        r._set_view(locs, view, W, H)
+        sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
+        GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
+        GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
+        GL.glUniform1f(locs["u_ambient"], lighting.ambient)
+    if msaa > 1 and sampling.per_sample_shading:
+        GL.glEnable(GL.GL_SAMPLE_SHADING)
+        GL.glMinSampleShading(1.0)
+    r._draw(view, items, locs, lit=True, ids=False)
+    GL.glDisable(GL.GL_SAMPLE_SHADING)
+    log.append("surface+range" if len(surf.textures) > 1 else "surface")  # what the target holds
+    if done is not None:
+        done("render")
+
+    from worker.formation import GLSL_HAZE, GLSL_SRGB8, SRGB8_THRESHOLDS_F32
+
+    second = want_clean or sample_range
+    formats = ((GL.GL_RGBA8 if srgb8 else GL.GL_RGBA32F,) + (GL.GL_RGBA32F,) * second
+               + (GL.GL_R32F,) * want_nearest)
+    res = r.targets.resolve(view.width, view.height, formats)
+    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
+    GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
+    GL.glDisable(GL.GL_DEPTH_TEST)
+    volume = physical and not sample_range  # audits (samples()) read J and range before any water
+    if volume:
+        from worker.light.glsl import VOLUME
+
+        src = shaders.RESOLVE.replace("HAZE_FUNCTION", VOLUME)
+        extra_defines = {"PHYSICAL": True, **gl_light.defines(lighting)}
+    else:
+        src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
+        extra_defines = {}
+    src = src.replace("SRGB8_FUNCTION", GLSL_SRGB8)
+    prog, locs = r._program(
+        shaders.FULLSCREEN,
+        src,
+        **extra_defines,
+        SAMPLES=msaa,
+        SUPERSAMPLE=ss,
+        WITH_HAZE=water is not None,
+        WITH_CLEAN=want_clean and not sample_range,
+        WITH_SAMPLE_RANGE=sample_range,
+        WITH_NEAREST=want_nearest,
+        NEAREST_LOCATION=1 + second,
+        SRGB8_OUT=srgb8,
+    )
+    GL.glUseProgram(prog)
+    GL.glViewport(0, 0, view.width, view.height)
+    tex_target = GL.GL_TEXTURE_2D_MULTISAMPLE if msaa > 1 else GL.GL_TEXTURE_2D
+    for unit, (name, tex) in enumerate(zip(("u_J", "u_R"), surf.textures)):
+        GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
+        GL.glBindTexture(tex_target, tex)
+        if name in locs:
+            GL.glUniform1i(locs[name], unit)
+    if water is not None:
+        GL.glUniform3fv(locs["u_betaD"], 1, np.asarray(water.beta_D, np.float32))
+        GL.glUniform3fv(locs["u_betaB"], 1, np.asarray(water.beta_B, np.float32))
+        GL.glUniform3fv(locs["u_Binf"], 1, np.asarray(water.B_inf, np.float32))
+    if volume:
+        gl_light.volume_uniforms(r, locs, view, lighting)
+    GL.glUniform1i(locs["u_only_sample"], only_sample)
+    if srgb8:
+        GL.glUniform1fv(locs["u_srgb_thr"], len(SRGB8_THRESHOLDS_F32), SRGB8_THRESHOLDS_F32)
+    GL.glBindVertexArray(r._empty_vao)
+    GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
+    GL.glBindVertexArray(0)
+    GL.glEnable(GL.GL_DEPTH_TEST)
+    log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
+    w, h = view.width, view.height
+    if srgb8:
+        codes = r._read(0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, np.uint8, 4)
+        if codes[..., 3].any():
+            raise ValueError("encode_srgb8: linear image contains NaN")  # as the CPU encoder says it
+        image = np.ascontiguousarray(codes[..., :3])
+        log.append("read image srgb8")
+    else:
+        image = r._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+        log.append("read image")
+    extra = nearest = None
+    if second:
+        extra = r._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+        log.append("read sample range" if sample_range else "read clean")
+    if want_nearest:
+        nearest = r._read(1 + second, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
+        log.append("read nearest range")
+    if done is not None:
+        done("formation")
+    return image, extra, nearest
