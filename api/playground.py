@@ -8,7 +8,6 @@ slot stays busy for a moment the answer is 503 with Retry-After.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import uuid
 from collections.abc import Callable
@@ -17,13 +16,13 @@ from typing import Annotated, Any, Literal, Protocol
 
 import yaml
 from fastapi import APIRouter, Header, Request
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from api.slots import RenderGate
 from api.models import error_responses
 from service import __version__
-from service.errors import Conflict, NotFound, RenderError, SpecError, Unavailable
+from service.errors import NotFound, RenderError, SpecError, Unavailable
 from service.spec import DatasetSpec, parse_spec
 from service.water import JERLOV_TYPES, JERLOV_VEILING_LIGHT
 
@@ -96,32 +95,6 @@ class PlaygroundConfig(BaseModel):
     schema_: dict[str, Any] = Field(alias="schema")
     spec: dict[str, Any] = Field(description="The spec the page starts from")
     jerlov: dict[str, list[float]] = Field(description="Jerlov type -> the colour of its water (linear RGB)")
-
-
-class RenderGate:
-    """At most `slots` renders at once; per client, only the newest request renders (older waiting ones get
-    409), and a request that finds no slot within `wait_s` gets 503."""
-
-    def __init__(self, slots: int, wait_s: float = 2.0):
-        self._slots = asyncio.Semaphore(slots)
-        self._wait_s = wait_s
-        self._latest: dict[str, str] = {}
-
-    async def run(self, client: str, fn: Callable[[], dict]) -> dict:
-        token = uuid.uuid4().hex
-        self._latest[client] = token
-        try:
-            await asyncio.wait_for(self._slots.acquire(), self._wait_s)
-        except TimeoutError:
-            raise Unavailable("the playground's renderer is busy; try again shortly") from None
-        try:
-            if self._latest.get(client) != token:
-                raise Conflict("superseded by a newer render request from the same client")
-            return await run_in_threadpool(fn)
-        finally:
-            self._slots.release()
-            if self._latest.get(client) == token:
-                del self._latest[client]
 
 
 def field_errors(err: ValidationError) -> list[FieldError]:

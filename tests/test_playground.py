@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from api.playground import RenderGate
+from api.slots import RenderGate
 from service.errors import Conflict, Unavailable
 from service.kitti import parse_label_file
 from service.spec import parse_spec

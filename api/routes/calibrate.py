@@ -1,15 +1,24 @@
 """Water calibration: estimate the water of an uploaded photo (and its range map) and answer a spec water: section.
 Needs no Redis or bucket: the estimate is computed here from the upload (numpy and Pillow only)."""
 
+import uuid
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, UploadFile
 
 from api.models import CalibrationPublic, WaterEstimatePublic, error_responses
+from api.slots import RenderGate
 from service.calibration import WaterEstimate, estimate_water, to_spec_water
 from service.calibration_io import read_inputs
 
 router = APIRouter(tags=["calibration"])
+# An estimate takes 0.4-3.5 s of one core (bench/results/cpu/calibration.md): at most this many run at once in an
+# API process, so calibrations cannot starve its status reads; one that finds no slot within the wait gets 503
+# with Retry-After.
+CALIBRATION_SLOTS = 1
+CALIBRATION_WAIT_S = 10.0
+GATE = RenderGate(CALIBRATION_SLOTS, CALIBRATION_WAIT_S, busy="the API is busy with other calibrations; try again "
+                  "shortly")
 
 
 def estimate_public(e: WaterEstimate) -> WaterEstimatePublic:
@@ -25,8 +34,8 @@ def estimate_public(e: WaterEstimate) -> WaterEstimatePublic:
         range_span_m=None if e.range_span_m is None else list(e.range_span_m), bootstrap=e.bootstrap, seed=e.seed)
 
 
-@router.post("/calibrate", response_model=CalibrationPublic, responses=error_responses(400, 401, 413, 422))
-def calibrate(
+@router.post("/calibrate", response_model=CalibrationPublic, responses=error_responses(400, 401, 413, 422, 503))
+async def calibrate(
     photo: UploadFile,
     depth: UploadFile | None = None,
     range_spread: Annotated[float, Query(ge=0.0, lt=1.0, description="Relative half-width of each coefficient's "
@@ -38,7 +47,13 @@ def calibrate(
     range map of the same size (field `depth`; its file name's suffix gives the format: .png 16-bit millimetres,
     .npy or .tif float metres, range along the line of sight). Without a range map only B_inf and the channel
     ratios of beta_B can be estimated; the answer says what was not identified."""
-    image, range_m = read_inputs(photo.file.read(), photo.filename or "photo",
-                                 None if depth is None else depth.file.read(), (depth and depth.filename) or "depth")
-    estimate = estimate_water(image, range_m, prior=prior)
-    return CalibrationPublic(estimate=estimate_public(estimate), water=to_spec_water(estimate, spread=range_spread))
+    photo_bytes = await photo.read()
+    depth_bytes = None if depth is None else await depth.read()
+
+    def run() -> CalibrationPublic:
+        image, range_m = read_inputs(photo_bytes, photo.filename or "photo", depth_bytes,
+                                     (depth and depth.filename) or "depth")
+        estimate = estimate_water(image, range_m, prior=prior)
+        return CalibrationPublic(estimate=estimate_public(estimate), water=to_spec_water(estimate, spread=range_spread))
+
+    return await GATE.run(uuid.uuid4().hex, run)  # a fresh client token: calibrations queue, none supersedes another
