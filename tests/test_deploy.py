@@ -502,6 +502,7 @@ COMMANDS_OF_OTHER_IMAGES = {
         ("service/cli/bench.py", "bench_scale"): {"bench"},
         ("service/cli/bench.py", "bench_load"): {"bench"},
         ("service/cli/bench.py", "bench_calibration"): {"bench"},
+        ("service/cli/bench.py", "bench_blender"): {"bench"},
     },
     "worker": {
         ("service/cli/servers.py", "serve"): {"api"},
@@ -514,6 +515,7 @@ COMMANDS_OF_OTHER_IMAGES = {
         ("service/cli/bench.py", "bench_scale"): {"bench"},
         ("service/cli/bench.py", "bench_load"): {"bench"},
         ("service/cli/bench.py", "bench_calibration"): {"bench"},
+        ("service/cli/bench.py", "bench_blender"): {"bench"},
     },
 }
 

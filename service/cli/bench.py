@@ -149,3 +149,27 @@ def bench_calibration(
     from bench.calibration import run
 
     run(out, scenes=scene, waters=water, frames=frames, width=width, height=height, machine=machine, platform=gl)
+
+
+@bench_app.command("blender")
+def bench_blender(
+    spec: Annotated[Path, typer.Option("--spec", help="Scene spec.")] = Path("examples/urchins.yaml"),
+    frames: Annotated[int, typer.Option("--frames", min=2, help="Scenes Blender renders per configuration.")] = 3,
+    width: Annotated[int, typer.Option("--width", min=16)] = 640,
+    height: Annotated[int, typer.Option("--height", min=16)] = 480,
+    engine: Annotated[Optional[list[str]], typer.Option("--engine", help="Blender configuration (repeatable): "
+                                                       "cycles-16, cycles-16-oidn, cycles-64, eevee-16.")] = None,
+    blender_python: Annotated[Path, typer.Option("--blender-python", help="A Python with bpy 4.5 (bpy needs "
+                                                 "numpy<2, so not seasynth's).")] = Path(".venv-blender/bin/python"),
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for blender.json, .md and .png.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """seasynth's generate against Blender (Cycles, EEVEE) on the same sampled scenes: seconds per frame, ratio."""
+    from bench.blender import ENGINES, run
+
+    for name in engine or []:
+        if name not in ENGINES:
+            raise typer.BadParameter(f"unknown configuration {name!r}; known: {', '.join(ENGINES)}",
+                                     param_hint="--engine")
+    run(spec, frames=frames, width=width, height=height, out=out, blender_python=blender_python,
+        engines=engine or list(ENGINES), platform=gl)
