@@ -139,7 +139,7 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, s
     light = scene.light
     variants = [(p, "full", light, None) for p in PRESET_NAMES]
     variants.append(("default", "paper", scene.lighting, paper_water(scene, view)))
-    for term in ("sun_shadows", "sky", "scattering"):
+    for term in ("sun_shadows", "sky", "scattering", "lamp_spread"):
         if getattr(light.terms, term):
             variants.append(("default", f"-{term}", dataclasses.replace(
                 light, terms=dataclasses.replace(light.terms, **{term: False})), None))

@@ -139,3 +139,23 @@ def test_reach_bounds_where_the_light_is_not_zero():
             past = np.linspace(edge, math.pi, 50)
             assert all(np.all(factor(lp, past, d, m) == 0) for d in ds)
             assert edge < math.pi and factor(lp, np.array([edge - 0.02]), d_max, m)[0, np.argmax(m.b)] > 0
+
+
+def test_a_frame_spreads_lamp_light_only_where_the_water_keeps_forward_scattered_light():
+    """Terms.lamp_spread (and the shader's LAMP_SPREAD) is on with lamps in water whose K < c in some channel, off
+    in water that keeps none (K = c) or without lamps: a term a frame does not need costs nothing."""
+    from worker.light.build import sample_physical
+    from worker.render import Lighting
+    from service.spec import DatasetSpec
+
+    lamps = [{"offset_m": [0.3, 0.0, 0.0], "direction": [0.0, 0.0, 1.0], "intensity": [2.0, 2.0]}]
+    cases = [({"jerlov": ["3C"]}, lamps, True), ({"jerlov": ["3C"]}, [], False),
+             ({"absorption": {"min": [0.3, 0.1, 0.05], "max": [0.3, 0.1, 0.05]},
+               "scattering": {"min": [0.003, 0.001, 0.0005], "max": [0.003, 0.001, 0.0005]}}, lamps, False)]
+    for water, lamp_specs, on in cases:
+        spec = DatasetSpec.model_validate({"water": {"model": "physical", **water},
+                                           "lighting": {"lamps": lamp_specs, "sun_elevation_deg": [-10.0, -5.0]}})
+        light, _ = sample_physical(spec, np.random.default_rng(1), Lighting(np.array([0.0, 0.0, -1.0]), 0.0, 0.0),
+                                   top_z=0.0)
+        assert light.terms.lamp_spread is on and ("lamp_spread" in light.terms.names()) is on
+        assert bool(np.any(light.medium.k < light.medium.c)) is (water.get("jerlov") == ["3C"])

@@ -31,7 +31,7 @@ def lamp(position=(0.0, 0.0, 0.0), direction=(0.0, 0.0, 1.0), beam_deg=15.0, cut
 
 def light(a, b, g=0.85, lamps=(), sun=True, sky=True, e0=(1.2, 1.1, 0.9), esky=(0.3, 0.35, 0.4)):
     a, b = np.broadcast_to(np.asarray(a, float), (3,)), np.broadcast_to(np.asarray(b, float), (3,))
-    terms = Terms(sun=sun, sun_shadows=False, sky=sky, scattering=True, lamps=len(lamps))
+    terms = Terms(sun=sun, sun_shadows=False, sky=sky, scattering=True, lamps=len(lamps), lamp_spread=bool(lamps))
     return PhysicalLight(medium=Medium(a=a, b=b, g=g, surface_z=10.0), sun_dir_world=SUN, sun_irradiance=np.array(e0),
                          sky_irradiance=np.array(esky), lamps=tuple(lamps), terms=terms)
 

@@ -49,13 +49,13 @@ def lamp(position, direction, beam_deg=20.0, cutoff_deg=35.0, intensity=(3.0, 2.
 
 
 def light(a, b, *, lamps=(), sun=True, sun_shadows=True, sky=True, surface_z=8.0, e0=None, sun_dir=None, esky=0.3,
-          scattering=None) -> PhysicalLight:
+          scattering=None, lamp_spread=True) -> PhysicalLight:
     if sun_dir is None:
         sun_dir, e = sun_in_water(np.array([0.3, 0.4, 0.866]) / np.linalg.norm([0.3, 0.4, 0.866]), 1.2)
         e0 = e if e0 is None else e0
     b = np.broadcast_to(np.asarray(b, float), (3,))
     terms = Terms(sun=sun, sun_shadows=sun_shadows, sky=sky, scattering=bool(b.max() > 0) if scattering is None
-                  else scattering, lamps=len(lamps))
+                  else scattering, lamps=len(lamps), lamp_spread=bool(lamps) and lamp_spread)
     return PhysicalLight(medium=Medium(a=np.broadcast_to(np.asarray(a, float), (3,)), b=b, g=0.9, surface_z=surface_z),
                          sun_dir_world=np.asarray(sun_dir, float), sun_irradiance=np.broadcast_to(e0, (3,)),
                          sky_irradiance=np.full(3, esky), lamps=tuple(lamps), terms=terms)
@@ -95,6 +95,9 @@ LAMP_CASES = {
     "optical-depth-1e6-lamp": light([1e5, 0.3, 0.01], [1e5, 0.5, 0.02], lamps=(lamp((0.3, 0.1, 0.0), (0, 0, 1)),)),
     "lamp-inside-sphere": light(CLEAR, SCATTERING, lamps=(lamp(INSIDE_SPHERE, (0.0, 0.0, 1.0)),)),
     "lamp-at-camera": light(CLEAR, SCATTERING, lamps=(lamp((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),)),
+    # the term switched off (the fidelity bench's -lamp_spread row): forward-scattered light in the sharp profile
+    "lamp-without-spread": light(CLEAR, SCATTERING, lamps=(lamp((0.3, 0.1, 0.0), (-0.05, 0.1, 1.0)),),
+                                 lamp_spread=False),
 }
 
 

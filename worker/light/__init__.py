@@ -71,11 +71,15 @@ class Terms:
     scattering: bool  # in-scattering along view rays (b > 0)
     lamps: int  # lamps rendered (shadowed by their own shadow maps)
     caustics: bool = False  # the sun's unscattered beam focused by surface waves (lighting.caustics)
+    # lamps' forward-scattered light spread in angle (lamps.light_factor); off, it stays in the sharp profile. Only
+    # where the water keeps forward-scattered light (K < c in some channel): in clear water nothing spreads.
+    lamp_spread: bool = False
 
     def names(self) -> list[str]:
         out = ["sun"] * self.sun + ["sun_shadows"] * self.sun_shadows + ["caustics"] * self.caustics
         out += ["sky"] * self.sky
-        return out + ["scattering"] * self.scattering + [f"lamp{i}" for i in range(self.lamps)]
+        out += ["scattering"] * self.scattering + [f"lamp{i}" for i in range(self.lamps)]
+        return out + ["lamp_spread"] * self.lamp_spread
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,7 @@ def sample_physical(
         sky=bool(sky.max() > 0),
         scattering=bool(b.max() > 0),
         lamps=len(lamps),
+        lamp_spread=bool(lamps) and bool(np.any(medium.k < medium.c)),
     )
     light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
                           lamps=lamps, terms=terms, caustics=caustics)

@@ -35,25 +35,34 @@ const float SNELL_SIN2 = 0.56266999;      // sin(48.6 deg)^2
 float exp_neg(float x) {{ return x >= X_MAX ? 0.0 : exp(-x); }}
 vec3 exp_neg3(vec3 x) {{ return vec3(exp_neg(x.x), exp_neg(x.y), exp_neg(x.z)); }}
 // lamps.light_factor: the unscattered beam with the sharp profile, the forward-scattered rest spread in angle
-vec3 edge_energy(vec3 lo, vec3 hi) {{
-    vec3 m = 0.5 * (lo + hi), x = 0.5 * (hi - lo), x2 = x * x;
-    vec3 small = x2 / 6.0 * (1.0 - x2 / 20.0);
-    vec3 one_minus_sinc = mix(1.0 - sin(x) / max(x, vec3(0.1)), small, lessThan(x, vec3(0.1)));
-    vec3 s = sin(0.5 * m);
-    return 2.0 * s * s + cos(m) * one_minus_sinc;
+// (LAMP_SPREAD) or, without it, kept in the sharp profile.
+#ifdef LAMP_SPREAD
+vec3 edge_energy(vec3 lo, vec3 hi) {{   // 2 sin^2(m/2) + cos(m) (1 - sinc(x)), x <= pi/2: a series to x^10 (< 4e-8)
+    vec3 x2 = 0.25 * (hi - lo) * (hi - lo);
+    vec3 one_minus_sinc = x2 * (1.0 / 6.0 - x2 * (1.0 / 120.0 - x2 * (1.0 / 5040.0 - x2 * (1.0 / 362880.0
+                          - x2 * (1.0 / 39916800.0)))));
+    vec3 s = sin(0.25 * (lo + hi));
+    vec3 s2 = 2.0 * s * s;
+    return s2 + (1.0 - s2) * one_minus_sinc;
 }}
-vec3 lamp_light(float cos_axis, float d, vec2 cone, float energy,   // cone: (beam, cutoff) half angles
+#endif
+// x0: optical depth the light crosses beyond the lamp's leg (the camera's, K t, in the water along a ray)
+vec3 lamp_light(float cos_axis, float d, vec3 x0, vec2 cone, float energy,   // cone: (beam, cutoff) half angles
                 vec3 c, vec3 K, vec3 b, float g) {{
     float ang = acos(clamp(cos_axis, -1.0, 1.0));
-    vec3 direct = exp_neg3(c * d);
-    vec3 outv = direct * clamp((cone.y - ang) / max(cone.y - cone.x, 1e-9), 0.0, 1.0);
+    float sharp = clamp((cone.y - ang) / max(cone.y - cone.x, 1e-9), 0.0, 1.0);
+#ifdef LAMP_SPREAD
+    vec3 direct = exp_neg3(c * d + x0);
     vec3 bd = b * d;
     vec3 n = mix(bd / max(1.0 - exp(-bd), vec3(1e-30)), vec3(1.0), lessThan(bd, vec3(1e-4)));
     float w = cone.y - cone.x, m = 0.5 * (cone.x + cone.y);
     vec3 w2 = sqrt(w * w + 4.0 * (1.0 - g) * n);
     vec3 lo = max(m - 0.5 * w2, 0.0), hi = min(m + 0.5 * w2, PI);
     vec3 spread = energy / edge_energy(lo, hi) * clamp((hi - ang) / max(hi - lo, vec3(1e-9)), 0.0, 1.0);
-    return outv + (exp_neg3(K * d) - direct) * spread;
+    return direct * sharp + (exp_neg3(K * d + x0) - direct) * spread;
+#else
+    return exp_neg3(K * d + x0) * sharp;
+#endif
 }}
 """
 
@@ -177,7 +186,8 @@ void main() {
         vec3 wi = to_p / d;
         float cos_n = max(dot(n, -wi), 0.0);
         if (cos_n <= 0.0) continue;
-        vec3 lit = lamp_light(dot(wi, u_lamp_dir[l]), d, u_lamp_cone[l], u_lamp_energy[l], u_c, u_K, u_b, u_g);
+        vec3 lit = lamp_light(dot(wi, u_lamp_dir[l]), d, vec3(0.0), u_lamp_cone[l], u_lamp_energy[l], u_c, u_K, u_b,
+                              u_g);
         vec4 q = u_lamp_from_cam[l] * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_lamp_texel[l] * d + pixel_m), 1.0);
         float vis = q.w > 0.0 ? lamp_visibility(l, q.xyz / q.w) : 0.0;
         E += u_lamp_I[l] * (cos_n * vis / (d * d)) * lit;
@@ -259,12 +269,14 @@ void water_pixel(vec3 w) {{
 #if defined(WITH_SCATTER) && LAMPS > 0
 float lamp_reach(vec2 cone, float d_max) {{   // lamps.reach
     float r = cone.y;
-    if (any(lessThan(u_K, u_c))) {{
+#ifdef LAMP_SPREAD
+    {{
         float bd = max(u_b.x, max(u_b.y, u_b.z)) * d_max;
         float n = bd < 1e-4 ? 1.0 : bd / max(1.0 - exp(-bd), 1e-30);
         float w = cone.y - cone.x;
         r = clamp(0.5 * (cone.x + cone.y) + 0.5 * sqrt(w * w + 4.0 * (1.0 - u_g) * n), cone.y, PI);
     }}
+#endif
     return r + {REACH_MARGIN_RAD!r};
 }}
 vec2 cone_interval(vec3 w, vec3 apex, vec3 axis, float half_angle, float t_end) {{   // lamps.cone_interval
@@ -317,7 +329,8 @@ vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
             vec3 to_x = w_cam * t - p;
             float r = max(length(to_x), {MIN_LAMP_DISTANCE_M!r});
             float f = hg(-dot(to_x, w_cam) / r, u_g) / h;
-            acc += f * lamp_light(dot(to_x, u_lamp_dir[l]) / r, r, u_lamp_cone[l], u_lamp_energy[l], u_c, u_K, u_b, u_g) * exp_neg3(u_K * t);
+            acc += f * lamp_light(dot(to_x, u_lamp_dir[l]) / r, r, u_K * t, u_lamp_cone[l], u_lamp_energy[l], u_c, u_K,
+                                  u_b, u_g);
         }}
         I += acc * du * u_b * (PI * u_lamp_I[l]);
     }}

@@ -66,10 +66,13 @@ def _edge_energy(lo, hi):
 
 
 def light_factor(lamp: Lamp, cos_axis: np.ndarray, d: np.ndarray, c: np.ndarray, K: np.ndarray, b: np.ndarray,
-                 g: float) -> np.ndarray:
-    """The module docstring's factor per channel, (..., 3) float64, for cos_axis and d (...) (d > 0 metres)."""
+                 g: float, spread: bool = True) -> np.ndarray:
+    """The module docstring's factor per channel, (..., 3) float64, for cos_axis and d (...) (d > 0 metres).
+    spread=False (Terms.lamp_spread off): the forward-scattered light stays in the sharp profile, exp(-K d) P."""
     ang = np.arccos(np.clip(cos_axis, -1.0, 1.0))[..., None]
     d = np.asarray(d, dtype=np.float64)[..., None]
+    if not spread:
+        return np.exp(-K * d) * _ramp(ang, lamp.beam_rad, lamp.cutoff_rad)
     direct = np.exp(-c * d)
     out = direct * _ramp(ang, lamp.beam_rad, lamp.cutoff_rad)  # profile()
     bd = b * d
@@ -83,11 +86,12 @@ def light_factor(lamp: Lamp, cos_axis: np.ndarray, d: np.ndarray, c: np.ndarray,
     return out + (np.exp(-K * d) - direct) * spread
 
 
-def reach(lamp: Lamp, c: np.ndarray, K: np.ndarray, b: np.ndarray, g: float, d_max) -> np.ndarray:
+def reach(lamp: Lamp, c: np.ndarray, K: np.ndarray, b: np.ndarray, g: float, d_max, spread: bool = True
+          ) -> np.ndarray:
     """The half angle (rad) beyond which `light_factor` is exactly 0 at every distance up to d_max: the cutoff, or
-    the widest channel's spread edge hi' when scattered light is kept (K < c). Plus REACH_MARGIN_RAD."""
+    the widest channel's spread edge hi' when scattered light is kept (K < c) and spread. Plus REACH_MARGIN_RAD."""
     d_max = np.asarray(d_max, dtype=np.float64)
-    if not np.any(K < c):
+    if not spread or not np.any(K < c):
         return np.full(d_max.shape, lamp.cutoff_rad + REACH_MARGIN_RAD)
     bd = float(np.max(b)) * d_max
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -82,11 +82,11 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
             out = out + np.where(window, L * np.exp(-K * np.where(window, to_surface[..., None], 0.0)), 0.0)
     if t.scattering:
         for lamp in light.lamps[: t.lamps]:
-            out = out + lamp_backscatter(lamp, dirs_cam, zs[..., 0], m)
+            out = out + lamp_backscatter(lamp, dirs_cam, zs[..., 0], m, t.lamp_spread)
     return out
 
 
-def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m):
+def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m, spread: bool = True):
     """Single scattering of one lamp's light (`lamps.light_factor` on the lamp's leg, K on the camera's) towards
     the camera along rays (camera at the origin) up to z. dirs_cam (..., 3) unit, z (...) metres (finite or +inf),
     m the Medium. Returns (..., 3) float64."""
@@ -97,7 +97,7 @@ def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m):
     t_end = np.minimum(z, CUTOFF_OPTICAL_DEPTH / max(float(k_pos.min()), 1e-30))
     p = lamp.position_cam
     d_max = np.maximum(np.linalg.norm(p), np.linalg.norm(dirs_cam * t_end[..., None] - p, axis=-1))
-    t0, t1 = cone_interval(dirs_cam, p, lamp.direction_cam, reach(lamp, m.c, K, b, g, d_max), t_end)
+    t0, t1 = cone_interval(dirs_cam, p, lamp.direction_cam, reach(lamp, m.c, K, b, g, d_max, spread), t_end)
     tc = dirs_cam @ p  # along-ray position of the point nearest the lamp
     h = np.maximum(np.linalg.norm(dirs_cam * tc[..., None] - p, axis=-1), MIN_LAMP_DISTANCE_M)
     u0 = np.arctan2(t0 - tc, h)
@@ -113,7 +113,7 @@ def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m):
         cos_axis = (to_x @ lamp.direction_cam) / r
         cos_scatter = -np.einsum("...i,...i->...", to_x, dirs_cam) / r
         f = hg(cos_scatter, g) / h  # inverse square * dt = du / h
-        acc += f[..., None] * light_factor(lamp, cos_axis, r, m.c, K, b, g) * np.exp(-K * t[..., None])
+        acc += f[..., None] * light_factor(lamp, cos_axis, r, m.c, K, b, g, spread) * np.exp(-K * t[..., None])
     return acc * (du[..., None] * b * math.pi * lamp.intensity)
 
 

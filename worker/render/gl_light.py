@@ -30,6 +30,7 @@ def defines(light: PhysicalLight) -> dict[str, object]:
         "WITH_SKY": t.sky,
         "WITH_SCATTER": t.scattering,
         "LAMPS": t.lamps,
+        "LAMP_SPREAD": t.lamps > 0 and t.lamp_spread,
     }
 
 
