@@ -9,7 +9,15 @@ import pytest
 from scipy.integrate import quad
 
 from worker.light import Lamp, Medium
-from worker.light.lamps import cone_energy, cone_interval, light_factor, profile, reach
+from worker.light.lamps import (
+    SPREAD_DISTANCE_M,
+    SPREAD_MIN_SHARE,
+    cone_energy,
+    cone_interval,
+    light_factor,
+    profile,
+    reach,
+)
 
 TURBID = Medium(a=np.array([0.3, 0.08, 0.13]), b=np.array([0.857, 1.10, 1.43]), g=0.92, surface_z=0.0)  # Jerlov 3C
 CLEAR = Medium(a=np.array([0.3, 0.1, 0.05]), b=np.array([0.006, 0.002, 0.001]), g=0.85, surface_z=0.0)
@@ -142,8 +150,9 @@ def test_reach_bounds_where_the_light_is_not_zero():
 
 
 def test_a_frame_spreads_lamp_light_only_where_the_water_keeps_forward_scattered_light():
-    """Terms.lamp_spread (and the shader's LAMP_SPREAD) is on with lamps in water whose K < c in some channel, off
-    in water that keeps none (K = c) or without lamps: a term a frame does not need costs nothing."""
+    """Terms.lamp_spread (and the shader's LAMP_SPREAD) is on with lamps in turbid water, off without lamps, in water
+    that keeps no forward-scattered light (K = c) and in clear ocean water, where what it would move is under
+    SPREAD_MIN_SHARE: a term a frame does not need costs nothing."""
     from worker.light.build import sample_physical
     from worker.render import Lighting
     from service.spec import DatasetSpec
@@ -151,11 +160,15 @@ def test_a_frame_spreads_lamp_light_only_where_the_water_keeps_forward_scattered
     lamps = [{"offset_m": [0.3, 0.0, 0.0], "direction": [0.0, 0.0, 1.0], "intensity": [2.0, 2.0]}]
     cases = [({"jerlov": ["3C"]}, lamps, True), ({"jerlov": ["3C"]}, [], False),
              ({"absorption": {"min": [0.3, 0.1, 0.05], "max": [0.3, 0.1, 0.05]},
-               "scattering": {"min": [0.003, 0.001, 0.0005], "max": [0.003, 0.001, 0.0005]}}, lamps, False)]
+               "scattering": {"min": [0.003, 0.001, 0.0005], "max": [0.003, 0.001, 0.0005]}}, lamps, False),
+             ({"jerlov": ["I"]}, lamps, False), ({"jerlov": ["II"]}, lamps, True)]
     for water, lamp_specs, on in cases:
         spec = DatasetSpec.model_validate({"water": {"model": "physical", **water},
                                            "lighting": {"lamps": lamp_specs, "sun_elevation_deg": [-10.0, -5.0]}})
         light, _ = sample_physical(spec, np.random.default_rng(1), Lighting(np.array([0.0, 0.0, -1.0]), 0.0, 0.0),
                                    top_z=0.0)
         assert light.terms.lamp_spread is on and ("lamp_spread" in light.terms.names()) is on
-        assert bool(np.any(light.medium.k < light.medium.c)) is (water.get("jerlov") == ["3C"])
+        m = light.medium
+        assert bool(np.any(m.k < m.c)) is ("jerlov" in water)  # Jerlov I keeps a little: below the threshold
+        share = -np.expm1(-(m.c - m.k) * SPREAD_DISTANCE_M)
+        assert bool(share.max() >= SPREAD_MIN_SHARE) is (on or not lamp_specs)

@@ -72,7 +72,7 @@ class Terms:
     lamps: int  # lamps rendered (shadowed by their own shadow maps)
     caustics: bool = False  # the sun's unscattered beam focused by surface waves (lighting.caustics)
     # lamps' forward-scattered light spread in angle (lamps.light_factor); off, it stays in the sharp profile. Only
-    # where the water keeps forward-scattered light (K < c in some channel): in clear water nothing spreads.
+    # where the water keeps enough forward-scattered light for it to matter (lamps.spread_worthwhile).
     lamp_spread: bool = False
 
     def names(self) -> list[str]:

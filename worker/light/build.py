@@ -9,7 +9,7 @@ from service.spec import DatasetSpec
 from service.water import jerlov_absorption, jerlov_scattering
 from worker.light import Medium, PhysicalLight, Terms
 from worker.light.caustics import sample_caustics
-from worker.light.lamps import lamp_from_spec
+from worker.light.lamps import lamp_from_spec, spread_worthwhile
 from worker.light.sun import shadow_worthwhile, sun_in_water
 from worker.render import Lighting
 
@@ -56,7 +56,7 @@ def sample_physical(
         sky=bool(sky.max() > 0),
         scattering=bool(b.max() > 0),
         lamps=len(lamps),
-        lamp_spread=bool(lamps) and bool(np.any(medium.k < medium.c)),
+        lamp_spread=bool(lamps) and spread_worthwhile(medium.c, medium.k),
     )
     light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
                           lamps=lamps, terms=terms, caustics=caustics)
