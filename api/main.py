@@ -14,7 +14,7 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from api import errors, metrics
 from api.deps import Services, open_services
 from api.gate import Gate
-from api.operations import check_files, check_limits
+from api.admission import check_files, check_limits
 from api.playground import ServicePreviewer, playground_router
 from api.routes import assets, calibrate, datasets, health
 from api.waits import FrameWaits

@@ -1,42 +1,32 @@
-"""What the routes do, as plain functions of Services: admit and enqueue datasets, report status, cancel, purge,
-build manifests, fetch single frames and store uploaded assets."""
+"""What the dataset routes do, as plain functions of Services: enqueue datasets (admitted by api.admission), report
+status, cancel, purge, build manifests and fetch single frames. Uploaded assets: api.asset_store."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
-import tempfile
 import time
 import uuid
 from datetime import datetime, timezone
-from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
+from api.admission import check_files, check_limits
 from api.deps import Services
 from api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPublic
-from api.uploads import ARTICLED, FORMATS, FileFormat, field_kind, format_of, validate
-from service.errors import AssetError, Conflict, LimitExceeded, NotFound, RenderError, SpecError, Unavailable
+from service.errors import AssetError, Conflict, NotFound, RenderError, Unavailable
 from service.manifest import build_manifest
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
 from service.records import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord, wait_reply
 from service.recovery import cancelled_key, check_redis, forget, restore, save_record
-from service.settings import Settings
 from service.shards import (
     FRAME_PARTS,
-    asset_info_key,
-    asset_key,
     dataset_prefix,
     frame_file,
     shard_count,
-    spec_cost_terms,
-    spec_shard_seconds,
 )
 from service.spec import DatasetSpec
 
 log = logging.getLogger(__name__)
 
-UPLOAD_SUFFIXES = tuple(FORMATS)
 MANIFEST_PAGE = 1000  # shard indices per manifest page by default (each committed one is presigned)
 MANIFEST_PAGE_MAX = 10_000
 
@@ -53,89 +43,6 @@ def publish(services: Services, task: str, args: list, queue: str, **options: An
         services.producer.send_task(task, args=args, queue=queue, **options)
     except (KombuError, redis.RedisError, OSError) as err:
         raise Unavailable(f"task broker unavailable: could not publish {task} ({type(err).__name__}: {err})") from err
-
-
-# --- admission
-
-
-def check_limits(spec: DatasetSpec, settings: Settings) -> None:
-    """LimitExceeded naming each configured limit the spec goes over."""
-    over = []
-    if spec.frames > settings.max_frames:
-        over.append(f"frames: {spec.frames} is over the limit of {settings.max_frames} (SEASYNTH_MAX_FRAMES)")
-    for side in ("width", "height"):
-        v = getattr(spec.camera, side)
-        if v > settings.max_side:
-            over.append(f"camera.{side}: {v} is over the limit of {settings.max_side} (SEASYNTH_MAX_SIDE)")
-    for role in ("targets", "distractors"):
-        hi = getattr(spec, role).count[1]
-        if hi > settings.max_objects:
-            over.append(
-                f"{role}.count: max {hi} is over the limit of {settings.max_objects} objects (SEASYNTH_MAX_OBJECTS)"
-            )
-    # A shard must finish well inside the task time limit on a slow worker (service/shards.py's cost model).
-    shard = shard_over_time_limit(spec, settings.task_soft_time_limit_s)
-    if shard is not None:
-        over.append(shard)
-    if over:
-        raise LimitExceeded("\n".join(over))
-
-
-def shard_over_time_limit(spec: DatasetSpec, budget: float) -> str | None:
-    """Why a shard of `spec` would not finish well inside the task time limit on a slow worker, or None.
-
-    Both the estimate and the suggested shard_size come from the full cost model (service.shards.spec_shard_seconds:
-    resolution and quality, objects, terrain cells and builds, extra outputs), so the suggestion really fits.
-    """
-    need = spec_shard_seconds(spec)
-    if need <= budget:
-        return None
-    size = min(spec.shard_size, spec.frames)
-    terms = spec_cost_terms(spec)
-    sensors = (f", {terms['sensors']} sensors rendering {terms['sensor_pixels']} pixels"
-               if terms["sensors"] else "")
-    what = (f"shard_size: {size} frames of {spec.camera.width}x{spec.camera.height} at quality {spec.quality!r} "
-            f"(up to {terms['objects']} objects, {terms['terrain_cells']} terrain cells a side, "
-            f"{terms['terrain_builds']} terrains, {terms['extra_outputs']} of clean/range/depth/instance/coco/yolo/"
-            f"mcap{sensors}) are estimated at {need:.0f} s per shard, over the limit of {budget} s (the soft task "
-            f"time limit, SEASYNTH_TASK_TIME_LIMIT_S)")
-    fits = largest_shard_size(spec, budget, below=size)
-    if fits == 0:
-        return (f"{what}; even one frame per shard is estimated at {spec_shard_seconds(spec, 1):.0f} s: lower the "
-                "resolution, quality, object counts, terrain.cells or outputs"
-                + (", or the sensors' beams and bins" if terms["sensors"] else ""))
-    return f"{what}; use shard_size <= {fits}"
-
-
-def largest_shard_size(spec: DatasetSpec, budget: float, below: int) -> int:
-    """The largest shard size under `below` whose estimate fits `budget` (0: none does). Binary search: the
-    estimate grows with the shard size."""
-    lo, hi = 0, below - 1  # the answer is in [lo, hi]; a shard of 0 frames costs nothing
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if spec_shard_seconds(spec, mid) <= budget:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
-def check_files(spec: DatasetSpec, services: Services) -> None:
-    """A POSTed spec names uploaded assets only, each of the kind its field needs (a mesh, or an image for
-    terrain.texture): SpecError naming every path, every unknown asset id and every asset of the wrong kind."""
-    bad = []
-    for where, ref in spec.file_refs():
-        if ref.path is not None:
-            bad.append(f"{where}.path: local paths and URLs are not accepted here; upload the file to POST /assets "
-                       "and reference it by asset_id")
-            continue
-        fmt = stored_format(services, ref.asset_id)
-        if fmt is None or services.store.head(asset_key(ref.asset_id)) is None:
-            bad.append(f"{where}.asset_id: no uploaded asset {ref.asset_id}")
-        elif fmt.kind != (need := field_kind(where)):
-            bad.append(f"{where}.asset_id: asset {ref.asset_id} is {fmt}; this field needs {ARTICLED[need]}")
-    if bad:
-        raise SpecError("\n".join(bad))
 
 
 # --- datasets
@@ -445,67 +352,3 @@ def worker_error(header: dict[str, Any], what: str) -> Exception:
     if status == 422:
         return AssetError(f"{what}: {error}")
     return RenderError(f"{what} failed on the frame worker: {error}")
-
-
-# --- assets
-
-
-def stored_format(services: Services, asset_id: str) -> FileFormat | None:
-    """The format an uploaded asset was stored as (its sidecar's file name), or None for no such asset."""
-    info = _sidecar(services, asset_id)
-    return None if info is None else format_of(info.get("filename", ""))
-
-
-def _sidecar(services: Services, asset_id: str) -> dict[str, Any] | None:
-    try:
-        return json.loads(services.store.get_bytes(asset_info_key(asset_id)))
-    except NotFound:
-        return None
-
-
-def store_asset(services: Services, filename: str, stream: BinaryIO) -> tuple[dict[str, Any], bool]:
-    """Check and store an upload as assets/{sha256}; return its sidecar (with format and kind) and whether
-    this upload created it.
-
-    The upload is hashed into a temporary file and must load as its suffix says (AssetError, 422). The sidecar
-    assets/{sha256}.json, whose file name tells workers the format, is written once: the first upload of some
-    bytes decides their format for good. The same bytes again under the same format change nothing; under
-    another format they are a Conflict (409) naming the stored one.
-    """
-    fmt = format_of(filename or "")
-    if fmt is None:
-        suffix = Path(filename or "").suffix.lower()
-        raise AssetError(f"{filename or '(no name)'}: unsupported file type {suffix!r}; "
-                         f"upload one of {', '.join(UPLOAD_SUFFIXES)}")
-    limit = services.settings.max_asset_bytes
-    sha, size = hashlib.sha256(), 0
-    with tempfile.NamedTemporaryFile(prefix="seasynth-upload-") as tmp:
-        while chunk := stream.read(1 << 20):
-            size += len(chunk)
-            if size > limit:
-                raise LimitExceeded(f"{filename}: over the limit of {limit} bytes (SEASYNTH_MAX_ASSET_BYTES)")
-            sha.update(chunk)
-            tmp.write(chunk)
-        tmp.flush()
-        if size == 0:
-            raise AssetError(f"{filename}: the file is empty")
-        asset_id = sha.hexdigest()
-        stored, created = _sidecar(services, asset_id), False
-        if stored is None:
-            validate(Path(tmp.name), fmt, filename)
-            info = {"filename": Path(filename).name, "bytes": size, "sha256": asset_id, "format": fmt.format,
-                    "kind": fmt.kind}
-            # The sidecar goes first (an asset whose object exists always has its sidecar), and only if absent:
-            # of two uploads racing with different formats one wins, and the other reads the winner's sidecar.
-            created = services.store.put_bytes_if_absent(
-                asset_info_key(asset_id), json.dumps(info).encode(), "application/json"
-            )
-            stored = info if created else _sidecar(services, asset_id)
-        have = format_of(stored.get("filename", ""))
-        if have != fmt:
-            raise Conflict(f"{filename}: these bytes are already uploaded as asset {asset_id}, {have}, first as "
-                           f"{stored.get('filename')!r}; they cannot also be {fmt}")
-        # Also after a re-upload: an upload that died between the sidecar and the object left no object.
-        if services.store.head(asset_key(asset_id)) is None:
-            services.store.put_file(asset_key(asset_id), Path(tmp.name))
-    return {**stored, "format": have.format, "kind": have.kind}, created

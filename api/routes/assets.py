@@ -4,7 +4,7 @@ from pathlib import PurePosixPath
 
 from fastapi import APIRouter, Response, UploadFile, status
 
-from api import operations
+from api import asset_store
 from api.deps import ServicesDep
 from api.models import AssetPublic, error_responses
 
@@ -24,7 +24,7 @@ def upload_asset(file: UploadFile, services: ServicesDep, response: Response) ->
     A mesh must load with triangles and finite vertices, an image must decode. The first upload of some bytes
     fixes their format: 201 then, 200 for the same bytes again in the same format, 409 in another."""
     name = PurePosixPath((file.filename or "").replace("\\", "/")).name
-    info, created = operations.store_asset(services, name, file.file)
+    info, created = asset_store.store_asset(services, name, file.file)
     if not created:
         response.status_code = status.HTTP_200_OK
     return AssetPublic(asset_id=info["sha256"], filename=info["filename"], bytes=info["bytes"],
