@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
+from service import record_scripts as scripts
 from service.errors import NotFound
 from service.spec import EXPORT_FORMATS
 
@@ -36,92 +37,6 @@ TERMINAL = frozenset({SUCCEEDED, FAILED, CANCELLED})
 # A record carries the errors of at most this many failed shards, those of lowest index: reading a record costs
 # the same however many shards failed (shards_failed counts them all).
 ERRORS_SHOWN = 20
-
-# Counts an execution unless the shard has used up its attempts (then returns -1 and counts nothing), or the
-# record is gone (-2: Redis lost it; nothing is written, so no partial record appears).
-_START = """
-if redis.call('EXISTS', KEYS[1]) == 0 then return -2 end
-local tries = tonumber(redis.call('HGET', KEYS[2], ARGV[1]) or '0')
-if tries >= tonumber(ARGV[4]) then return -1 end
-tries = redis.call('HINCRBY', KEYS[2], ARGV[1], 1)
-redis.call('HINCRBY', KEYS[1], 'attempts', 1)
-redis.call('HSETNX', KEYS[1], 'started_at', ARGV[2])
-redis.call('HSET', KEYS[1], 'touched_at', ARGV[2])
-if redis.call('HGET', KEYS[1], 'state') == 'queued' then redis.call('HSET', KEYS[1], 'state', 'running') end
-redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
-return tries
-"""
-
-# SADD first: only the first commit of a shard adds its frames, however many times it runs. A record Redis lost
-# is not recreated in part: the commit marker in the bucket is adopted when the record is restored.
-_COMMIT = """
-if redis.call('EXISTS', KEYS[1]) == 0 then return {0, 0, 0} end
-local added = redis.call('SADD', KEYS[2], ARGV[1])
-if added == 1 then
-  redis.call('HINCRBY', KEYS[1], 'frames_done', ARGV[2])
-  redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
-  redis.call('HSET', KEYS[1], 'touched_at', ARGV[4])
-end
-return {added, redis.call('SCARD', KEYS[2]), redis.call('SCARD', KEYS[4])}
-"""
-
-# A newly failed shard also joins the ERRORS_SHOWN (ARGV[4]) lowest failed indices, if it is one of them.
-_FAIL = """
-if redis.call('EXISTS', KEYS[1]) == 0 then return {0, 0, 0} end
-redis.call('HSET', KEYS[3], ARGV[1], ARGV[2])
-local added = 0
-if redis.call('SISMEMBER', KEYS[4], ARGV[1]) == 0 then added = redis.call('SADD', KEYS[2], ARGV[1]) end
-if added == 1 then
-  redis.call('HSET', KEYS[1], 'touched_at', ARGV[3])
-  redis.call('ZADD', KEYS[5], ARGV[1], ARGV[1])
-  redis.call('ZREMRANGEBYRANK', KEYS[5], tonumber(ARGV[4]), -1)
-end
-return {added, redis.call('SCARD', KEYS[4]), redis.call('SCARD', KEYS[2])}
-"""
-
-# {index, error, ...} of the shown failed shards (KEYS: failed, shown, errors; ARGV[1]: ERRORS_SHOWN), in index
-# order. Fewer shown than failed, with room for more, only happens to a record written before failed shards were
-# indexed: they are indexed then, once.
-_ERRORS = """
-local limit = tonumber(ARGV[1])
-local shown = redis.call('ZCARD', KEYS[2])
-if shown < limit and shown < redis.call('SCARD', KEYS[1]) then
-  for _, i in ipairs(redis.call('SMEMBERS', KEYS[1])) do redis.call('ZADD', KEYS[2], i, i) end
-  redis.call('ZREMRANGEBYRANK', KEYS[2], limit, -1)
-end
-local out = {}
-for _, i in ipairs(redis.call('ZRANGE', KEYS[2], 0, -1)) do
-  out[#out + 1] = i
-  out[#out + 1] = redis.call('HGET', KEYS[3], i) or ''
-end
-return out
-"""
-
-# Moves a live dataset to a terminal state; a terminal one keeps its state. Returns the state after.
-_FINISH = """
-local s = redis.call('HGET', KEYS[1], 'state')
-if not s then return nil end
-if s == 'queued' or s == 'running' then
-  redis.call('HSET', KEYS[1], 'state', ARGV[1], 'finished_at', ARGV[2])
-  return ARGV[1]
-end
-return s
-"""
-
-# Sets fields of an existing record only: a late writer never recreates a discarded dataset's hash.
-_UPDATE = """
-if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
-redis.call('HSET', KEYS[1], unpack(ARGV))
-return 1
-"""
-
-# Recreates a record Redis lost, unless one exists (two restorers race: one wins). ARGV: score, id, fields...
-_RESTORE = """
-if redis.call('EXISTS', KEYS[1]) == 1 then return 0 end
-redis.call('HSET', KEYS[1], unpack(ARGV, 3))
-redis.call('ZADD', KEYS[2], ARGV[1], ARGV[2])
-return 1
-"""
 
 # Every key of a dataset, for discarding one that was never published.
 PARTS = ("done", "failed", "shards", "tries", "outages", "errors", "shown", "running", "final", "sweep")
@@ -228,13 +143,13 @@ class Records:
     def __init__(self, redis, prefix: str = "seasynth"):
         self.r = redis
         self.p = prefix
-        self._start = redis.register_script(_START)
-        self._commit = redis.register_script(_COMMIT)
-        self._fail = redis.register_script(_FAIL)
-        self._errors = redis.register_script(_ERRORS)
-        self._finish = redis.register_script(_FINISH)
-        self._update = redis.register_script(_UPDATE)
-        self._restore = redis.register_script(_RESTORE)
+        self._start = redis.register_script(scripts.START)
+        self._commit = redis.register_script(scripts.COMMIT)
+        self._fail = redis.register_script(scripts.FAIL)
+        self._errors = redis.register_script(scripts.ERRORS)
+        self._finish = redis.register_script(scripts.FINISH)
+        self._update = redis.register_script(scripts.UPDATE)
+        self._restore = redis.register_script(scripts.RESTORE)
 
     def _k(self, dataset_id: str, part: str = "") -> str:
         return f"{self.p}:ds:{dataset_id}" + (f":{part}" if part else "")
@@ -311,7 +226,7 @@ class Records:
             except redis.exceptions.NoScriptError:
                 if attempt == 2:
                     raise
-                self.r.script_load(_ERRORS)
+                self.r.script_load(scripts.ERRORS)
         raws = [tuple(got[k:k + 4]) for k in range(0, len(got), 4)]
         return [raw if raw[0] else None for raw in raws]
 
