@@ -270,7 +270,7 @@ void water_pixel(vec3 w) {{
 float lamp_reach(vec2 cone, float d_max) {{   // lamps.reach
     float r = cone.y;
 #ifdef LAMP_SPREAD
-    {{
+    if (any(lessThan(u_K, u_c))) {{
         float bd = max(u_b.x, max(u_b.y, u_b.z)) * d_max;
         float n = bd < 1e-4 ? 1.0 : bd / max(1.0 - exp(-bd), 1e-30);
         float w = cone.y - cone.x;
