@@ -1,4 +1,5 @@
-"""Bounded CPU work in the API's event loop: at most N jobs at once in threads, the newest per client winning."""
+"""Bounded CPU work in an API process: at most N jobs at once, in threads, the newest per client winning (playground
+renders, water calibrations)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,8 @@ T = TypeVar("T")
 
 
 class RenderGate:
-    """At most `slots` renders at once; per client, only the newest request renders (older waiting ones get
-    409), and a request that finds no slot within `wait_s` gets 503."""
+    """At most `slots` jobs at once; per client, only the newest request runs (older waiting ones get 409), and a
+    request that finds no slot within `wait_s` gets 503 with the `busy` message."""
 
     def __init__(self, slots: int, wait_s: float = 2.0, busy: str = "the playground's renderer is busy; try again "
                  "shortly"):
@@ -34,7 +35,7 @@ class RenderGate:
             raise Unavailable(self._busy) from None
         try:
             if self._latest.get(client) != token:
-                raise Conflict("superseded by a newer render request from the same client")
+                raise Conflict("superseded by a newer request from the same client")
             return await run_in_threadpool(fn)
         finally:
             self._slots.release()

@@ -87,8 +87,8 @@ def light_factor(lamp: Lamp, cos_axis: np.ndarray, d: np.ndarray, c: np.ndarray,
     m = 0.5 * (lamp.cutoff_rad + lamp.beam_rad)
     w2 = np.sqrt(w * w + 4.0 * (1.0 - g) * n)  # 12 s^2 = 4 (1 - g) n
     lo, hi = np.maximum(m - 0.5 * w2, 0.0), np.minimum(m + 0.5 * w2, math.pi)
-    spread = cone_energy(lamp) / _edge_energy(lo, hi) * _ramp(ang, lo, hi)
-    return out + (np.exp(-K * d) - direct) * spread
+    widened = cone_energy(lamp) / _edge_energy(lo, hi) * _ramp(ang, lo, hi)  # N P(theta; lo', hi')
+    return out + (np.exp(-K * d) - direct) * widened
 
 
 def reach(lamp: Lamp, c: np.ndarray, K: np.ndarray, b: np.ndarray, g: float, d_max, spread: bool = True
