@@ -42,7 +42,8 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
     assert result["configs"] == fidelity.CONFIGS and result["resolution"] == [fidelity.WIDTH, fidelity.HEIGHT]
     rows = result["rows"]
     keys = {"config", "water", "light", "preset", "terms", "psnr_db", "mae", "ms_per_frame",
-            "path_tracer_s_per_frame", "noise_floor_db"}
+            "path_tracer_s_per_frame", "noise_floor_db", "psnr_blocks_db", "noise_floor_blocks_db",
+            "path_tracer_equal_error_spp", "path_tracer_equal_error_s", "speedup_equal_error"}
     assert all(keys <= set(r) for r in rows)
     table = (RESULTS / "cpu" / "fidelity.md").read_text()
     for name, text in fidelity.CONFIGS.items():
@@ -59,5 +60,13 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
         assert result["references"][name]["spp_per_half"] == ref.spp
         floor = psnr_db(encode_srgb8(ref.halves[0]), encode_srgb8(ref.halves[1]))
         assert {r["noise_floor_db"] for r in mine} == {round(floor, 2)}, name
+        blocks = psnr_db(*(encode_srgb8(fidelity.block_means(h)) for h in ref.halves))
+        assert {r["noise_floor_blocks_db"] for r in mine} == {round(blocks, 2)}, name
+        assert result["references"][name]["lamp_housing_m"] == ref.lamp_housing_m, name
+        # the equal-error columns follow from the row's own numbers
+        for r in mine:
+            assert r["path_tracer_equal_error_s"] == pytest.approx(
+                r["path_tracer_s_per_frame"] * r["path_tracer_equal_error_spp"] / r["path_tracer_spp"], rel=0.01,
+                abs=0.1), (name, r["terms"])
         assert all(f"| {name} | {r['water']} | {r['light']} | {r['depth_m']} | {r['preset']} | {r['terms']} | "
                    f"{r['psnr_db']} |" in table for r in mine)
