@@ -71,10 +71,9 @@ def export_frame(session, spec, index: int) -> dict[str, np.ndarray]:
     view = session.view(spec, scene)
     verts, faces, albedo, nv, nf = [], [], [], [], []
     for it in session.draw_items(scene):
-        M = it.world_from_obj
-        verts.append(it.mesh.vertices.astype(np.float64) @ M[:3, :3].T + M[:3, 3])
+        verts.append(it.world_vertices())
         faces.append(it.mesh.faces.astype(np.int32))
-        albedo.append(np.clip(it.mesh.albedo * it.albedo_scale + it.albedo_bias, 0.0, 1.0))
+        albedo.append(it.shaded_albedo())
         nv.append(len(it.mesh.vertices))
         nf.append(len(it.mesh.faces))
     if scene.light is not None:  # the physical model: its own medium and surface
@@ -100,7 +99,6 @@ def export_frame(session, spec, index: int) -> dict[str, np.ndarray]:
     }
 
 
-# ---- Blender's side (runs in the bpy environment) -----------------------------------------------------------------
 # ---- the bench ----------------------------------------------------------------------------------------------------
 def check_blender(python: Path) -> str:
     """bpy's version in `python`, or a SeasynthError in one line saying how to install it."""

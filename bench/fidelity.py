@@ -95,9 +95,7 @@ def path_traced_scene(session, spec: DatasetSpec):
     light = scene.light
     meshes = []
     for it in session.draw_items(scene):
-        M = it.world_from_obj
-        v = it.mesh.vertices.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
-        albedo = np.clip(it.mesh.albedo * it.albedo_scale + it.albedo_bias, 0.0, 1.0)
+        v, albedo = it.world_vertices(), it.shaded_albedo()
         meshes.append(PTMesh(vertices=v.astype(np.float32), faces=it.mesh.faces, albedo=albedo.astype(np.float32),
                              instance_id=it.instance_id))
     world_from_cam = scene.world_from_cam
@@ -232,11 +230,11 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
             t0 = time.perf_counter()
             pathtracer.render(pts, timing_spp, seed=2)
             pt_s = time.perf_counter() - t0
-            floor = psnr_db(encode_srgb8(ref.halves[0]), encode_srgb8(ref.halves[1]))
+            halves8 = [encode_srgb8(half) for half in ref.halves]
+            floor, halves_mse = psnr_db(*halves8), mse(*halves8)
             floor_blocks = psnr_db(*(encode_srgb8(block_means(half)) for half in ref.halves))
             target = encode_srgb8(ref.mean)
             target_blocks = encode_srgb8(block_means(ref.mean))
-            halves_mse = mse(encode_srgb8(ref.halves[0]), encode_srgb8(ref.halves[1]))
             for preset, terms, linear, ms in seasynth_rows(session, spec, repeats):
                 image = encode_srgb8(linear)
                 spp_eq = equal_error_spp(mse(image, target), halves_mse, ref.spp)

@@ -70,6 +70,16 @@ def _edge_energy(lo, hi):
     return 2.0 * np.sin(0.5 * m) ** 2 + np.cos(m) * one_minus_sinc
 
 
+def _widened_edges(lamp: Lamp, g: float, bd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo', hi'): the profile's edge widened for light that crossed b d scattering lengths (module docstring)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n = np.where(bd < 1e-4, 1.0, bd / -np.expm1(-np.maximum(bd, 1e-4)))
+    w = lamp.cutoff_rad - lamp.beam_rad
+    m = 0.5 * (lamp.cutoff_rad + lamp.beam_rad)
+    w2 = np.sqrt(w * w + 4.0 * (1.0 - g) * n)  # 12 s^2 = 4 (1 - g) n
+    return np.maximum(m - 0.5 * w2, 0.0), np.minimum(m + 0.5 * w2, math.pi)
+
+
 def light_factor(lamp: Lamp, cos_axis: np.ndarray, d: np.ndarray, c: np.ndarray, K: np.ndarray, b: np.ndarray,
                  g: float, spread: bool = True) -> np.ndarray:
     """The module docstring's factor per channel, (..., 3) float64, for cos_axis and d (...) (d > 0 metres).
@@ -80,13 +90,7 @@ def light_factor(lamp: Lamp, cos_axis: np.ndarray, d: np.ndarray, c: np.ndarray,
         return np.exp(-K * d) * _ramp(ang, lamp.beam_rad, lamp.cutoff_rad)
     direct = np.exp(-c * d)
     out = direct * _ramp(ang, lamp.beam_rad, lamp.cutoff_rad)  # profile()
-    bd = b * d
-    with np.errstate(divide="ignore", invalid="ignore"):
-        n = np.where(bd < 1e-4, 1.0, bd / -np.expm1(-np.maximum(bd, 1e-4)))
-    w = lamp.cutoff_rad - lamp.beam_rad
-    m = 0.5 * (lamp.cutoff_rad + lamp.beam_rad)
-    w2 = np.sqrt(w * w + 4.0 * (1.0 - g) * n)  # 12 s^2 = 4 (1 - g) n
-    lo, hi = np.maximum(m - 0.5 * w2, 0.0), np.minimum(m + 0.5 * w2, math.pi)
+    lo, hi = _widened_edges(lamp, g, b * d)
     widened = cone_energy(lamp) / _edge_energy(lo, hi) * _ramp(ang, lo, hi)  # N P(theta; lo', hi')
     return out + (np.exp(-K * d) - direct) * widened
 
@@ -98,12 +102,8 @@ def reach(lamp: Lamp, c: np.ndarray, K: np.ndarray, b: np.ndarray, g: float, d_m
     d_max = np.asarray(d_max, dtype=np.float64)
     if not spread or not np.any(K < c):
         return np.full(d_max.shape, lamp.cutoff_rad + REACH_MARGIN_RAD)
-    bd = float(np.max(b)) * d_max
-    with np.errstate(divide="ignore", invalid="ignore"):
-        n = np.where(bd < 1e-4, 1.0, bd / -np.expm1(-np.maximum(bd, 1e-4)))
-    w = lamp.cutoff_rad - lamp.beam_rad
-    hi = 0.5 * (lamp.cutoff_rad + lamp.beam_rad) + 0.5 * np.sqrt(w * w + 4.0 * (1.0 - g) * n)
-    return np.minimum(np.maximum(hi, lamp.cutoff_rad), math.pi) + REACH_MARGIN_RAD
+    _, hi = _widened_edges(lamp, g, float(np.max(b)) * d_max)
+    return np.maximum(hi, lamp.cutoff_rad) + REACH_MARGIN_RAD
 
 
 def cone_interval(dirs: np.ndarray, apex: np.ndarray, axis: np.ndarray, half_angle: np.ndarray,

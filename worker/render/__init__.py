@@ -50,6 +50,15 @@ class DrawItem:
         scale = float(np.abs(np.linalg.svd(M[:3, :3], compute_uv=False)).max())
         return M[:3, :3] @ self.mesh.centre + M[:3, 3], self.mesh.radius * scale
 
+    def world_vertices(self) -> np.ndarray:
+        """(V, 3) float64: the mesh's vertices as placed, world metres."""
+        M = self.world_from_obj
+        return self.mesh.vertices.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
+
+    def shaded_albedo(self) -> np.ndarray:
+        """(V, 3): each vertex's albedo as the surface shader takes it, clamp(albedo * scale + bias, 0, 1)."""
+        return np.clip(self.mesh.albedo * self.albedo_scale + self.albedo_bias, 0.0, 1.0)
+
 
 @dataclass(frozen=True)
 class Lighting:
