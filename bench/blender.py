@@ -56,6 +56,11 @@ def paper_volume(beta: np.ndarray, absorption: np.ndarray, scattering: np.ndarra
     return beta * (1.0 - albedo), beta * albedo
 
 
+# The scene as the committed table measured it: the paper's water model, whose one haze a Blender volume box matches
+# (export_frame also exports the physical model's medium and surface).
+PAPER = {"water.model": "paper"}
+
+
 # ---- seasynth's side: the frame's scene as arrays -----------------------------------------------------------------
 def export_frame(session, spec, index: int) -> dict[str, np.ndarray]:
     """Frame `index`'s scene as arrays (what Blender's side reads):
@@ -143,7 +148,7 @@ def run(spec_path: Path, *, frames: int, width: int, height: int, out: Path | No
 
     version = check_blender(blender_python)
     spec = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": "default",
-                                 "frames": max(SEASYNTH_FRAMES, frames)})
+                                 "frames": max(SEASYNTH_FRAMES, frames), **PAPER})
     threads = os.cpu_count() or 1
     load = {"before": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory() as tmp:
@@ -205,7 +210,7 @@ def _detail(e: Engine, info: dict) -> str:
 
 
 def _water_note() -> str:
-    return (f"seasynth: its own water model (urchins.yaml: the paper's model). Blender: a {WATER_EXTENT_M:g} m box of "
+    return (f"seasynth: the paper's water model (the bench sets water.model: paper). Blender: a {WATER_EXTENT_M:g} m box of "
             f"homogeneous volume up to {SURFACE_CLEARANCE_M:g} m above the camera workspace, Volume Absorption + "
             f"Volume Scatter (HG g {PHASE_G}): extinction the frame's beta_D, split into absorption and scattering as "
             f"its Jerlov type's a and b")

@@ -285,6 +285,23 @@ class DatasetSpec(SpecModel):
     trajectory: Trajectory = Trajectory()
 
     @model_validator(mode="after")
+    def _resolve_water_model(self) -> DatasetSpec:
+        """Name the water model in the spec itself when the spec leaves it unset (see Water): physical, unless the
+        water gives paper-only fields or, with no depth_m given, the camera or a survey's vehicle reaches the
+        default seabed depth (a spec written for the paper's model, which has no surface)."""
+        w = self.water
+        if w.model is not None:
+            return self
+        model = w.resolved_model
+        if model == "physical" and "depth_m" not in w.model_fields_set:
+            tr = self.trajectory
+            top = self.workspaces.camera.max[2] if tr.kind == "random" else tr.altitude_m + tr.heave_m
+            if top >= w.depth_m[0]:
+                model = "paper"
+        object.__setattr__(self, "water", w.model_copy(update={"model": model}))
+        return self
+
+    @model_validator(mode="after")
     def _camera_under_water(self) -> DatasetSpec:
         w = self.water
         if w.enabled and w.resolved_model == "physical" and w.depth_m[0] <= self.workspaces.camera.max[2]:
@@ -304,11 +321,14 @@ class DatasetSpec(SpecModel):
         return self
 
     @model_validator(mode="after")
-    def _caustics_need_physical_light(self) -> DatasetSpec:
+    def _lamps_and_caustics_need_physical_light(self) -> DatasetSpec:
         w = self.water
-        if self.lighting.caustics.enabled and not (w.enabled and w.resolved_model == "physical"):
-            raise ValueError("lighting.caustics.enabled: caustics are part of the physical light model; set "
-                             "water.model: physical (with water.enabled: true)")
+        if w.enabled and w.resolved_model == "physical":
+            return self
+        for field, on in (("caustics.enabled", self.lighting.caustics.enabled), ("lamps", self.lighting.lamps)):
+            if on:
+                raise ValueError(f"lighting.{field}: {field.split('.')[0]} are part of the physical light model; "
+                                 "set water.model: physical (with water.enabled: true)")
         return self
 
     @model_validator(mode="after")

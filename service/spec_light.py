@@ -82,6 +82,8 @@ class RGBInterval(SpecModel):
 
 WaterModel = Literal["physical", "paper"]
 _PAPER_FIELDS = ("beta_D", "beta_B", "B_inf")
+# Fields only the paper's model reads: a spec giving any of them and no model was written for that model.
+PAPER_ONLY_FIELDS = (*_PAPER_FIELDS, "backscatter_ratio", "B_inf_jitter")
 _PHYSICAL_FIELDS = ("absorption", "scattering")
 
 
@@ -89,8 +91,10 @@ class Water(SpecModel):
     """Water: one physical description (absorption, scattering, phase function, depth) from which every light term
     is derived (model physical), or the paper's deferred model with its three coefficients (model paper).
 
-    model: unset means paper, so every spec written before the physical model keeps its frames; the physical
-    model becomes the default once its fidelity table meets its targets (bench/results/cpu/fidelity.md).
+    model unset: physical, unless the section gives a field only the paper's model reads (beta_D, beta_B, B_inf,
+    backscatter_ratio, B_inf_jitter): such a section was written for the paper's model and keeps it. A whole spec
+    also keeps the paper's model where the physical one would reject it (DatasetSpec: a camera reaching the default
+    seabed depth), and records the model it resolved, so a spec's canonical form always names its model.
     """
 
     enabled: StrictBool = True
@@ -123,8 +127,10 @@ class Water(SpecModel):
 
     @property
     def resolved_model(self) -> str:
-        """The model frames use: `model`, or paper when unset."""
-        return self.model or "paper"
+        """The model frames use: `model`, else paper if a paper-only field is given, else physical."""
+        if self.model is not None:
+            return self.model
+        return "paper" if self.model_fields_set.intersection(PAPER_ONLY_FIELDS) else "physical"
 
     @model_validator(mode="after")
     def _described(self) -> Water:
@@ -132,8 +138,9 @@ class Water(SpecModel):
         wrong = _PHYSICAL_FIELDS if model == "paper" else _PAPER_FIELDS
         for name in wrong:
             if getattr(self, name) is not None:
+                how = "is" if self.model is not None else "resolves to (unset, with paper-only fields given)"
                 raise ValueError(f"{name} belongs to the {'physical' if model == 'paper' else 'paper'} model, "
-                                 f"but water.model is {model}")
+                                 f"but water.model {how} {model}")
         if not self.enabled or self.jerlov:
             return self
         if model == "paper" and (self.beta_D is None or self.B_inf is None):

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.blender import export_frame, paper_volume
+from bench.blender import PAPER, export_frame, paper_volume
 from bench.blender_side import BLENDER_FROM_KITTI, blender_camera, blender_project, sun_matrix, volume_settings
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
@@ -103,7 +103,8 @@ def test_export_frame_is_the_frames_own_scene():
     from worker.pipeline import RenderSession
 
     spec = load_spec(EXAMPLE, {"camera.width": 160, "camera.height": 120, "terrain.cells": 24,
-                               "terrain.variants": 1, "distractors.count": [1, 2], "targets.count": [1, 2]})
+                               "terrain.variants": 1, "distractors.count": [1, 2], "targets.count": [1, 2],
+                               **PAPER})
     session = RenderSession()  # scenes only: no GL
     data = export_frame(session, spec, 1)
     scene = session.scene(spec, 1)

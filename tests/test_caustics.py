@@ -88,8 +88,10 @@ def spec_with(**lighting) -> DatasetSpec:
 
 def test_caustics_are_off_by_default_and_need_the_physical_model():
     assert DatasetSpec().lighting.caustics.enabled is False
-    with pytest.raises(ValidationError, match=r"lighting\.caustics\.enabled: .*water\.model: physical"):
-        DatasetSpec.model_validate({"lighting": {"caustics": {"enabled": True}}})
+    assert DatasetSpec.model_validate({"lighting": {"caustics": {"enabled": True}}}).water.model == "physical"
+    for water in ({"model": "paper"}, {"beta_D": {"min": [0.1] * 3, "max": [0.1] * 3}}, {"enabled": False}):
+        with pytest.raises(ValidationError, match=r"lighting\.caustics\.enabled: .*water\.model: physical"):
+            DatasetSpec.model_validate({"lighting": {"caustics": {"enabled": True}}, "water": water})
     with pytest.raises(ValidationError, match=r"lighting\.caustics\.slope"):
         spec_with(caustics={"enabled": True, "slope": [0.1, 1.5]})
 

@@ -120,7 +120,7 @@ def test_only_the_passes_asked_for_are_drawn_and_read(renderer, water, passes, e
 
 
 OUTPUTS = ("labels", "meta", "depth", "instance", "clean", "range")
-SURFACE = ("surface+range", "resolve+haze", "read image srgb8")  # no noise: the codes come from the GPU
+SURFACE = ("surface+range", "resolve+water", "read image srgb8")  # no noise: the codes come from the GPU
 
 
 @pytest.mark.parametrize(

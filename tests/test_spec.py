@@ -200,7 +200,8 @@ REFUSED = [
         "camera",
         "give either hfov_deg or intrinsics, not both",
     ),
-    ({"water": {"jerlov": []}}, "water", "with no jerlov types, give beta_D and B_inf explicitly"),
+    ({"water": {"jerlov": []}}, "water", "with no jerlov types, give absorption and scattering explicitly"),
+    ({"water": {"model": "paper", "jerlov": []}}, "water", "with no jerlov types, give beta_D and B_inf explicitly"),
 ]
 
 
