@@ -86,7 +86,8 @@ def run_cli(spec, workers: int, platform: str) -> dict:
     k = int(len(stamps) * STEADY_AFTER)
     span = stamps[-1] - stamps[k - 1] if 0 < k < len(stamps) else 0.0
     steady = (len(stamps) - k) / span if span > 0 else len(stamps) / wall
-    return {"frames": len(stamps), "wall_s": round(wall, 2), "wall_fps": round(len(stamps) / wall, 2),
+    return {"frames": len(stamps), "wall_s": round(wall, 2), "first_frame_s": round(stamps[0] - t0, 2),
+            "wall_fps": round(len(stamps) / wall, 2),
             "steady_fps": round(steady, 2), "gpu_util": gpu.mean(),
             "cpu_util": round(100.0 * (busy1 - busy0) / max(total1 - total0, 1e-9), 1)}
 
@@ -117,12 +118,13 @@ def run(spec_path: Path, *, resolutions: list[tuple[int, int]], workers: list[in
 
 
 def format_table(r: dict) -> str:
-    cols = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "wall_fps", "steady_fps", "gpu_util",
-            "cpu_util")
+    cols = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "first_frame_s", "wall_fps", "steady_fps",
+            "gpu_util", "cpu_util")
     return "\n".join([
         f"# Scale: {r['spec']}", "", f"machine: {r['machine']} ({r['cores']} cores)  ",
-        f"wall_fps: frames over the whole run, start-up included; steady_fps: after the first "
-        f"{int(STEADY_AFTER * 100)}% of the frames; gpu_util / cpu_util: mean % over the run (cpu: all cores)", "",
+        f"first_frame_s: seconds until the first frame is written; wall_fps: frames over the whole run, start-up "
+        f"included; steady_fps: after the first {int(STEADY_AFTER * 100)}% of the frames; gpu_util / cpu_util: mean % "
+        "over the run (cpu: all cores)", "",
         "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols),
         *["| " + " | ".join("" if row[c] is None else str(row[c]) for c in cols) + " |" for row in r["rows"]],
     ])

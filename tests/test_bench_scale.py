@@ -8,8 +8,8 @@ import pytest
 
 from bench import scale
 
-FIELDS = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "wall_fps", "steady_fps", "gpu_util",
-          "cpu_util")
+FIELDS = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "first_frame_s", "wall_fps", "steady_fps",
+          "gpu_util", "cpu_util")
 
 
 def test_scale_rows_and_files(tmp_path):
@@ -20,6 +20,7 @@ def test_scale_rows_and_files(tmp_path):
         assert set(FIELDS) <= set(r) and (r["mode"], r["width"], r["height"], r["preset"]) == ("cli", 32, 24, "draft")
         assert r["wall_fps"] > 0 and r["steady_fps"] > 0 and 0 <= r["cpu_util"] <= 100
         assert r["wall_fps"] == pytest.approx(r["frames"] / r["wall_s"], rel=0.02)  # wall_s is rounded to 10 ms
+        assert 0 < r["first_frame_s"] <= r["wall_s"]
     saved = json.loads((tmp_path / "scale.json").read_text())
     assert saved["rows"] == rows and saved["machine"] == "test machine"
     table = (tmp_path / "scale.md").read_text()

@@ -101,6 +101,10 @@ class GLRenderer:
         # PyOpenGL picks its platform once, at first import.
         os.environ.setdefault("PYOPENGL_PLATFORM", platform)
         os.environ.setdefault("PYGLET_HEADLESS", "1")
+        # NVIDIA's driver waits for the GPU (glFinish, a read-back) by spinning unless told to sleep. With a worker
+        # per core, spinning took 17 of 97% of a 16-core H100 host's CPU at 1080p for the same frames/s
+        # (bench/results/gpu/scale.md); other drivers ignore the variable.
+        os.environ.setdefault("__GL_YIELD", "USLEEP")
         if os.environ["PYOPENGL_PLATFORM"] != platform:
             raise RenderError(
                 f"PYOPENGL_PLATFORM is {os.environ['PYOPENGL_PLATFORM']!r} but platform {platform!r} was asked for"
