@@ -9,6 +9,7 @@ from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service import __version__
+from service.gpus import GpuChoice, parse_gpus
 
 
 class Settings(BaseSettings):
@@ -55,6 +56,11 @@ class Settings(BaseSettings):
     worker_max_tasks_per_child: int = Field(50, ge=1)
     worker_soft_shutdown_s: float = Field(30.0, ge=0)
     gl_platform: Literal["egl", "osmesa"] = "egl"  # headless GL of the render processes
+    # The GPU of this worker's render processes (EGL device index; SEASYNTH_GPU), or the GPUs its pool processes
+    # are spread over by pool process index (SEASYNTH_GPUS: auto, a count N, or indices 0,1; see service.gpus).
+    # Neither: EGL's default device, which is the right one where a container sees one GPU.
+    gpu: int | None = Field(None, ge=0)
+    gpus: str | None = None
     asset_cache_dir: Path | None = None  # default: a per-process temporary folder
     # Prometheus exporter of a worker (its pool processes' counters summed, prometheus_client multiprocess mode);
     # None: no exporter. worker_metrics_dir: their per-process files, default a fresh temporary folder per start.
@@ -73,7 +79,17 @@ class Settings(BaseSettings):
     def _limits_consistent(self) -> Settings:
         if self.task_soft_time_limit_s < 1:
             raise ValueError("task_time_limit_s is too short to leave a soft limit")
+        if self.gpu is not None and self.gpus is not None:
+            raise ValueError("gpu (SEASYNTH_GPU) and gpus (SEASYNTH_GPUS) exclude each other; set one")
+        self.gpu_choice  # noqa: B018 (a bad SEASYNTH_GPUS fails here, at the entry point)
         return self
+
+    @property
+    def gpu_choice(self) -> GpuChoice | None:
+        """The render processes' GPUs (None: EGL's default device)."""
+        if self.gpu is not None:
+            return GpuChoice(indices=(self.gpu,))
+        return None if self.gpus is None or not self.gpus.strip() else parse_gpus(self.gpus)
 
     @property
     def api_key_set(self) -> frozenset[str]:

@@ -17,6 +17,7 @@ from typing import Literal
 
 import service
 from service.errors import OutputError, SeasynthError
+from service.gpus import GpuChoice
 from service.spec import DatasetSpec, spec_digest
 from worker.export import GENERATED_EXPORTS
 from worker.pipeline import RenderSession, frame_paths
@@ -185,10 +186,11 @@ def generate(
     mode: Mode = "new",
     on_frames: Callable[[int], None] | None = None,
     platform: str = "egl",
+    gpus: GpuChoice | None = None,
 ) -> GenerateReport:
-    """Render every frame of `spec` into `out`. Files are the same whatever `workers` or resuming."""
+    """Render every frame of `spec` into `out`. Files are the same whatever `workers`, `gpus` or resuming."""
     todo = open_dataset(spec, out, mode)
-    return render_frames(spec, out, todo, workers=workers, on_frames=on_frames, platform=platform)
+    return render_frames(spec, out, todo, workers=workers, on_frames=on_frames, platform=platform, gpus=gpus)
 
 
 def auto_workers(frames_to_render: int) -> int:
@@ -217,8 +219,10 @@ def render_frames(
     workers: int = 1,
     on_frames: Callable[[int], None] | None = None,
     platform: str = "egl",
+    gpus: GpuChoice | None = None,
 ) -> GenerateReport:
-    """Render `todo` into an opened dataset folder, then mark the dataset complete.
+    """Render `todo` into an opened dataset folder, then mark the dataset complete. Render process k uses the
+    k-th of the `gpus` devices, round robin (None: EGL's default device).
 
     The record pins the GL renderer of the first frame rendered; another renderer is refused before it writes.
     """
@@ -236,7 +240,7 @@ def render_frames(
             raise OutputError(wrong_renderer(out, pinned, renderer))
 
     skipped = spec.frames - len(todo)
-    renderer = _run(spec, out, todo, workers, on_frames or (lambda n: None), platform, pinned, pin)
+    renderer = _run(spec, out, todo, workers, on_frames or (lambda n: None), platform, gpus, pinned, pin)
     write_record(out, spec, complete=True, renderer=pinned, files=files)
     return GenerateReport(spec.frames, len(todo), skipped, renderer)
 
@@ -262,20 +266,22 @@ def reproduce(spec: DatasetSpec, index: int, out: Path, platform: str = "egl") -
     return list(files)
 
 
-def _run(spec, out, todo, workers, on_frames, platform, pinned, pin) -> str:
+def _run(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> str:
     if not todo:
         return ""
     if workers == 1:
-        with RenderSession(platform=platform) as session:
+        from worker.render.devices import platform_for_worker
+
+        with RenderSession(platform=platform_for_worker(platform, gpus, 0)) as session:
             pin(session.renderer_name)
             for i in todo:
                 write_frame(out, session.frame_files(spec, i))
                 on_frames(1)
             return session.renderer_name
-    return _run_pool(spec, out, todo, workers, on_frames, platform, pinned, pin)
+    return _run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin)
 
 
-def _run_pool(spec, out, todo, workers, on_frames, platform, pinned, pin) -> str:
+def _run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> str:
     ctx = mp.get_context("spawn")  # a GL context must never cross a fork
     tasks, results = ctx.Queue(), ctx.Queue()
     chunks = [todo[k : k + CHUNK] for k in range(0, len(todo), CHUNK)]
@@ -286,8 +292,8 @@ def _run_pool(spec, out, todo, workers, on_frames, platform, pinned, pin) -> str
         tasks.put(None)
     payload = spec.model_dump_json()
     # Daemonic: should this process exit on an unforeseen path, its workers are stopped, not waited for.
-    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform, pinned), daemon=True)
-             for _ in range(workers)]
+    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform, gpus, k, pinned),
+                         daemon=True) for k in range(workers)]
     renderer, done, finished = "", 0, 0
     try:
         with _sigint_blocked_for_children():
@@ -356,11 +362,14 @@ def _ignore_sigint() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-def _pool_main(payload: str, out: str, tasks, results, platform: str, pinned: str | None) -> None:
+def _pool_main(payload: str, out: str, tasks, results, platform: str, gpus: GpuChoice | None, k: int,
+               pinned: str | None) -> None:
     _ignore_sigint()
     spec = DatasetSpec.model_validate_json(payload)
     try:
-        with RenderSession(platform=platform) as session:
+        from worker.render.devices import platform_for_worker  # lists EGL devices here, never in the parent
+
+        with RenderSession(platform=platform_for_worker(platform, gpus, k)) as session:
             if pinned is not None and session.renderer_name != pinned:  # checked here: workers write frames
                 raise OutputError(wrong_renderer(out, pinned, session.renderer_name))
             results.put(("renderer", session.renderer_name))

@@ -108,15 +108,21 @@ class ProcessResources:
     def open(self) -> None:
         import redis
 
+        from celery.utils.log import current_process_index
+
         from worker.pipeline import RenderSession  # GL comes up here, in the pool process, never before fork
+        from worker.render.devices import platform_for_worker
 
         s = self.settings
+        # Pool process k of the prefork pool (a replacement takes the index it frees; a solo pool is 0) renders on
+        # the k-th of the settings' GPUs, round robin.
+        platform = platform_for_worker(s.gl_platform, s.gpu_choice, current_process_index(base=0) or 0)
         with contextlib.ExitStack() as stack:
             store = open_store(s)
             folder = s.asset_cache_dir or Path(
                 stack.enter_context(tempfile.TemporaryDirectory(prefix="seasynth-assets-"))
             )
-            session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=s.gl_platform))
+            session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=platform))
             records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
             raw = redis.Redis.from_url(s.redis_url)
             metrics = WorkerMetrics()  # after the fork: multiprocess mode writes this process's own files
@@ -127,7 +133,7 @@ class ProcessResources:
                 stack.enter_context(Heartbeat(records.r, s.key_prefix, ctx.code_version, session.renderer_name))
             self._ctx, self.metrics, self.frames = ctx, metrics, frames
             self._stack = stack.pop_all()
-        log.info("render session ready: %s", session.renderer_name)
+        log.info("render session ready: %s (%s)", session.renderer_name, platform)
 
     def open_in_pool_process(self) -> None:
         """worker_process_init: open, or stop the worker that this pool process belongs to."""

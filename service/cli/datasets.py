@@ -37,6 +37,10 @@ def generate(
     resume: Annotated[bool, typer.Option("--resume", help="Complete a partly written dataset.")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the dataset in OUT.")] = False,
     gl: PlatformOpt = "egl",
+    gpus: Annotated[Optional[str], typer.Option("--gpus", help="Spread the render processes over GPUs, process k "
+                                                "on the k-th round robin: auto (every GPU EGL finds; none: the "
+                                                "default device), a count N (the first N), or EGL device indices "
+                                                "0,1 (one: 1,). Frames are the same on any GPU of one model.")] = None,
 ) -> None:
     """Generate a dataset locally (no servers): image_2/, label_2/, calib/, meta/ and optional outputs. The spec's
     outputs.coco, yolo and mcap are then exported into OUT/export/{format}/ with outputs.split (COCO without
@@ -44,6 +48,7 @@ def generate(
     if resume and overwrite:
         raise SpecError("--resume and --overwrite exclude each other")
     count = _worker_count(workers)
+    choice = _gpu_choice(gpus)
     s = load_overridden(spec, frames, seed, width, height, quality)  # before the renderer's imports: fail fast
     from worker.generate import auto_workers, open_dataset, render_frames
 
@@ -53,7 +58,7 @@ def generate(
         with progress(len(todo), "frames") as bar:
             task = bar.add_task("render", total=len(todo))
             report = render_frames(s, out, todo, workers=workers, on_frames=lambda n: bar.advance(task, n),
-                                   platform=gl)
+                                   platform=gl, gpus=choice)
     except KeyboardInterrupt:
         raise Interrupted(f"{out}: the frames written so far are complete; the same command with --resume "
                           "renders the rest") from None
@@ -189,6 +194,18 @@ def _worker_count(text: str) -> int | None:
     if n < 1:
         raise typer.BadParameter(f"{text!r}: give a count >= 1 or auto", param_hint="'--workers'")
     return n
+
+
+def _gpu_choice(text: str | None):
+    """--gpus: None (not given: the default device), else the parsed choice."""
+    from service.gpus import parse_gpus
+
+    if text is None:
+        return None
+    try:
+        return parse_gpus(text)
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="'--gpus'") from None
 
 
 @app.command()

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import ctypes
 import math
-import os
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ import numpy as np
 from service.errors import RenderError
 from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
 from worker.render import shaders
+from worker.render.devices import egl_platform, parse_platform, prepare_environment
 from worker.render.surface import surface_pass
 from worker.render.targets import Target, Targets
 
@@ -90,34 +90,28 @@ class GLRenderer:
         platform: str = "egl",
         mesh_budget_bytes: int = MESH_BUDGET_BYTES,
         targets_per_kind: int = TARGETS_PER_KIND,
+        gpu: int | None = None,
     ) -> None:
-        if platform not in ("egl", "osmesa"):
-            raise RenderError(f"unsupported GL platform {platform!r}; use 'egl' or 'osmesa'")
+        platform, gpu = parse_platform(platform, gpu)
         if mesh_budget_bytes < 0:
             raise RenderError(f"mesh_budget_bytes must be >= 0, got {mesh_budget_bytes}")
         if targets_per_kind < 1:
             raise RenderError(f"targets_per_kind must be >= 1, got {targets_per_kind}")
         self.mesh_budget_bytes = mesh_budget_bytes
-        # PyOpenGL picks its platform once, at first import.
-        os.environ.setdefault("PYOPENGL_PLATFORM", platform)
-        os.environ.setdefault("PYGLET_HEADLESS", "1")
-        # NVIDIA's driver waits for the GPU (glFinish, a read-back) by spinning unless told to sleep. With a worker
-        # per core, spinning took 17 of 97% of a 16-core H100 host's CPU at 1080p for the same frames/s
-        # (bench/results/gpu/scale.md); other drivers ignore the variable.
-        os.environ.setdefault("__GL_YIELD", "USLEEP")
-        if os.environ["PYOPENGL_PLATFORM"] != platform:
-            raise RenderError(
-                f"PYOPENGL_PLATFORM is {os.environ['PYOPENGL_PLATFORM']!r} but platform {platform!r} was asked for"
-            )
+        self.gpu = gpu  # EGL device index; None: EGL's default device (or OSMesa)
+        prepare_environment(platform)
+        self._platform_name = platform
         try:
             if platform == "egl":
-                from pyrender.platforms.egl import EGLPlatform as _Platform
+                self._platform = egl_platform(gpu)  # a missing device: RenderError naming it and the count
             else:
-                from pyrender.platforms.osmesa import OSMesaPlatform as _Platform
-            self._platform_name = platform
-            self._platform = _Platform(8, 8)
+                from pyrender.platforms.osmesa import OSMesaPlatform
+
+                self._platform = OSMesaPlatform(8, 8)
             self._platform.init_context()
             self._platform.make_current()
+        except RenderError:
+            raise
         except Exception as err:  # EGL/OSMesa report failures in many shapes; all mean "no context"
             raise RenderError(f"cannot create a headless {platform} OpenGL context: {err!r}") from err
         from OpenGL import GL
