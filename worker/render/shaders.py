@@ -115,6 +115,7 @@ uniform int u_only_sample;     // >= 0: output that one sample (audits); < 0: th
 layout(location = 0) out vec4 o_img;
 #ifdef SRGB8_OUT
 SRGB8_FUNCTION
+layout(location = NAN_LOCATION) out float o_nan;   // 1 where the pixel's linear colour was NaN
 #endif
 #ifdef WITH_CLEAN
 layout(location = 1) out vec4 o_clean;
@@ -171,6 +172,7 @@ void main() {
     }
 #ifdef SRGB8_OUT
     o_img = srgb8(acc / n);
+    o_nan = o_img.a;
 #else
     o_img = vec4(acc / n, 1.0);
 #endif
