@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import socket
 import statistics
 import subprocess
 import tempfile
@@ -19,16 +18,12 @@ import time
 from pathlib import Path
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _start_redis(folder: Path) -> tuple[subprocess.Popen, str]:
     import redis
 
-    port = _free_port()
+    from bench.stack import free_port
+
+    port = free_port()
     proc = subprocess.Popen(
         ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
          "--maxmemory-policy", "noeviction", "--dir", str(folder)],

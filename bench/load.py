@@ -22,14 +22,9 @@ import asyncio
 import json
 import os
 import platform
-import shutil
-import socket
-import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -295,80 +290,6 @@ def _sample(text: str, name: str, **labels: str) -> float | None:
     return None
 
 
-# --- the stack, on this machine
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait(pred: Callable[[], Any], timeout: float, what: str, procs: list[subprocess.Popen]) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if any(p.poll() is not None for p in procs):
-            raise RuntimeError(f"a component exited while waiting for {what}")
-        try:
-            if pred():
-                return
-        except Exception:  # still starting
-            pass
-        time.sleep(0.1)
-    raise TimeoutError(f"{what} did not come up in {timeout} s")
-
-
-@contextmanager
-def local_stack(folder: Path) -> Iterator[dict[str, str]]:
-    """redis-server, moto_server, the API and one worker on free loopback ports; yields their URLs."""
-    import redis
-
-    bin_dir = Path(sys.executable).parent
-    moto = shutil.which("moto_server") or str(bin_dir / "moto_server")
-    rport, sport, aport, mport = (_free_port() for _ in range(4))
-    env = {**{k: v for k, v in os.environ.items() if not k.startswith(("SEASYNTH_", "AWS_"))},
-           "SEASYNTH_REDIS_URL": f"redis://127.0.0.1:{rport}/0",
-           "SEASYNTH_S3_ENDPOINT_URL": f"http://127.0.0.1:{sport}",
-           "SEASYNTH_S3_BUCKET": "bench-load", "SEASYNTH_S3_CREATE_BUCKET": "true", "SEASYNTH_API_KEYS": KEY,
-           "AWS_ACCESS_KEY_ID": "bench", "AWS_SECRET_ACCESS_KEY": "bench-secret", "AWS_DEFAULT_REGION": "us-east-1"}
-    cli = [sys.executable, "-m", "service.cli"]
-    argvs = {
-        "redis": ["redis-server", "--port", str(rport), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
-                  "--dir", str(folder)],
-        "s3": [moto, "-H", "127.0.0.1", "-p", str(sport)],
-        "api": [*cli, "serve", "--host", "127.0.0.1", "--port", str(aport)],
-        # Niced: on a machine this small the renderer would otherwise take the CPU the API is measured on (where
-        # they are deployed, the API and the workers have CPUs of their own).
-        "worker": ["nice", "-n", str(WORKER_NICE), *cli, "worker", "--concurrency", "1", "--queues", "shards"],
-    }
-    procs: list[subprocess.Popen] = []
-    try:
-        for name, argv in argvs.items():
-            log = open(folder / f"{name}.log", "wb")
-            procs.append(subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, cwd=folder,
-                                          env={**env, "SEASYNTH_WORKER_METRICS_PORT": str(mport)}))
-            log.close()
-            if name == "redis":
-                _wait(lambda: redis.Redis(port=rport).ping(), 15, "redis-server", procs)
-            elif name == "s3":
-                _wait(lambda: httpx.get(f"http://127.0.0.1:{sport}", timeout=2).status_code < 500, 30, "moto", procs)
-        api = f"http://127.0.0.1:{aport}"
-        _wait(lambda: httpx.get(f"{api}/readyz", timeout=2).status_code == 200, 60, "the API", procs)
-        worker = f"http://127.0.0.1:{mport}"
-        _wait(lambda: "render session ready" in (folder / "worker.log").read_text(errors="replace"), 120,
-              "the worker", procs)
-        yield {"api": api, "worker_metrics": worker, "redis": env["SEASYNTH_REDIS_URL"],
-               "s3": env["SEASYNTH_S3_ENDPOINT_URL"]}
-    finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in reversed(procs):
-            try:
-                p.wait(20)
-            except subprocess.TimeoutExpired:
-                p.kill()
-
-
 def table(result: dict[str, Any]) -> str:
     rows = ["| requests | rate (rps) | count | errors | p50 ms | p90 ms | p99 ms | max ms |",
             "|---|---|---|---|---|---|---|---|"]
@@ -404,8 +325,13 @@ def run(rate: float = 200, duration_s: float = 20, posts: int = 50, out: Path | 
     import signal
 
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # stop the components on the way out, too
-    with tempfile.TemporaryDirectory(prefix="seasynth-load-") as tmp, local_stack(Path(tmp)) as urls:
-        result = asyncio.run(load(urls["api"], KEY, rate, duration_s, posts, urls["worker_metrics"]))
+    from bench.stack import free_port, local_stack
+
+    # The worker is niced: on a machine this small the renderer would otherwise take the CPU the API is measured on
+    # (where they are deployed, the API and the workers have CPUs of their own).
+    with tempfile.TemporaryDirectory(prefix="seasynth-load-") as tmp, local_stack(
+            Path(tmp), api_key=KEY, worker_prefix=("nice", "-n", str(WORKER_NICE)), metrics_port=free_port()) as st:
+        result = asyncio.run(load(st.api, KEY, rate, duration_s, posts, st.worker_metrics))
     result["machine"] = machine or f"{platform.node()} ({os.cpu_count()} CPUs, {platform.machine()})"
     text = table(result)
     print(text)

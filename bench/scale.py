@@ -1,9 +1,14 @@
-"""Scale: finished frames per second against worker processes and resolution, through the local CLI's `generate`,
-with CPU and GPU utilisation sampled while each run goes.
+"""Scale: finished frames per second against worker processes, GPUs and resolution, through the local CLI's
+`generate` (mode cli) and through the service on this machine (mode service, bench.scale_service), with CPU and GPU
+utilisation sampled while each run goes.
 
-wall_fps counts every frame over the whole run, start-up included (pool processes, GL contexts, shader and asset
-variants); steady_fps is the rate after the first quarter of the frames has finished. Each run is a fresh `generate`
-into an empty folder, so nothing is cached between rows except what a new process would also find (nothing).
+wall_fps counts every frame over the whole run: for cli, start-up included (pool processes, GL contexts, shader and
+asset variants); for service, from POST /datasets to the status read that says it succeeded, with the workers
+already up (they are long-lived). steady_fps is the rate after the first quarter of the frames has finished (for
+service, of whole shards as the status shows them). `gpus` is the number of GPUs the rendering processes used: with
+--gpus G, workers are bound to the first G GPUs round robin (service.gpus); without, to EGL's default device (1 if
+that is a GPU, 0 on a software renderer). Each run is fresh (a new generate into an empty folder, a new service
+stack), so nothing is cached between rows except what a new process would also find (nothing).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import threading
 import time
 from pathlib import Path
 
+from service.gpus import GpuChoice
 from service.spec import load_spec
 
 STEADY_AFTER = 0.25  # steady_fps counts frames finished after this share of the run's frames
@@ -62,50 +68,94 @@ class GpuSampler:
         return round(statistics.mean(self.samples), 1) if self.samples else None
 
 
-def gpu_count() -> int:
-    if shutil.which("nvidia-smi") is None:
-        return 0
-    out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
-    return sum(line.startswith("GPU ") for line in out.splitlines())
+class CpuMeter:
+    """Mean utilisation (%) of all cores between enter and exit, from /proc/stat."""
+
+    def __enter__(self) -> CpuMeter:
+        self._start = cpu_times()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        (b0, t0), (b1, t1) = self._start, cpu_times()
+        self.util = round(100.0 * (b1 - b0) / max(t1 - t0, 1e-9), 1)
 
 
-def run_cli(spec, workers: int, platform: str) -> dict:
+def rates(stamps: list[float], t0: float, wall: float) -> dict:
+    """first_frame_s, wall_s, wall_fps and steady_fps of a run that started at t0, took `wall` seconds and finished
+    a frame at each of `stamps` (several frames may share one stamp)."""
+    # With no time between the quarter mark and the end, the steady rate is the whole run's.
+    k = int(len(stamps) * STEADY_AFTER)
+    span = stamps[-1] - stamps[k - 1] if 0 < k < len(stamps) else 0.0
+    steady = (len(stamps) - k) / span if span > 0 else len(stamps) / wall
+    return {"wall_s": round(wall, 2), "first_frame_s": round(stamps[0] - t0, 2) if stamps else None,
+            "wall_fps": round(len(stamps) / wall, 2), "steady_fps": round(steady, 2)}
+
+
+def run_cli(spec, workers: int, platform: str, gpus: GpuChoice | None = None) -> dict:
     """One fresh local generate of spec with `workers` processes: frames, wall and steady fps, utilisation."""
     from worker.generate import generate
 
     stamps: list[float] = []
-    with tempfile.TemporaryDirectory() as tmp, GpuSampler() as gpu:
-        busy0, total0 = cpu_times()
+    with tempfile.TemporaryDirectory() as tmp, GpuSampler() as gpu, CpuMeter() as cpu:
         t0 = time.perf_counter()
-        generate(spec, Path(tmp) / "out", workers=workers, platform=platform,
+        generate(spec, Path(tmp) / "out", workers=workers, platform=platform, gpus=gpus,
                  on_frames=lambda n: stamps.extend([time.perf_counter()] * n))
         wall = time.perf_counter() - t0
-        busy1, total1 = cpu_times()
-    # Frames can be reported several at a time (one timestamp each): with no time between the quarter mark and the
-    # end, the steady rate is the whole run's.
-    k = int(len(stamps) * STEADY_AFTER)
-    span = stamps[-1] - stamps[k - 1] if 0 < k < len(stamps) else 0.0
-    steady = (len(stamps) - k) / span if span > 0 else len(stamps) / wall
-    return {"frames": len(stamps), "wall_s": round(wall, 2), "first_frame_s": round(stamps[0] - t0, 2),
-            "wall_fps": round(len(stamps) / wall, 2),
-            "steady_fps": round(steady, 2), "gpu_util": gpu.mean(),
-            "cpu_util": round(100.0 * (busy1 - busy0) / max(total1 - total0, 1e-9), 1)}
+    return {"frames": len(stamps), **rates(stamps, t0, wall), "gpu_util": gpu.mean(), "cpu_util": cpu.util}
+
+
+def gpus_used(platform: str, gpus: GpuChoice | None, workers: int) -> int:
+    """GPUs that `workers` render processes bound by `gpus` use (not GPUs present)."""
+    from worker.render.devices import egl_devices, resolve_gpus
+
+    if platform != "egl":
+        return 0
+    if gpus is None:  # EGL's default device: the first one it lists
+        devices = egl_devices()
+        return int(bool(devices) and devices[0].is_gpu)
+    return min(len(resolve_gpus(gpus, platform)), workers)
+
+
+def check_gpus(gpu_counts: list[int] | None, platform: str) -> None:
+    """Before any row: every count of --gpus is available here (an unattended run fails in seconds, not hours)."""
+    from worker.render.devices import gpu_indices
+
+    if not gpu_counts:
+        return
+    found = gpu_indices() if platform == "egl" else []
+    if max(gpu_counts) > len(found):
+        raise SystemExit(f"--gpus {','.join(map(str, gpu_counts))}: EGL finds {len(found)} GPU device(s) on this "
+                         f"machine (platform {platform}); on an NVIDIA host check __EGL_VENDOR_LIBRARY_FILENAMES "
+                         "points at the driver's EGL vendor file")
 
 
 def run(spec_path: Path, *, resolutions: list[tuple[int, int]], workers: list[int], frames_per_worker: int,
-        preset: str, out: Path | None, platform: str, machine: str | None = None) -> list[dict]:
+        preset: str, out: Path | None, platform: str, machine: str | None = None, modes: tuple[str, ...] = ("cli",),
+        gpu_counts: list[int] | None = None, storage: str = "s3") -> list[dict]:
+    """One row per (resolution, GPU count, workers, mode); also scale.json, .md and .png in `out` when given."""
+    from bench.scale_service import run_service, service_shard_size
     from bench.throughput import machine_description
 
+    check_gpus(gpu_counts, platform)
+    if "service" in modes:
+        from bench.stack import find_program
+
+        find_program("redis-server", "apt-get install -y redis-server")  # before the first row, not mid-run
     rows = []
-    gpus = gpu_count()
+    choices = [GpuChoice(count=g) for g in gpu_counts] if gpu_counts else [None]
     for width, height in resolutions:
-        for n in workers:
-            spec = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": preset,
-                                         "frames": n * frames_per_worker, "shard_size": frames_per_worker})
-            row = {"mode": "cli", "width": width, "height": height, "preset": preset, "workers": n, "gpus": gpus,
-                   **run_cli(spec, n, platform)}
-            print(json.dumps(row), flush=True)
-            rows.append(row)
+        for choice in choices:
+            for n in workers:
+                for mode in modes:
+                    shard_size = frames_per_worker if mode == "cli" else service_shard_size(frames_per_worker)
+                    spec = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": preset,
+                                                 "frames": n * frames_per_worker, "shard_size": shard_size})
+                    measured = (run_cli(spec, n, platform, choice) if mode == "cli"
+                                else run_service(spec, n, platform, choice, storage))
+                    row = {"mode": mode, "width": width, "height": height, "preset": preset, "workers": n,
+                           "gpus": gpus_used(platform, choice, n), **measured}
+                    print(json.dumps(row), flush=True)
+                    rows.append(row)
     result = {"machine": machine or machine_description(), "spec": str(spec_path), "cores": os.cpu_count(),
               "rows": rows}
     if out is not None:
@@ -122,16 +172,20 @@ def format_table(r: dict) -> str:
             "gpu_util", "cpu_util")
     return "\n".join([
         f"# Scale: {r['spec']}", "", f"machine: {r['machine']} ({r['cores']} cores)  ",
-        f"first_frame_s: seconds until the first frame is written; wall_fps: frames over the whole run, start-up "
-        f"included; steady_fps: after the first {int(STEADY_AFTER * 100)}% of the frames; gpu_util / cpu_util: mean % "
-        "over the run (cpu: all cores)", "",
+        "mode cli: a fresh `seasynth generate`, start-up included; mode service: POST /datasets to the status read "
+        "that says succeeded, through redis-server, an S3 server, the API and one Celery worker of `workers` render "
+        "processes started beforehand (shards seen through the status, polled every 0.1 s). first_frame_s: seconds "
+        "until the first frame is written (service: the first shard committed); wall_fps: frames over the whole run; "
+        f"steady_fps: after the first {int(STEADY_AFTER * 100)}% of the frames; gpus: GPUs the workers used; "
+        "gpu_util / cpu_util: mean % over the run (gpu: all GPUs present; cpu: all cores)", "",
         "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols),
         *["| " + " | ".join("" if row[c] is None else str(row[c]) for c in cols) + " |" for row in r["rows"]],
     ])
 
 
 def chart(r: dict):
-    """Frames per second (wall solid, steady hollow) against workers, one colour per resolution."""
+    """Frames per second (wall solid, steady hollow) against workers, one colour per resolution, mode and GPU
+    count."""
     from PIL import Image, ImageDraw
 
     W, H, pad = 640, 400, 50
@@ -145,11 +199,11 @@ def chart(r: dict):
     d.text((W // 2 - 20, H - 20), "workers", fill="black")
     d.text((5, 5), f"fps (max {ymax / 1.1:.1f})", fill="black")
     colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e"]
-    sizes = sorted({(row["width"], row["height"]) for row in rows}, reverse=True)
-    for k, size in enumerate(sizes):
+    series = sorted({(row["width"], row["height"], row["mode"], row["gpus"]) for row in rows}, reverse=True)
+    for k, key in enumerate(series):
         c = colours[k % len(colours)]
         pts = sorted((row["workers"], row["wall_fps"], row["steady_fps"]) for row in rows
-                     if (row["width"], row["height"]) == size)
+                     if (row["width"], row["height"], row["mode"], row["gpus"]) == key)
         xy = [(pad + (W - pad - 20) * n / xmax, H - pad - (H - pad - 20) * f / ymax) for n, f, _ in pts]
         if len(xy) > 1:
             d.line(xy, fill=c, width=2)
@@ -158,5 +212,5 @@ def chart(r: dict):
             ys = H - pad - (H - pad - 20) * s / ymax
             d.ellipse([x - 3, ys - 3, x + 3, ys + 3], outline=c)
             d.text((x - 4, H - pad + 4), str(n), fill="black")
-        d.text((W - 160, 15 + 14 * k), f"{size[0]}x{size[1]}", fill=c)
+        d.text((W - 200, 15 + 14 * k), f"{key[0]}x{key[1]} {key[2]} {key[3]} GPU", fill=c)
     return img

@@ -1,5 +1,6 @@
-"""bench.scale on the CPU at a tiny size: one row per (resolution, workers) with the fields the committed table
-promises, frames = workers x frames per worker, and the table, JSON and chart written."""
+"""bench.scale on the CPU at a tiny size, both modes: one row per (resolution, workers, mode) with the fields the
+committed table promises, frames = workers x frames per worker, every frame the service counted in the bucket, and
+the table, JSON and chart written."""
 
 import json
 from pathlib import Path
@@ -7,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from bench import scale
+from bench.scale_service import service_shard_size
 
 FIELDS = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "first_frame_s", "wall_fps", "steady_fps",
           "gpu_util", "cpu_util")
@@ -14,15 +16,42 @@ FIELDS = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "fir
 
 def test_scale_rows_and_files(tmp_path):
     rows = scale.run(Path("examples/urchins.yaml"), resolutions=[(32, 24)], workers=[1, 2], frames_per_worker=4,
-                     preset="draft", out=tmp_path, platform="egl", machine="test machine")
-    assert [(r["workers"], r["frames"]) for r in rows] == [(1, 4), (2, 8)]
+                     preset="draft", out=tmp_path, platform="egl", machine="test machine", modes=("cli", "service"))
+    assert [(r["mode"], r["workers"], r["frames"]) for r in rows] == [
+        ("cli", 1, 4), ("service", 1, 4), ("cli", 2, 8), ("service", 2, 8)]
     for r in rows:
-        assert set(FIELDS) <= set(r) and (r["mode"], r["width"], r["height"], r["preset"]) == ("cli", 32, 24, "draft")
+        assert set(FIELDS) <= set(r) and (r["width"], r["height"], r["preset"]) == (32, 24, "draft")
+        assert r["gpus"] == 0  # EGL's default device here is Mesa's software renderer: no GPU used
         assert r["wall_fps"] > 0 and r["steady_fps"] > 0 and 0 <= r["cpu_util"] <= 100
         assert r["wall_fps"] == pytest.approx(r["frames"] / r["wall_s"], rel=0.02)  # wall_s is rounded to 10 ms
         assert 0 < r["first_frame_s"] <= r["wall_s"]
+    for r in rows[1::2]:  # the service: every frame counted is in the bucket, in shards of a fifth of a worker's
+        assert r["frames_stored"] == r["frames"] and r["shard_size"] == service_shard_size(4) == 1
     saved = json.loads((tmp_path / "scale.json").read_text())
     assert saved["rows"] == rows and saved["machine"] == "test machine"
     table = (tmp_path / "scale.md").read_text()
-    assert "| " + " | ".join(FIELDS) + " |" in table and table.count("| cli | 32 | 24 | draft |") == 2
+    assert "| " + " | ".join(FIELDS) + " |" in table
+    assert table.count("| cli | 32 | 24 | draft |") == 2 and table.count("| service | 32 | 24 | draft |") == 2
     assert (tmp_path / "scale.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rates_count_the_steady_part_after_a_quarter_of_the_frames():
+    # 8 frames: two at 1 s, then one a second from 2 s to 7 s; the steady part is frames 3..8 after the 2nd one.
+    stamps = [1.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]
+    got = scale.rates(stamps, t0=0.0, wall=8.0)
+    assert got == {"wall_s": 8.0, "first_frame_s": 1.0, "wall_fps": 1.0, "steady_fps": 1.0}
+    assert scale.rates([2.0, 2.0], t0=0.0, wall=4.0)["steady_fps"] == 0.5  # no span: the whole run's rate
+
+
+def test_more_gpus_than_found_stop_before_any_row(monkeypatch):
+    from worker.render import devices
+
+    monkeypatch.setattr(devices, "gpu_indices", lambda: [0])
+    with pytest.raises(SystemExit, match="--gpus 1,2: EGL finds 1 GPU device"):
+        scale.run(Path("examples/urchins.yaml"), resolutions=[(32, 24)], workers=[1], frames_per_worker=4,
+                  preset="draft", out=None, platform="egl", gpu_counts=[1, 2])
+    monkeypatch.setattr(devices, "gpu_indices", lambda: [0, 1])
+    from service.gpus import GpuChoice
+
+    assert [scale.gpus_used("egl", GpuChoice(count=2), n) for n in (1, 2, 16)] == [1, 2, 2]
+    assert scale.gpus_used("osmesa", None, 4) == 0

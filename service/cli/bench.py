@@ -45,22 +45,43 @@ def bench_scale(
     workers: Annotated[str, typer.Option("--workers", help="Comma-separated worker counts.")] = "1,2",
     frames_per_worker: Annotated[int, typer.Option("--frames-per-worker", min=4)] = 20,
     preset: Annotated[str, typer.Option("--preset")] = "default",
+    mode: Annotated[str, typer.Option("--mode", help="Comma-separated: cli (local generate), service (redis-server, "
+                                      "an S3 server, the API and a Celery worker on this machine).")] = "cli",
+    gpus: Annotated[Optional[str], typer.Option("--gpus", help="Comma-separated GPU counts: a row each, its workers "
+                                                "spread over the first N GPUs. Default: EGL's default device.")] = None,
+    storage: Annotated[str, typer.Option("--service-storage", help="Object store of mode service: s3 (moto_server "
+                                         "on loopback) or local (a folder).")] = "s3",
     out: Annotated[Optional[Path], typer.Option("--out", help="Folder for scale.json, .md and .png.")] = None,
     machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
     gl: PlatformOpt = "egl",
 ) -> None:
-    """Frames per second against worker processes and resolution through generate, with CPU and GPU utilisation."""
+    """Frames per second against worker processes, GPUs and resolution through generate and through the service,
+    with CPU and GPU utilisation."""
     from bench.scale import run
 
+    sizes = [tuple(_ints(r.lower(), "x", "--resolution", "WIDTHxHEIGHT")) for r in (resolution or ["640x480"])]
+    if any(len(s) != 2 for s in sizes):
+        raise typer.BadParameter("give WIDTHxHEIGHT, e.g. 1920x1080", param_hint="'--resolution'")
+    modes = tuple(m.strip() for m in mode.split(","))
+    if not modes or set(modes) - {"cli", "service"}:
+        raise typer.BadParameter(f"{mode!r}: give cli, service or cli,service", param_hint="'--mode'")
+    if storage not in ("s3", "local"):
+        raise typer.BadParameter(f"{storage!r}: give s3 or local", param_hint="'--service-storage'")
+    run(spec, resolutions=sizes, workers=_ints(workers, ",", "--workers", "counts"), frames_per_worker=frames_per_worker,
+        preset=preset, out=out, platform=gl, machine=machine, modes=modes,
+        gpu_counts=None if gpus is None else _ints(gpus, ",", "--gpus", "counts"), storage=storage)
+
+
+def _ints(text: str, sep: str, option: str, what: str) -> list[int]:
+    """The integers >= 1 of `text` split at `sep`; a usage error naming `option` otherwise."""
     try:
-        sizes = [tuple(int(v) for v in r.lower().split("x")) for r in (resolution or ["640x480"])]
-        counts = [int(v) for v in workers.split(",")]
+        values = [int(v) for v in text.split(sep)]
     except ValueError:
-        raise typer.BadParameter("--resolution takes WIDTHxHEIGHT and --workers comma-separated integers") from None
-    if any(len(s) != 2 or min(s) < 1 for s in sizes) or min(counts) < 1:
-        raise typer.BadParameter("--resolution takes WIDTHxHEIGHT and --workers counts >= 1")
-    run(spec, resolutions=sizes, workers=counts, frames_per_worker=frames_per_worker, preset=preset, out=out,
-        platform=gl, machine=machine)
+        values = []
+    if not values or min(values) < 1:
+        raise typer.BadParameter(f"{text!r}: give {what} of integers >= 1 separated by {sep!r}",
+                                 param_hint=f"'{option}'")
+    return values
 
 
 @bench_app.command("load")

@@ -6,7 +6,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,6 +16,8 @@ from typing import Any
 
 import httpx
 import pytest
+
+from bench.stack import free_port  # noqa: F401 (the service tests import it from here)
 
 BUCKET = "seasynth-test"
 
@@ -37,12 +38,6 @@ def tiny_spec(**changes: Any) -> dict[str, Any]:
     spec = json.loads(json.dumps(TINY_SPEC))
     spec.update(changes)
     return spec
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float = 0.05) -> Any:
