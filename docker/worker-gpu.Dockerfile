@@ -5,6 +5,8 @@
 # image carries only libglvnd, the vendor-neutral dispatch layer.
 #   docker build -f docker/worker-gpu.Dockerfile -t seasynth-worker-gpu .
 #   docker run --gpus 'all,"capabilities=compute,utility,graphics"' seasynth-worker-gpu
+# SEASYNTH_GPUS=auto: the worker's render processes are spread over every GPU the container sees, pool process k
+# on the k-th round robin (one GPU seen: all on it). SEASYNTH_GPU=N instead binds them all to EGL device N.
 
 FROM python:3.11-slim AS build
 ENV PIP_NO_CACHE_DIR=1 \
@@ -35,7 +37,8 @@ ENV PATH=/opt/venv/bin:$PATH \
     REMAP_SIGTERM=SIGQUIT \
     __EGL_VENDOR_LIBRARY_FILENAMES=/usr/share/glvnd/egl_vendor.d/10_nvidia.json \
     NVIDIA_VISIBLE_DEVICES=all \
-    NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics
+    NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics \
+    SEASYNTH_GPUS=auto
 RUN groupadd --system --gid 10001 seasynth \
  && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
 COPY --from=build /opt/venv /opt/venv

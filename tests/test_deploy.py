@@ -836,12 +836,15 @@ def test_compose_frames_have_a_worker_of_their_own(compose):
     assert svc["image"] == compose["services"]["worker"]["image"], "the CPU worker image"
 
 
-@pytest.mark.parametrize("name", ["worker-gpu", "worker-frames-gpu"])
-def test_compose_gpu_workers_are_an_opt_in_profile_with_an_nvidia_device(compose, name):
+@pytest.mark.parametrize(("name", "count"), [("worker-gpu", "all"), ("worker-frames-gpu", 1)])
+def test_compose_gpu_workers_are_an_opt_in_profile_with_an_nvidia_device(compose, name, count):
+    """The shard worker takes every GPU and spreads its render processes over them (the image's SEASYNTH_GPUS=auto;
+    Docker would give each replica of `count: 1` the same first GPU); the frames worker needs one."""
     svc = compose["services"][name]
     assert svc["profiles"] == ["gpu"]
     (device,) = svc["deploy"]["resources"]["reservations"]["devices"]
-    assert device["driver"] == "nvidia" and device["count"] == 1
+    assert device["driver"] == "nvidia" and device["count"] == count
+    assert _env(parse_dockerfile(ROOT / IMAGES["worker-gpu"]["dockerfile"])[-1]).get("SEASYNTH_GPUS") == "auto"
     assert {"gpu", "graphics"} <= set(device["capabilities"]), "graphics: EGL needs the driver's GL libraries"
     assert svc["image"] == compose["services"]["worker-gpu"]["image"]
     assert "profiles" not in compose["services"]["worker"]
