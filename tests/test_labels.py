@@ -55,6 +55,14 @@ def test_tight_boxes_match_brute_force(instance):
     assert tight_boxes(instance) == brute_force_boxes(instance)
 
 
+def test_tight_boxes_of_ids_past_16_bits_match_brute_force():
+    """Ids that do not fit the 16-bit radix sort take the wide sort, with the same boxes."""
+    rng = np.random.default_rng(3)
+    instance = rng.choice(np.array([0, 1, 65535, 65536, 2**31 - 1], np.int64), size=(9, 13))
+    assert tight_boxes(instance) == brute_force_boxes(instance)
+    assert set(tight_boxes(instance)) == {1, 65535, 65536, 2**31 - 1}
+
+
 def test_objects_touching_every_border():
     instance = np.zeros((5, 7), np.int32)
     instance[0, :] = 1  # top row; the columns below overwrite its ends

@@ -316,14 +316,11 @@ class RenderSession:
         boxes = labels.tight_boxes(result.instance)
         objects, line_of, visible, alone = [], {}, {}, {}
         by_id = {it.instance_id: it for it in items}
-        for p in scene.objects:
-            box = boxes.get(p.instance_id)
-            if p.role != "target" or box is None:
-                continue
-            pts = _points_cam(view, p)
-            item = by_id[p.instance_id]
-            region = _pixel_region(pts, view)
-            alone_px = self.renderer.pixels_alone(view, item, region)
+        shown = [(p, boxes[p.instance_id], _points_cam(view, p)) for p in scene.objects
+                 if p.role == "target" and p.instance_id in boxes]
+        counts = self.renderer.pixels_alone_many(
+            view, [(by_id[p.instance_id], _pixel_region(pts, view)) for p, _, pts in shown])
+        for (p, box, pts), alone_px in zip(shown, counts):
             # Rendered alone an object covers at least what it covers among others (same rasterisation).
             alone_px = max(alone_px, box.pixels)
             truncated = labels.truncation(pts, view.K, view.width, view.height, view.near)

@@ -134,6 +134,10 @@ class Renderer(Protocol):
 
     def pixels_alone(self, view: View, item: DrawItem, region: tuple[int, int, int, int] | None = None) -> int: ...
 
+    def pixels_alone_many(
+        self, view: View, jobs: list[tuple[DrawItem, tuple[int, int, int, int] | None]]
+    ) -> list[int]: ...
+
     def samples(
         self, view: View, items: list[DrawItem], lighting: Lighting, sampling: Sampling
     ) -> tuple[np.ndarray, np.ndarray]: ...

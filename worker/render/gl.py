@@ -19,6 +19,7 @@ import numpy as np
 from service.errors import RenderError
 from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
 from worker.render import shaders
+from worker.render.coverage import pixels_alone
 from worker.render.devices import egl_platform, parse_platform, prepare_environment
 from worker.render.surface import surface_pass
 from worker.render.targets import Target, Targets
@@ -364,27 +365,12 @@ class GLRenderer:
         """Pixels (at pixel centres) the item covers when rendered with nothing else in the scene.
 
         region: (left, top, right, bottom) inclusive pixel bounds known to contain the item's projection;
-        only that part of the framebuffer is cleared and read.
+        only that part of the framebuffer is cleared and drawn.
         """
-        GL = self._gl
+        return self.pixels_alone_many(view, [(item, region)])[0]
+
+    def pixels_alone_many(self, view: View, jobs: list[tuple[DrawItem, tuple[int, int, int, int] | None]]) -> list[int]:
+        """pixels_alone of each (item, region), with one wait for the GPU (worker.render.coverage)."""
         self._platform.make_current()
         self._call += 1
-        w, h = view.width, view.height
-        x0, y0, x1, y1 = (0, 0, w - 1, h - 1) if region is None else region
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
-        if x1 < x0 or y1 < y0:
-            return 0
-        t = self.targets.ids(w, h, True, False)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
-        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0])
-        GL.glEnable(GL.GL_SCISSOR_TEST)
-        GL.glScissor(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
-        GL.glClearBufferuiv(GL.GL_COLOR, 0, np.zeros(4, np.uint32))
-        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-        prog, locs = self._ids_program(True, False)
-        GL.glUseProgram(prog)
-        self._set_view(locs, view, w, h)
-        self._draw(view, [item], locs, lit=False, ids=True)
-        GL.glDisable(GL.GL_SCISSOR_TEST)
-        ids = self._read(0, x1 - x0 + 1, y1 - y0 + 1, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1, x0, y0)
-        return int(np.count_nonzero(ids))
+        return pixels_alone(self, view, jobs)

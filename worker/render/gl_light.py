@@ -12,12 +12,8 @@ from worker.light.sky import sky_phase_table
 from worker.light.volume import camera_depth
 from worker.render import DrawItem, View
 from worker.render import shadows
-from worker.render.shaders import VERTEX
+from worker.render.shaders import DEPTH_ONLY, VERTEX
 
-DEPTH_ONLY = """
-#version 330 core
-void main() {}
-"""
 SHADOW_UNIT = 2  # texture units from here on hold shadow maps (0 and 1 are the resolve's)
 
 

@@ -97,6 +97,12 @@ void main() {
 
 # Averages the samples of one output pixel in linear light; with water, each sample is hazed with its own range
 # before averaging, so thin spines against open water blend correctly.
+# Depth (shadow maps) or stencil (coverage counts) only: no colour is written.
+DEPTH_ONLY = """
+#version 330 core
+void main() {}
+"""
+
 RESOLVE = """
 #version 330 core
 #if SAMPLES > 1

@@ -127,6 +127,19 @@ class Targets:
 
         return self.get(("resolve", w, h, formats), build)
 
+    def stencil(self, w: int, h: int) -> Target:
+        """Single-sample depth and stencil, no colour: coverage counts (worker.render.coverage)."""
+
+        def build() -> Target:
+            GL = self._gl
+            t = self.new_fbo()
+            self._attach_renderbuffer(t, GL.GL_DEPTH_STENCIL_ATTACHMENT, GL.GL_DEPTH24_STENCIL8, w, h, 1)
+            GL.glDrawBuffers([GL.GL_NONE])
+            GL.glReadBuffer(GL.GL_NONE)
+            return t
+
+        return self.get(("stencil", w, h), build)
+
     def ids(self, w: int, h: int, with_ids: bool, with_range: bool) -> Target:
         """Single-sample ids (slot 0, when drawn) and/or range (the next slot) at pixel centres, and depth."""
 
