@@ -36,9 +36,10 @@ METHOD_RANGE = (
     "show B_inf) by least squares over a log grid of beta_D, beta_B with 0.5 <= beta_B / beta_D <= 2 (prior); "
     "stage 2: with stage 1's backscatter taken off, beta_D refitted per channel from ln(bin mean) against range "
     "(prior: the mean of J does not depend on range; bins whose direct signal is below 0.004 linear left out); "
-    "sigma: the largest of a bootstrap over image tiles, stage 1's profile width and a range jackknife (the whole fit "
+    "sigma: the largest of a bootstrap over image tiles, stage 1's profile width, a range jackknife (the whole fit "
     "repeated leaving out each quarter of the range bins in turn: it grows where J's statistics change with range, "
-    "which the priors exclude); a beta is identified when its sigma is at most half its value and its profile "
+    "which the priors exclude) and a drift sensitivity (the whole fit repeated assuming J's mean rises or falls by "
+    "10% from the nearest to the farthest range); a beta is identified when its sigma is at most half its value and its profile "
     "interval is inside the grid"
 )
 METHOD_JERLOV = ("; prior jerlov: in stage 1, beta_D = s * jerlov_beta(type) for one Jerlov type and one scale s in "
@@ -227,10 +228,12 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
     binf = np.array([s.B_inf for s in samples])
     sd = lambda a: np.std(a, axis=0, ddof=1)  # noqa: E731
     jk_d, jk_b = _range_jackknife(data, prior)
-    # sigma: the largest of the tile bootstrap's spread, the fit's own profile width (which sees degeneracy) and the
-    # range jackknife's spread (which sees J's statistics changing with range, the prior's failure).
-    sd_d = np.maximum.reduce([sd(bd), best.beta_D_sigma, jk_d])
-    sd_b = np.maximum.reduce([sd(bb), best.beta_B_sigma, jk_b])
+    dr_d, dr_b = _drift_sensitivity(data, prior, best)
+    # sigma: the largest of the tile bootstrap's spread, the fit's own profile width (which sees degeneracy), the
+    # range jackknife's spread (which sees J's statistics changing with range, the prior's failure) and the drift
+    # sensitivity (how far a drift of J's mean with range that the data cannot rule out moves the fit).
+    sd_d = np.maximum.reduce([sd(bd), best.beta_D_sigma, jk_d, dr_d])
+    sd_b = np.maximum.reduce([sd(bb), best.beta_B_sigma, jk_b, dr_b])
     ok_d = best.beta_D_inside & (sd_d <= BETA_REL_SIGMA_MAX * best.beta_D)
     ok_b = best.beta_B_inside & (sd_b <= BETA_REL_SIGMA_MAX * best.beta_B)
     sd_inf = np.maximum(sd(binf), half_code(best.B_inf))
@@ -284,6 +287,18 @@ def _range_jackknife(data: fit.RangeData, prior: str | None) -> tuple[np.ndarray
     n = JACKKNIFE_BLOCKS
     jk = lambda a: np.sqrt((n - 1) / n * ((a - a.mean(axis=0)) ** 2).sum(axis=0))  # noqa: E731
     return jk(np.array([f.beta_D for f in fits])), jk(np.array([f.beta_B for f in fits]))
+
+
+DRIFT_BOUND = 0.1  # the drift sensitivity refits as if J's mean changed by +-10% from the near to the far end
+
+
+def _drift_sensitivity(data: fit.RangeData, prior: str | None, best: fit.RangeFit) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) each: the largest change of beta_D and beta_B when the fit assumes that J's mean grows or falls by
+    DRIFT_BOUND (log-linear in ln z) across the range instead of staying constant. Where the backscatter or the
+    attenuation is small beside such a drift, the data cannot tell them apart, and this says by how much."""
+    fits = [_fit(data.with_drift(sign * np.log1p(DRIFT_BOUND)), prior)[0] for sign in (-1.0, 1.0)]
+    return (np.max([np.abs(f.beta_D - best.beta_D) for f in fits], axis=0),
+            np.max([np.abs(f.beta_B - best.beta_B) for f in fits], axis=0))
 
 
 def _ratios(best: np.ndarray, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

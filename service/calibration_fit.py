@@ -57,7 +57,8 @@ class RangeData:
     """Group means for the range fit. y: (3, GROUPS, bins) float64, mean linear value of each channel's groups per
     bin; h: (3, GROUPS, bins, Z) float64, each group's share of pixels at range node z_nodes (Z,) metres (linear
     interpolation in log range), so a group's mean transmission is h @ exp(-beta z_nodes) with no bin-width error.
-    open_mean: (3,) linear mean of the open-water pixels (zeros when none)."""
+    open_mean: (3,) linear mean of the open-water pixels (zeros when none). drift: None, or (Z,) float64, a factor on
+    J at each range node that the fits assume (the drift sensitivity's stated change of J with range)."""
 
     y: np.ndarray
     h: np.ndarray
@@ -67,6 +68,7 @@ class RangeData:
     finite_pixels: int
     z_lo: float
     z_hi: float
+    drift: np.ndarray | None = None
 
     @property
     def bins(self) -> int:
@@ -75,7 +77,19 @@ class RangeData:
     def keep_bins(self, keep: np.ndarray) -> RangeData:
         """The same data restricted to the range bins `keep` ((bins,) bool); open water and spans unchanged."""
         return RangeData(self.y[:, :, keep], self.h[:, :, keep], self.z_nodes, self.open_mean, self.open_pixels,
-                         self.finite_pixels, self.z_lo, self.z_hi)
+                         self.finite_pixels, self.z_lo, self.z_hi, self.drift)
+
+    def with_drift(self, log_factor: float) -> RangeData:
+        """The same data, fitted as if J's mean were e^log_factor times larger at the far end of the range than at
+        the near end (log-linear in ln z between them)."""
+        s = np.linspace(-0.5, 0.5, self.z_nodes.size)
+        return RangeData(self.y, self.h, self.z_nodes, self.open_mean, self.open_pixels, self.finite_pixels,
+                         self.z_lo, self.z_hi, np.exp(log_factor * s))
+
+    def direct(self, beta: np.ndarray) -> np.ndarray:
+        """(n, Z): exp(-beta z) at the nodes for each beta (n,) 1/m, times the assumed drift of J (if any)."""
+        t = np.exp(-np.outer(beta, self.z_nodes))
+        return t if self.drift is None else t * self.drift
 
 
 @dataclass(frozen=True)
@@ -232,13 +246,14 @@ class Work:
         return TileStats(mean=mean, contrast=contrast, dark=dark, pixels=count.astype(np.int64))
 
 
-def grid_sse(y, h, nodes, bd, bb, y_inf: float, w2: float):
-    """Least squares of y_g = m_g <exp(-bd z)>_g + B <1 - exp(-bb z)>_g (+ w2-weighted B = y_inf) over grids bd, bb,
-    <.>_g the mean over group g's ranges (h: (G, K, Z) shares at nodes (Z,) metres).
+def grid_sse(y, h, nodes, bd, bb, y_inf: float, w2: float, drift: np.ndarray | None = None):
+    """Least squares of y_g = m_g <d exp(-bd z)>_g + B <1 - exp(-bb z)>_g (+ w2-weighted B = y_inf) over grids bd, bb,
+    <.>_g the mean over group g's ranges (h: (G, K, Z) shares at nodes (Z,) metres), d the drift (Z,) (None: 1).
 
     y: (G, K). bd: (nD,), bb: (nB,) 1/m. The per-group m_g and B are solved in closed form (m_g eliminated by
     projection, B clipped to [0, 1]). Returns sse (nD, nB) and B (nD, nB)."""
-    t = np.einsum("dz,gkz->dgk", np.exp(-bd[:, None] * nodes[None]), h)  # (nD, G, K)
+    direct = np.exp(-bd[:, None] * nodes[None])
+    t = np.einsum("dz,gkz->dgk", direct if drift is None else direct * drift, h)  # (nD, G, K)
     u = np.einsum("bz,gkz->bgk", -np.expm1(-bb[:, None] * nodes[None]), h)  # (nB, G, K)
     stt = np.maximum((t * t).sum(-1), 1e-300)  # (nD, G)
     sty = (t * y).sum(-1)
@@ -289,12 +304,12 @@ def fit_range(data: RangeData) -> RangeFit:
             inside["B"][c] = has_open
             continue
         y_inf = float(data.open_mean[c])
-        sse, _ = grid_sse(y, h, data.z_nodes, BETA_GRID, BETA_GRID, y_inf, w2)
+        sse, _ = grid_sse(y, h, data.z_nodes, BETA_GRID, BETA_GRID, y_inf, w2, data.drift)
         sse = restrict_ratio(sse, BETA_GRID, BETA_GRID)
         i, j = np.unravel_index(np.argmin(sse), sse.shape)
         fd = np.geomspace(BETA_GRID[max(i - 1, 0)], BETA_GRID[min(i + 1, n - 1)], FINE_POINTS)
         fb = np.geomspace(BETA_GRID[max(j - 1, 0)], BETA_GRID[min(j + 1, n - 1)], FINE_POINTS)
-        sse2, B2 = grid_sse(y, h, data.z_nodes, fd, fb, y_inf, w2)
+        sse2, B2 = grid_sse(y, h, data.z_nodes, fd, fb, y_inf, w2, data.drift)
         sse2 = restrict_ratio(sse2, fd, fb)
         k, m = np.unravel_index(np.argmin(sse2), sse2.shape)
         flat = np.ptp(y) < FLAT_SPREAD

@@ -38,7 +38,7 @@ def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[Ra
     free = {}
     for c in ch:
         y = data.y[c]
-        sse = grid_sse(y, data.h[c], data.z_nodes, BETA_GRID, BETA_GRID, float(data.open_mean[c]), w2)[0]
+        sse = grid_sse(y, data.h[c], data.z_nodes, BETA_GRID, BETA_GRID, float(data.open_mean[c]), w2, data.drift)[0]
         low = float(restrict_ratio(sse, BETA_GRID, BETA_GRID).min())
         free[c] = (low, max(low / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2))
     best = (np.inf, "", 0, None)
@@ -49,7 +49,7 @@ def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[Ra
         for c in ch:
             y, h, y_inf = data.y[c], data.h[c], float(data.open_mean[c])
             bd = PRIOR_SCALE * beta[c]
-            sse, B = grid_sse(y, h, data.z_nodes, bd, BETA_GRID, y_inf, w2)
+            sse, B = grid_sse(y, h, data.z_nodes, bd, BETA_GRID, y_inf, w2, data.drift)
             sse = restrict_ratio(sse, bd, BETA_GRID)
             j = np.argmin(sse, axis=1)
             total += (sse[np.arange(bd.size), j] - free[c][0]) / free[c][1]
@@ -94,13 +94,13 @@ def refine_beta_D(data: RangeData, rf: RangeFit) -> RangeFit:
         if ok.sum() < MIN_BINS:
             inside[c] = False
             continue
-        lt = np.log(np.maximum(np.exp(-np.outer(BETA_GRID, data.z_nodes)) @ h[ok].T, 1e-300))  # (nD, K)
+        lt = np.log(np.maximum(data.direct(BETA_GRID) @ h[ok].T, 1e-300))  # (nD, K)
         r = np.log(direct[ok])[None, :] - lt
         sse = ((r - r.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
         i = int(np.argmin(sse))
         inside[c] &= 0 < i < BETA_GRID.size - 1  # at the grid's end: no minimum found
         fine = np.geomspace(BETA_GRID[max(i - 1, 0)], BETA_GRID[min(i + 1, BETA_GRID.size - 1)], FINE_POINTS)
-        lt = np.log(np.maximum(np.exp(-np.outer(fine, data.z_nodes)) @ h[ok].T, 1e-300))
+        lt = np.log(np.maximum(data.direct(fine) @ h[ok].T, 1e-300))
         r = np.log(direct[ok])[None, :] - lt
         bd[c] = fine[int(np.argmin(((r - r.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)))]
     return RangeFit(bd, rf.beta_B, rf.B_inf, rf.beta_D_sigma, rf.beta_B_sigma, inside, rf.beta_B_inside,
