@@ -4,7 +4,7 @@
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
     "u_cam_from_obj", "u_nrm_cam", "u_proj", "u_scale", "u_bias", "u_sun_cam", "u_sun", "u_ambient",
-    "u_range_bounds", "u_id", "u_J", "u_R", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr",
+    "u_range_bounds", "u_id", "u_J", "u_R", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr", "u_size",
 )
 
 # Range is interpolated at the pixel centre even for multisample coverage (no per-sample shading); a sample that
@@ -95,14 +95,17 @@ void main() {
 }
 """
 
-# Averages the samples of one output pixel in linear light; with water, each sample is hazed with its own range
-# before averaging, so thin spines against open water blend correctly.
 # Depth (shadow maps) or stencil (coverage counts) only: no colour is written.
 DEPTH_ONLY = """
 #version 330 core
 void main() {}
 """
 
+# Averages the samples of one output pixel in linear light; with water, each sample is hazed with its own range
+# before averaging, so thin spines against open water blend correctly. The same source runs as a fragment shader
+# over a full-screen triangle or, with COMPUTE (GL 4.3), as a compute shader writing its outputs as images: on
+# GPUs whose graphics units are few (an H100 runs fragment shaders on a small part of its chip) the compute
+# shader runs on every unit. Both store the same values in the same formats.
 RESOLVE = """
 #version 330 core
 #if SAMPLES > 1
@@ -118,19 +121,42 @@ uniform vec3 u_betaD;
 uniform vec3 u_betaB;
 uniform vec3 u_Binf;
 uniform int u_only_sample;     // >= 0: output that one sample (audits); < 0: the average
+#ifdef COMPUTE
+layout(local_size_x = 8, local_size_y = 8) in;
+uniform ivec2 u_size;
+layout(binding = 0, IMG_FORMAT) writeonly uniform image2D u_out_img;
+#define OUT_IMG(v) imageStore(u_out_img, px, v)
+#else
 layout(location = 0) out vec4 o_img;
+#define OUT_IMG(v) o_img = v
+#endif
 #ifdef SRGB8_OUT
 SRGB8_FUNCTION
+#ifdef COMPUTE
+layout(binding = NAN_LOCATION, r8) writeonly uniform image2D u_out_nan;
+#define OUT_NAN(v) imageStore(u_out_nan, px, vec4(v))
+#else
 layout(location = NAN_LOCATION) out float o_nan;   // 1 where the pixel's linear colour was NaN
+#define OUT_NAN(v) o_nan = v
 #endif
-#ifdef WITH_CLEAN
-layout(location = 1) out vec4 o_clean;
 #endif
-#ifdef WITH_SAMPLE_RANGE
-layout(location = 1) out vec4 o_range;
+#if defined(WITH_CLEAN) || defined(WITH_SAMPLE_RANGE)
+#ifdef COMPUTE
+layout(binding = 1, rgba32f) writeonly uniform image2D u_out_second;
+#define OUT_SECOND(v) imageStore(u_out_second, px, v)
+#else
+layout(location = 1) out vec4 o_second;   // the clean image, or one sample's range (audits)
+#define OUT_SECOND(v) o_second = v
+#endif
 #endif
 #ifdef WITH_NEAREST
+#ifdef COMPUTE
+layout(binding = NEAREST_LOCATION, r32f) writeonly uniform image2D u_out_nearest;
+#define OUT_NEAREST(v) imageStore(u_out_nearest, px, vec4(v))
+#else
 layout(location = NEAREST_LOCATION) out float o_nearest;   // nearest range of any sample, +inf if none hits
+#define OUT_NEAREST(v) o_nearest = v
+#endif
 #endif
 HAZE_FUNCTION
 #ifdef PHYSICAL
@@ -138,7 +164,12 @@ uniform mat3 u_K_inv;
 uniform mat3 u_world_from_cam;
 #endif
 void main() {
+#ifdef COMPUTE
+    ivec2 px = ivec2(gl_GlobalInvocationID.xy);
+    if (px.x >= u_size.x || px.y >= u_size.y) return;
+#else
     ivec2 px = ivec2(gl_FragCoord.xy);
+#endif
     vec3 acc = vec3(0.0);
     vec3 clean = vec3(0.0);
     // Any sample will do to start the minimum: an uncovered one holds the +inf its buffer was cleared to.
@@ -167,7 +198,7 @@ void main() {
                 acc += J;
 #endif
 #ifdef WITH_SAMPLE_RANGE
-                o_range = vec4(FETCH(u_R, q, s).r, 0.0, 0.0, 1.0);
+                OUT_SECOND(vec4(FETCH(u_R, q, s).r, 0.0, 0.0, 1.0));
 #endif
 #ifdef WITH_NEAREST
                 nearest = min(nearest, FETCH(u_R, q, s).r);
@@ -177,19 +208,36 @@ void main() {
         }
     }
 #ifdef SRGB8_OUT
-    o_img = srgb8(acc / n);
-    o_nan = o_img.a;
+    vec4 codes = srgb8(acc / n);
+    OUT_IMG(codes);
+    OUT_NAN(codes.a);
 #else
-    o_img = vec4(acc / n, 1.0);
+    OUT_IMG(vec4(acc / n, 1.0));
 #endif
 #ifdef WITH_CLEAN
-    o_clean = vec4(clean / n, 1.0);
+    OUT_SECOND(vec4(clean / n, 1.0));
 #endif
 #ifdef WITH_NEAREST
-    o_nearest = nearest;
+    OUT_NEAREST(nearest);
 #endif
 }
 """
+
+
+# What a compute shader needs of a context that is older than GL 4.3 (pyrender asks EGL for 4.1) but has it as
+# extensions.
+COMPUTE_EXTENSIONS = ("GL_ARB_compute_shader", "GL_ARB_shader_image_load_store", "GL_ARB_shading_language_420pack")
+
+
+def compute_header(GL) -> str | None:
+    """The first lines of a compute shader in the current context: `#version 430 core` on GL >= 4.3, else #version
+    410 with the extensions that bring compute shaders and image stores; None where the context has neither."""
+    if (int(GL.glGetIntegerv(GL.GL_MAJOR_VERSION)), int(GL.glGetIntegerv(GL.GL_MINOR_VERSION))) >= (4, 3):
+        return "#version 430 core"
+    have = {GL.glGetStringi(GL.GL_EXTENSIONS, k).decode() for k in range(int(GL.glGetIntegerv(GL.GL_NUM_EXTENSIONS)))}
+    if not all(e in have for e in COMPUTE_EXTENSIONS):
+        return None
+    return "\n".join(["#version 410 core", *(f"#extension {e} : require" for e in COMPUTE_EXTENSIONS)])
 
 
 def variant(source: str, **defines: object) -> str:

@@ -63,9 +63,7 @@ def surface_pass(
     formats = ((GL.GL_RGBA8 if srgb8 else GL.GL_RGBA32F,) + (GL.GL_RGBA32F,) * second
                + (GL.GL_R32F,) * want_nearest + (GL.GL_R8,) * srgb8)
     res = r.targets.resolve(view.width, view.height, formats)
-    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
-    GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
-    GL.glDisable(GL.GL_DEPTH_TEST)
+    compute = r.compute_resolve
     volume = physical and not sample_range  # audits (samples()) read J and range before any water
     if volume:
         from worker.light.glsl import VOLUME
@@ -76,10 +74,14 @@ def surface_pass(
         src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
         extra_defines = {}
     src = src.replace("SRGB8_FUNCTION", GLSL_SRGB8)
+    if compute:
+        src = src.replace("#version 330 core", r.compute_header, 1)
     prog, locs = r._program(
-        shaders.FULLSCREEN,
+        None if compute else shaders.FULLSCREEN,
         src,
         **extra_defines,
+        COMPUTE=compute,
+        IMG_FORMAT=("rgba8" if srgb8 else "rgba32f") if compute else False,
         SAMPLES=msaa,
         SUPERSAMPLE=ss,
         WITH_HAZE=water is not None,
@@ -91,7 +93,6 @@ def surface_pass(
         NAN_LOCATION=nan_slot if srgb8 else False,
     )
     GL.glUseProgram(prog)
-    GL.glViewport(0, 0, view.width, view.height)
     tex_target = GL.GL_TEXTURE_2D_MULTISAMPLE if msaa > 1 else GL.GL_TEXTURE_2D
     for unit, (name, tex) in enumerate(zip(("u_J", "u_R"), surf.textures)):
         GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
@@ -107,12 +108,24 @@ def surface_pass(
     GL.glUniform1i(locs["u_only_sample"], only_sample)
     if srgb8:
         GL.glUniform1fv(locs["u_srgb_thr"], len(SRGB8_THRESHOLDS_F32), SRGB8_THRESHOLDS_F32)
-    GL.glBindVertexArray(r._empty_vao)
-    GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
-    GL.glBindVertexArray(0)
-    GL.glEnable(GL.GL_DEPTH_TEST)
-    log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
     w, h = view.width, view.height
+    if compute:
+        for slot, (fmt, tex) in enumerate(zip(formats, res.textures)):
+            GL.glBindImageTexture(slot, tex, 0, GL.GL_FALSE, 0, GL.GL_WRITE_ONLY, fmt)
+        GL.glUniform2i(locs["u_size"], w, h)
+        GL.glDispatchCompute((w + 7) // 8, (h + 7) // 8, 1)
+        GL.glMemoryBarrier(GL.GL_FRAMEBUFFER_BARRIER_BIT | GL.GL_PIXEL_BUFFER_BARRIER_BIT)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
+    else:
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, res.fbo)
+        GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
+        GL.glDisable(GL.GL_DEPTH_TEST)
+        GL.glViewport(0, 0, w, h)
+        GL.glBindVertexArray(r._empty_vao)
+        GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
+        GL.glBindVertexArray(0)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+    log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
     if srgb8:
         if r._read(nan_slot, w, h, GL.GL_RED, GL.GL_UNSIGNED_BYTE, np.uint8, 1).any():
             raise ValueError("encode_srgb8: linear image contains NaN")  # as the CPU encoder says it

@@ -116,13 +116,13 @@ class Targets:
         return self.get(("surface", w, h, msaa, with_range), build)
 
     def resolve(self, w: int, h: int, formats: tuple[int, ...]) -> Target:
-        """One single-sample colour renderbuffer per output, in slot order (GL internal formats)."""
+        """One single-sample colour texture per output, in slot order (GL internal formats): drawn into by the
+        fragment resolve, written as images by the compute resolve, read back through the framebuffer."""
 
         def build() -> Target:
-            GL = self._gl
             t = self.new_fbo()
             for slot, fmt in enumerate(formats):
-                self._attach_renderbuffer(t, GL.GL_COLOR_ATTACHMENT0 + slot, fmt, w, h, 1)
+                self._attach_texture(t, slot, fmt, w, h, 1)
             return t
 
         return self.get(("resolve", w, h, formats), build)
