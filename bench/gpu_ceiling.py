@@ -1,0 +1,56 @@
+"""The GPU's ceiling: P processes each rendering (no labels, no encoding, no writing) the same four frames of
+examples/urchins.yaml in a loop for 8 s; prints the frames/s of all of them together.
+
+    python -m bench.gpu_ceiling WIDTHxHEIGHT VARIANT@PROCS ...
+
+VARIANT: default (the default preset, ids pass, 8-bit codes), fragment (the same with the fragment resolve),
+no-ids, draft, no-sun-shadow, no-scatter (sun and sky scattering off). Results: bench/results/gpu/passes.md.
+"""
+import dataclasses, multiprocessing as mp, sys, time
+
+
+def worker(variant, procs, seconds, barrier, q, res):
+    from service.spec import load_spec
+    from worker.pipeline import PRESETS, RenderSession, scene_light
+    from worker.render import Passes
+    w, h = res
+    spec = load_spec("examples/urchins.yaml", {"camera.width": w, "camera.height": h})
+    with RenderSession() as s:
+        frames = []
+        for i in range(4):
+            scene = s.scene(spec, i)
+            light = scene_light(scene)
+            if variant == "no-sun-shadow" and hasattr(light, "terms"):
+                light = dataclasses.replace(light, terms=dataclasses.replace(light.terms, sun_shadows=False))
+            if variant == "no-scatter" and hasattr(light, "terms"):
+                light = dataclasses.replace(light, terms=dataclasses.replace(light.terms, scattering=False, sky=False))
+            frames.append((s.view(spec, scene), s.draw_items(scene), light, scene.water))
+        if variant == "fragment":
+            s.renderer.compute_resolve = False
+        preset = PRESETS["draft" if variant == "draft" else "default"]
+        passes = Passes(ids=variant != "no-ids", srgb8=True)
+        for v, it, lt, wt in frames:
+            s.renderer.render(v, it, lt, wt, preset, passes)
+        barrier.wait()
+        t0, n = time.perf_counter(), 0
+        while time.perf_counter() - t0 < seconds:
+            v, it, lt, wt = frames[n % 4]
+            s.renderer.render(v, it, lt, wt, preset, passes)
+            n += 1
+        q.put(n)
+
+
+if __name__ == "__main__":
+    ctx = mp.get_context("spawn")
+    res = tuple(int(x) for x in sys.argv[1].split("x"))
+    for spec in sys.argv[2:]:
+        variant, procs = spec.split("@")
+        procs, seconds = int(procs), 8.0
+        barrier, q = ctx.Barrier(procs), ctx.Queue()
+        ps = [ctx.Process(target=worker, args=(variant, procs, seconds, barrier, q, res)) for _ in range(procs)]
+        for p in ps:
+            p.start()
+        total = sum(q.get() for _ in ps)
+        for p in ps:
+            p.join()
+        print(f"{res[0]}x{res[1]} {variant:14s} procs={procs:3d} render-only fps={total / seconds:7.1f}", flush=True)
