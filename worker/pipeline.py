@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import dataclasses
 import io
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -12,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-import service
 from service.seeds import STREAM_NOISE, frame_rng
 from service.shards import frame_name
 from service.spec import AssetRef, DatasetSpec, FileRef
@@ -21,6 +18,7 @@ from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
 from worker.assets.terrain import Terrain, apply_texture, procedural_terrain
 from worker.formation import decode_srgb8, encode_srgb8
+from worker.frame_meta import frame_meta
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from worker.scene import Placed, Scene, on_trajectory, sample_scene
 from worker.sensors.outputs import SensorFrame, sensor_frame, sensor_paths, sensors_on
@@ -114,17 +112,6 @@ def depth_png16(range_m: np.ndarray, norms: np.ndarray) -> np.ndarray:
 def scene_light(scene: Scene):
     """What the renderer shades with: the physical model's light, else the paper's lighting."""
     return scene.light if scene.light is not None else scene.lighting
-
-
-def _water_record(scene: Scene) -> dict | None:
-    """meta's water: the model, the Jerlov type drawn, and every coefficient the frame used."""
-    if scene.light is not None:
-        return {"model": "physical", "jerlov_type": scene.water_type, **scene.light.coefficients()}
-    w = scene.water
-    if w is None:
-        return None
-    return {"model": "paper", "jerlov_type": scene.water_type, "beta_D": w.beta_D.tolist(),
-            "beta_B": w.beta_B.tolist(), "B_inf": w.B_inf.tolist()}
 
 
 @dataclass(frozen=True)
@@ -333,66 +320,9 @@ class RenderSession:
 
     def meta(self, spec, index, scene: Scene, view: View, fl: FrameLabels | None, noise,
              sensors: SensorFrame | None = None) -> str:
-        """The frame's audit record: nothing in it depends on time, host, duration, worker count, the dataset's
-        frame count, shard size or the optional outputs depth/instance/clean/range (the dataset record holds the
-        whole spec). With outputs.labels off there are no labels, so each object's label_line, visible_pixels
-        and pixels_alone are null."""
-        record = {
-            "dataset_seed": spec.seed,
-            "frame_index": index,
-            "code_version": service.__version__,
-            "versions": self.versions,
-            "gl_renderer": self.renderer_name,
-            "preset": spec.quality,
-            "sampling": dataclasses.asdict(PRESETS[spec.quality]),
-            "camera": {
-                "K": view.K.tolist(),
-                "width": view.width,
-                "height": view.height,
-                "pose_world_from_camera": scene.world_from_cam.tolist(),
-                "clip": [view.near, view.far],
-                "look_at": scene.look_at.tolist(),
-                "look_at_instance": scene.look_at_instance,
-                "position_draws": scene.camera_tries,
-            },
-            "water": _water_record(scene),
-            "lights": {
-                "sun_direction_world": scene.lighting.sun_dir_world.tolist(),
-                "sun_intensity": scene.lighting.sun_intensity,
-                "ambient": scene.lighting.ambient,
-            },
-            "terrain": {
-                "key": scene.terrain.key,
-                "albedo_scale": scene.terrain_albedo_scale.tolist(),
-                "albedo_bias": scene.terrain_albedo_bias.tolist(),
-            },
-            "objects": [_object_record(p, fl) for p in scene.objects],
-            "objects_left_out": scene.dropped,
-            "noise": noise,
-        }
-        if sensors is not None:  # absent with every sensor off, so such frames' meta is unchanged
-            record["sensors"] = sensors.record
-        return json.dumps(record, indent=1, sort_keys=True) + "\n"
-
-
-def _asset_record(key: str, source: str, sha256: str | None) -> dict:
-    return {"key": key, "source": source, "sha256": sha256}
-
-
-def _object_record(p: Placed, fl: FrameLabels | None) -> dict:
-    return {
-        "instance_id": p.instance_id,
-        "class": p.class_name,
-        "role": p.role,
-        "label_line": None if fl is None else fl.line_of.get(p.instance_id),
-        "visible_pixels": None if fl is None else fl.visible.get(p.instance_id, 0),
-        "pixels_alone": None if fl is None else fl.alone.get(p.instance_id),
-        "asset": {**_asset_record(p.asset.key, p.asset.source, p.asset.sha256), "variant": p.variant},
-        "scale": p.scale,
-        "pose_world_from_object": p.world_from_obj.tolist(),
-        "albedo_scale": p.albedo_scale.tolist(),
-        "albedo_bias": p.albedo_bias.tolist(),
-    }
+        """The frame's audit record (worker.frame_meta.frame_meta) as JSON text."""
+        return frame_meta(spec, index, scene, view, PRESETS[spec.quality], fl, noise, sensors, self.renderer_name,
+                          self.versions)
 
 
 def _points_cam(view: View, p: Placed) -> np.ndarray:
