@@ -29,7 +29,7 @@ from typing import Any
 
 from service import record_scripts as scripts
 from service.errors import NotFound
-from service.spec import EXPORT_FORMATS
+from service.spec_outputs import EXPORT_FORMATS
 
 QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED = "queued", "running", "succeeded", "failed", "cancelled"
 TERMINAL = frozenset({SUCCEEDED, FAILED, CANCELLED})
@@ -100,7 +100,7 @@ class ShardCommit:
     bytes: int
     code_version: str
     renderer: str
-    exports: tuple[ExportPart, ...] = ()  # in service.spec.EXPORT_FORMATS order
+    exports: tuple[ExportPart, ...] = ()  # in service.spec_outputs.EXPORT_FORMATS order
 
     def to_json(self) -> str:
         """The marker's JSON; `exports` only when there are parts, so markers of shards without stay as they were."""

@@ -44,8 +44,8 @@ EXTRA_OUTPUTS = ("clean", "range", "depth", "instance", "coco", "yolo", "mcap")
 # pixels) 0.219 s, i.e. 3.9e6 pixels/s; SSS at defaults (2 x 27,060 pixels) 0.016 s; DVL + pressure 0.014 s.
 SENSOR_PIXELS_PER_S = 1e6
 SENSOR_S = 0.05  # per enabled sensor and frame (measured 0.007-0.016)
-# A user terrain mesh is costed as the largest heightfield (service/spec.py MAX_TERRAIN_CELLS): its triangle count is
-# unknown before it is loaded.
+# A user terrain mesh is costed as the largest heightfield (service/spec_scene.py MAX_TERRAIN_CELLS): its triangle
+# count is unknown before it is loaded.
 MAX_TERRAIN_CELLS_COSTED = 1024
 
 

@@ -9,7 +9,8 @@ import pytest
 from scipy import stats
 
 from service.seeds import frame_rng
-from service.spec import Box, load_spec
+from service.spec import load_spec
+from service.spec_scene import Box
 from worker.pipeline import RenderSession
 from worker.scene import (
     CAMERA_CLEARANCE_M,

@@ -15,11 +15,7 @@ from hypothesis import strategies as st
 
 from service.errors import SpecError
 from service.spec import (
-    MAX_ASSETS,
-    MAX_CHOICES,
     MAX_FRAMES,
-    MAX_OBJECTS,
-    MAX_SIDE,
     DatasetSpec,
     apply_overrides,
     load_spec,
@@ -28,6 +24,8 @@ from service.spec import (
     resolve_paths,
     spec_digest,
 )
+from service.spec_scene import MAX_ASSETS, MAX_OBJECTS, MAX_SIDE
+from service.spec_types import MAX_CHOICES
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "urchins.yaml"

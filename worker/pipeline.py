@@ -12,7 +12,8 @@ import numpy as np
 
 from service.seeds import STREAM_NOISE, frame_rng
 from service.shards import frame_name
-from service.spec import AssetRef, DatasetSpec, FileRef
+from service.spec import DatasetSpec
+from service.spec_scene import AssetRef, FileRef
 from worker import kitti, labels
 from worker.assets import Asset
 from worker.assets.procedural import procedural_asset

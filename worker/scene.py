@@ -9,7 +9,8 @@ from typing import Callable
 import numpy as np
 
 from service.errors import SeasynthError
-from service.spec import AssetRef, Box, DatasetSpec
+from service.spec import DatasetSpec
+from service.spec_scene import AssetRef, Box
 from service.water import jerlov_beta, jerlov_veiling_light
 from worker.assets import Asset
 from worker.assets.terrain import Terrain

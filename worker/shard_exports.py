@@ -13,7 +13,8 @@ from pathlib import Path
 
 from service.records import ExportPart
 from service.shards import Shard, export_part_key
-from service.spec import EXPORT_FORMATS, DatasetSpec
+from service.spec import DatasetSpec
+from service.spec_outputs import EXPORT_FORMATS
 from service.storage import ObjectStore
 from worker.export.parts import write_part
 from worker.packing import pack_tar

@@ -270,7 +270,7 @@ def fetch(
     --format, one export of that format)."""
     from service.fetch import fetch_dataset
     from service.settings import Settings
-    from service.spec import EXPORT_FORMATS
+    from service.spec_outputs import EXPORT_FORMATS
 
     merger = None
     if fmt is not None:

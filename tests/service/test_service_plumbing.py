@@ -433,7 +433,8 @@ def test_admission_costs_objects_terrain_and_outputs():
 
 def test_admission_costs_a_user_terrain_mesh_as_the_largest_grid():
     from service.shards import MAX_TERRAIN_CELLS_COSTED, spec_cost_terms
-    from service.spec import MAX_TERRAIN_CELLS, parse_spec
+    from service.spec import parse_spec
+    from service.spec_scene import MAX_TERRAIN_CELLS
 
     spec = parse_spec({"terrain": {"cells": 16, "mesh": {"asset_id": "a" * 64}}})
     assert spec_cost_terms(spec)["terrain_cells"] == MAX_TERRAIN_CELLS_COSTED == MAX_TERRAIN_CELLS

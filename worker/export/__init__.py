@@ -20,7 +20,7 @@ import numpy as np
 from service.errors import ExportError
 from service.sensors import Sensors
 from service.seeds import frame_rng
-from service.spec import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
+from service.spec_outputs import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
 from worker.export.dataset import (
     DISTRACTOR,
     DISTRACTOR_NAME,
