@@ -15,7 +15,8 @@ from api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPu
 from service.errors import AssetError, Conflict, NotFound, RenderError, Unavailable
 from service.manifest import build_manifest
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
-from service.records import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord, wait_reply
+from service.record_types import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord
+from service.records import wait_reply
 from service.recovery import cancelled_key, check_redis, forget, restore, save_record
 from service.shards import (
     FRAME_PARTS,

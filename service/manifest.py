@@ -6,7 +6,7 @@ import json
 from collections.abc import Callable
 from typing import Any
 
-from service.records import DatasetRecord, ShardCommit
+from service.record_types import DatasetRecord, ShardCommit
 
 MANIFEST_FORMAT = "seasynth-manifest/1"
 

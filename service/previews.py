@@ -14,7 +14,8 @@ from pathlib import Path
 from service import __version__
 from service.errors import ExportError, NotFound
 from service.kitti import parse_label_file
-from service.records import DatasetRecord, Records, ShardCommit
+from service.record_types import DatasetRecord, ShardCommit
+from service.records import Records
 from service.shards import preview_key
 from service.sheet import (
     TILE_WIDTH,

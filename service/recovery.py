@@ -19,7 +19,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from service.errors import NotFound
-from service.records import FAILED, SUCCEEDED, Records, ShardCommit
+from service.record_types import FAILED, SUCCEEDED, ShardCommit
+from service.records import Records
 from service.shards import commit_prefix, manifest_key
 from service.storage import ObjectStore
 

@@ -7,7 +7,7 @@ import logging
 import time
 
 from service.manifest import build_manifest, manifest_bytes, pending_manifests_key
-from service.records import FAILED, SUCCEEDED, TERMINAL
+from service.record_types import FAILED, SUCCEEDED, TERMINAL
 from service.shards import manifest_key
 from worker.shard_context import ShardContext, script
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from service.errors import NotFound, Unreachable
-from service.records import CANCELLED, TERMINAL, ShardCommit
+from service.record_types import CANCELLED, TERMINAL, ShardCommit
 from service.shards import FRAME_PARTS, Shard, commit_key, commit_prefix, frame_file, shard_at, shard_key
 from service.spec import DatasetSpec
 from worker.export.parts import kitti_names, parts_render_spec

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from service.records import ExportPart
+from service.record_types import ExportPart
 from service.shards import Shard, export_part_key
 from service.spec import DatasetSpec
 from service.spec_outputs import EXPORT_FORMATS

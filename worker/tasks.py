@@ -19,7 +19,8 @@ from celery.signals import worker_process_init, worker_process_shutdown
 from service import __version__
 from service.errors import NotFound, Unreachable
 from service.queues import TASK_FRAME, TASK_PLAN, TASK_PREVIEW, TASK_RECONCILE, TASK_SHARD, frame_queue, shard_queue
-from service.records import TERMINAL, Records, push_reply
+from service.record_types import TERMINAL
+from service.records import Records, push_reply
 from service.settings import Settings
 from service.shards import shard_at
 from service.storage import open_store

@@ -23,7 +23,8 @@ import httpx
 import pytest
 
 from service.errors import Unavailable
-from service.records import Records, ShardCommit, push_reply
+from service.record_types import ShardCommit
+from service.records import Records, push_reply
 from service.shards import asset_info_key, asset_key, shard_count
 from service.storage import LocalStore, S3Store
 from service_stack import Stack, free_port, tiny_spec, wait_for, wait_state

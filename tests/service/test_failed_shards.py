@@ -11,7 +11,8 @@ from celery import Celery
 
 from service import __version__
 from service.queues import TASK_PLAN, TASK_SHARD, shard_queue
-from service.records import ERRORS_SHOWN, FAILED
+from service.record_types import FAILED
+from service.records import ERRORS_SHOWN
 from service_stack import Stack
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
 from test_worker_robustness import api_on, isolated, queued_tasks

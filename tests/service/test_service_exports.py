@@ -21,7 +21,7 @@ from PIL import Image
 from service import __version__
 from service.fetch import STATE_DIR, fetch_dataset
 from service.queues import TASK_SHARD, shard_queue
-from service.records import ShardCommit
+from service.record_types import ShardCommit
 from service.shards import commit_key, export_part_key, shard_key
 from service.spec import parse_spec
 from service_stack import Stack, tiny_spec, wait_for, wait_state

@@ -129,7 +129,7 @@ def test_complete_dataset_finalises_once_with_its_manifest(infra, records, tmp_p
 def test_racing_finalisers_write_once(infra, records, tmp_path):
     ctx = make_ctx(infra, records, tmp_path, FakeSession())
     ds = new_dataset(records, frames=2, shard_size=2)
-    from service.records import ShardCommit
+    from service.record_types import ShardCommit
 
     records.commit(ds, ShardCommit(0, shard_key(ds, 0), 0, 2, "0" * 64, 10, "v", "r"))
     results: list[bool] = []

@@ -21,7 +21,8 @@ import pytest
 from service import __version__
 from service.manifest import pending_manifests_key
 from service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
-from service.records import Records, ShardCommit
+from service.record_types import ShardCommit
+from service.records import Records
 from service.shards import manifest_key, shard_count, shard_key
 from service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
