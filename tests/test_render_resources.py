@@ -272,3 +272,22 @@ def test_sensor_noise_keeps_the_image_in_float_until_it_is_added(render_session,
     render_session.frame_files(spec, 2)
     assert [r.passes for r in results] == [SURFACE[:2] + ("read image",)]
     assert results[0].image.dtype == np.float32
+
+
+def test_building_a_target_keeps_what_the_active_texture_unit_had_bound(renderer):
+    """A target built after a pass bound its inputs (a new size, say) must not replace the input on that unit."""
+    GL = renderer._gl
+    renderer._platform.make_current()
+    flat, multi = GL.glGenTextures(2)
+    GL.glActiveTexture(GL.GL_TEXTURE0)
+    GL.glBindTexture(GL.GL_TEXTURE_2D, flat)
+    GL.glBindTexture(GL.GL_TEXTURE_2D_MULTISAMPLE, multi)
+    try:
+        renderer.targets.resolve(13, 3, (GL.GL_RGBA8, GL.GL_R8))
+        renderer.targets.surface(13, 3, 4, True)
+        assert int(GL.glGetIntegerv(GL.GL_TEXTURE_BINDING_2D)) == flat
+        assert int(GL.glGetIntegerv(GL.GL_TEXTURE_BINDING_2D_MULTISAMPLE)) == multi
+    finally:
+        GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+        GL.glBindTexture(GL.GL_TEXTURE_2D_MULTISAMPLE, 0)
+        GL.glDeleteTextures([flat, multi])

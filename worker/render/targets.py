@@ -74,18 +74,23 @@ class Targets:
         return t
 
     def _attach_texture(self, t: Target, slot: int, fmt: int, w: int, h: int, samples: int) -> None:
+        """A new texture as colour attachment `slot`. The active texture unit keeps what was bound to it: a target
+        built between binding a pass's inputs and drawing must not replace one of them."""
         GL = self._gl
         tex = GL.glGenTextures(1)
         if samples > 1:
-            GL.glBindTexture(GL.GL_TEXTURE_2D_MULTISAMPLE, tex)
-            GL.glTexImage2DMultisample(GL.GL_TEXTURE_2D_MULTISAMPLE, samples, fmt, w, h, GL.GL_TRUE)
-            target = GL.GL_TEXTURE_2D_MULTISAMPLE
+            target, binding = GL.GL_TEXTURE_2D_MULTISAMPLE, GL.GL_TEXTURE_BINDING_2D_MULTISAMPLE
         else:
-            GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
-            GL.glTexStorage2D(GL.GL_TEXTURE_2D, 1, fmt, w, h)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
-            target = GL.GL_TEXTURE_2D
+            target, binding = GL.GL_TEXTURE_2D, GL.GL_TEXTURE_BINDING_2D
+        before = int(GL.glGetIntegerv(binding))
+        GL.glBindTexture(target, tex)
+        if samples > 1:
+            GL.glTexImage2DMultisample(target, samples, fmt, w, h, GL.GL_TRUE)
+        else:
+            GL.glTexStorage2D(target, 1, fmt, w, h)
+            GL.glTexParameteri(target, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+            GL.glTexParameteri(target, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+        GL.glBindTexture(target, before)
         GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + slot, target, tex, 0)
         t.textures.append(tex)
 
