@@ -9,7 +9,10 @@ no-ids, draft, no-sun-shadow, no-scatter (sun and sky scattering off). Results: 
 import dataclasses, multiprocessing as mp, sys, time
 
 
-def worker(variant, procs, seconds, barrier, q, res):
+VARIANTS = ("default", "fragment", "no-ids", "draft", "no-sun-shadow", "no-scatter")
+
+
+def worker(variant, seconds, barrier, q, res):
     from service.spec import load_spec
     from worker.pipeline import PRESETS, RenderSession, scene_light
     from worker.render import Passes
@@ -45,9 +48,11 @@ if __name__ == "__main__":
     res = tuple(int(x) for x in sys.argv[1].split("x"))
     for spec in sys.argv[2:]:
         variant, procs = spec.split("@")
+        if variant not in VARIANTS:  # an unknown name would otherwise render the default variant under its label
+            raise SystemExit(f"variant {variant!r}: one of {', '.join(VARIANTS)}")
         procs, seconds = int(procs), 8.0
         barrier, q = ctx.Barrier(procs), ctx.Queue()
-        ps = [ctx.Process(target=worker, args=(variant, procs, seconds, barrier, q, res)) for _ in range(procs)]
+        ps = [ctx.Process(target=worker, args=(variant, seconds, barrier, q, res)) for _ in range(procs)]
         for p in ps:
             p.start()
         total = sum(q.get() for _ in ps)
