@@ -55,6 +55,16 @@ def children(pid: int) -> list[int]:
     return kids
 
 
+def descendants(pid: int) -> list[int]:
+    """Live descendants of `pid`: the pool's workers are the fork server's children."""
+    out, todo = [], [pid]
+    while todo:
+        kids = children(todo.pop())
+        out += kids
+        todo += kids
+    return out
+
+
 def group_gone(pgid: int, timeout: float = 20.0) -> bool:
     """Whether every process of group `pgid` exits within `timeout` seconds."""
     deadline = time.monotonic() + timeout
@@ -113,11 +123,13 @@ def test_sigint_exits_130_and_resume_completes_identically(tmp_path, reference, 
 
 
 def test_sigint_to_group_while_pool_children_start(tmp_path):
-    """Ctrl-C while spawned workers are still importing: no traceback from them, the parent stops them."""
+    """Ctrl-C while the workers are still starting (importing OpenGL, opening their contexts): no traceback from
+    them, the parent stops them, and the fork server goes with it."""
     out = tmp_path / "ds"
     proc = start(out, 2)
-    # The resource tracker and two workers are children; the workers' imports take well over a second.
-    wait_for(lambda: len(children(proc.pid)) >= 3, proc, "the pool's processes")
+    # The resource tracker and the fork server are children, the workers the server's; the server imports the
+    # pipeline (well over a second) before it starts them.
+    wait_for(lambda: len(descendants(proc.pid)) >= 4, proc, "the pool's processes")
     assert not (out / "image_2").exists() or not list((out / "image_2").iterdir())
     stdout, stderr = interrupt(proc, to_group=True)
     assert_interrupted(proc, out, stdout, stderr)
@@ -129,7 +141,7 @@ def test_a_sigint_while_workers_start_is_not_lost_to_another_thread():
     become a KeyboardInterrupt, not be discarded as it was while the disposition was SIG_IGN."""
     import threading
 
-    from worker.generate import _sigint_blocked_for_children
+    from worker.pool_start import sigint_blocked_for_children
 
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # the runner may ignore SIGINT
     stop = threading.Event()
@@ -137,7 +149,7 @@ def test_a_sigint_while_workers_start_is_not_lost_to_another_thread():
     other.start()
     try:
         with pytest.raises(KeyboardInterrupt):
-            with _sigint_blocked_for_children():
+            with sigint_blocked_for_children():
                 os.kill(os.getpid(), signal.SIGINT)
                 time.sleep(0.2)
             time.sleep(0.2)  # or it is delivered on leaving

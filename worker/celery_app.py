@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import sys
+import tempfile
 import uuid
 
 from celery import Celery
@@ -120,7 +121,11 @@ def _run(settings: Settings, concurrency: int, queues: list[str], loglevel: str)
     app, resources = _build(settings)
     resources.takes_shards = "shards" in queues  # before the pool forks: its processes inherit it
     try:
-        app.worker_main(worker_argv(concurrency, queues, loglevel))
+        # The pool processes share terrain variants through this folder (worker.variant_cache); only this process
+        # removes it (they leave through os._exit).
+        with tempfile.TemporaryDirectory(prefix="seasynth-variants-") as variants:
+            resources.variant_folder = variants
+            app.worker_main(worker_argv(concurrency, queues, loglevel))
     finally:
         if resources.renderer_failed.value:  # replaces Celery's exit status 0 after the warm shutdown
             sys.exit("seasynth worker: stopped because a render process could not open its renderer (see the log)")

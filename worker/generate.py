@@ -4,19 +4,15 @@ from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing as mp
 import os
-import queue
 import shutil
-import signal
-import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import service
-from service.errors import OutputError, SeasynthError
+from service.errors import OutputError
 from service.gpus import GpuChoice
 from service.spec import DatasetSpec, spec_digest
 from worker.export import GENERATED_EXPORTS
@@ -278,119 +274,6 @@ def _run(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> st
                 write_frame(out, session.frame_files(spec, i))
                 on_frames(1)
             return session.renderer_name
-    return _run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin)
+    from worker.local_pool import run_pool
 
-
-def _run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> str:
-    ctx = mp.get_context("spawn")  # a GL context must never cross a fork
-    tasks, results = ctx.Queue(), ctx.Queue()
-    chunks = [todo[k : k + CHUNK] for k in range(0, len(todo), CHUNK)]
-    for c in chunks:
-        tasks.put(c)
-    workers = min(workers, len(chunks))
-    for _ in range(workers):
-        tasks.put(None)
-    payload = spec.model_dump_json()
-    # Daemonic: should this process exit on an unforeseen path, its workers are stopped, not waited for.
-    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform, gpus, k, pinned),
-                         daemon=True) for k in range(workers)]
-    renderer, done, finished = "", 0, 0
-    try:
-        with _sigint_blocked_for_children():
-            for p in procs:
-                p.start()
-        while finished < workers:
-            try:
-                kind, value = results.get(timeout=1.0)
-            except queue.Empty:
-                # Every worker says "done" before it exits, so any exited process (finished is counted only
-                # after the queue drains) whose "done" never came was lost, whatever its exit code.
-                exited = sum(p.exitcode is not None for p in procs)
-                if exited > finished and results.empty():
-                    code = next(p.exitcode for p in procs if p.exitcode is not None)
-                    raise SeasynthError(f"a local worker stopped before finishing its frames (exit code {code})")
-                continue
-            if kind == "frames":
-                done += value
-                on_frames(value)
-            elif kind == "renderer":
-                pin(value)
-                renderer = value
-            elif kind == "done":
-                finished += 1
-            elif kind == "error":
-                raise _rebuild_error(value)
-    finally:
-        started = [p for p in procs if p.pid is not None]
-        if finished < workers:  # stopped early: an error, a lost worker, or Ctrl-C
-            tasks.cancel_join_thread()  # chunks nobody will read must not hold up this process's exit
-            for p in started:
-                if p.is_alive():
-                    p.terminate()
-        for p in started:
-            p.join()
-        if finished < workers:
-            for p in started:  # a worker stopped mid-write leaves its temporary file
-                for tmp in Path(out).glob(f"*/.*.tmp-{p.pid}"):
-                    tmp.unlink(missing_ok=True)
-    return renderer
-
-
-@contextlib.contextmanager
-def _sigint_blocked_for_children() -> Iterator[None]:
-    """Processes started inside begin with SIGINT blocked, imports included (a signal mask survives fork and exec),
-    and `_pool_main` ignores it before unblocking: Ctrl-C reaches the whole process group, but only this process
-    acts on it, and it stops the workers.
-
-    Only this thread's mask changes. Setting SIGINT's disposition to SIG_IGN here instead would lose a Ctrl-C that
-    came meanwhile: another thread of this process (a queue's feeder, the progress bar) would take it and discard
-    it. Blocked, it waits for this thread or is handled by another, and Python raises it in the main thread.
-    """
-    if threading.current_thread() is not threading.main_thread():  # signals are the main thread's business
-        yield
-        return
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-
-
-def _ignore_sigint() -> None:
-    """In a pool worker (started with SIGINT blocked): ignore it from now on; a pending one is dropped."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-
-
-def _pool_main(payload: str, out: str, tasks, results, platform: str, gpus: GpuChoice | None, k: int,
-               pinned: str | None) -> None:
-    _ignore_sigint()
-    spec = DatasetSpec.model_validate_json(payload)
-    try:
-        from worker.render.devices import platform_for_worker  # lists EGL devices here, never in the parent
-
-        with RenderSession(platform=platform_for_worker(platform, gpus, k)) as session:
-            if pinned is not None and session.renderer_name != pinned:  # checked here: workers write frames
-                raise OutputError(wrong_renderer(out, pinned, session.renderer_name))
-            results.put(("renderer", session.renderer_name))
-            while (chunk := tasks.get()) is not None:
-                for i in chunk:
-                    write_frame(Path(out), session.frame_files(spec, i))
-                results.put(("frames", len(chunk)))
-    except BaseException as err:  # report every failure to the parent, which decides
-        results.put(("error", (type(err).__module__, type(err).__qualname__, str(err))))
-        return
-    results.put(("done", None))
-
-
-def _rebuild_error(value: tuple[str, str, str]) -> Exception:
-    module, name, message = value
-    from service import errors
-
-    cls = getattr(errors, name, None) if module == errors.__name__ else None
-    if cls is None:
-        from worker.scene import SceneError
-
-        cls = SceneError if name == "SceneError" else SeasynthError
-        message = message if cls is SceneError else f"{name}: {message}"
-    return cls(message)
+    return run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin)

@@ -17,11 +17,12 @@ from service.spec_scene import AssetRef, FileRef
 from worker import kitti, labels
 from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
-from worker.assets.terrain import Terrain, apply_texture, procedural_terrain
+from worker.assets.terrain import Terrain, apply_texture
 from worker.formation import decode_srgb8, encode_srgb8
 from worker.frame_meta import frame_meta
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from worker.scene import Placed, Scene, on_trajectory, sample_scene
+from worker.variant_cache import VariantCache
 from worker.sensors.outputs import SensorFrame, sensor_frame, sensor_paths, sensors_on
 
 # Quality presets: how many samples make a pixel and where they are shaded. The water is always applied per
@@ -126,12 +127,15 @@ class FrameLabels:
 class RenderSession:
     """Per-process resources: the GL renderer and caches of assets and uploaded meshes.
 
-    fetch_asset maps an uploaded asset id (sha256) to a local file; only the service needs it.
+    fetch_asset maps an uploaded asset id (sha256) to a local file; only the service needs it. variant_folder: a
+    folder where the render processes of one run share procedural terrain variants (worker.variant_cache).
     """
 
-    def __init__(self, fetch_asset: Callable[[str], Path] | None = None, platform: str = "egl") -> None:
+    def __init__(self, fetch_asset: Callable[[str], Path] | None = None, platform: str = "egl",
+                 variant_folder: Path | str | None = None) -> None:
         self._fetch_asset = fetch_asset
         self._platform = platform
+        self.variants = VariantCache(variant_folder)
         self._renderer = None
         self._meshes: dict[str, Mesh] = {}
         self._norms: dict[tuple, np.ndarray] = {}
@@ -184,7 +188,7 @@ class RenderSession:
         else:
             style = t.styles[rng.integers(len(t.styles))]
             variant = int(rng.integers(t.variants))
-            terrain = procedural_terrain(style, variant, t.size_m, t.cells, t.relief_m)
+            terrain = self.variants.terrain(style, variant, t.size_m, t.cells, t.relief_m)
         if t.texture is not None:
             from worker.assets.user import load_user_texture
 

@@ -105,6 +105,7 @@ class ProcessResources:
         self.broken: str | None = None
         # Shared with the pool processes forked later: set when one of them could not open its renderer.
         self.renderer_failed = multiprocessing.RawValue("b", 0)
+        self.variant_folder: str | None = None  # set before the pool forks (worker.celery_app)
 
     def open(self) -> None:
         import redis
@@ -123,7 +124,8 @@ class ProcessResources:
             folder = s.asset_cache_dir or Path(
                 stack.enter_context(tempfile.TemporaryDirectory(prefix="seasynth-assets-"))
             )
-            session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=platform))
+            session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=platform,
+                                                        variant_folder=self.variant_folder))
             records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
             raw = redis.Redis.from_url(s.redis_url)
             metrics = WorkerMetrics()  # after the fork: multiprocess mode writes this process's own files

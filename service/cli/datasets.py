@@ -50,6 +50,10 @@ def generate(
     count = _worker_count(workers)
     choice = _gpu_choice(gpus)
     s = load_overridden(spec, frames, seed, width, height, quality)  # before the renderer's imports: fail fast
+    if count is None or count > 1:
+        from worker.pool_start import start_early
+
+        start_early()  # its imports overlap the next line's
     from worker.generate import auto_workers, open_dataset, render_frames
 
     todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")

@@ -1,0 +1,59 @@
+"""How the local generate's render processes start (worker.local_pool), in a module light enough for the command
+line to start the fork server before it imports the pipeline itself: the two imports then overlap.
+
+Render processes are forked from a server that has imported worker.local_pool (and with it numpy, trimesh, scipy
+and the pipeline; never OpenGL). A process that imports them itself took 2 s on a 16-core H100 host and 3.5-4.6 s
+with 24 doing it at once (bench/results/gpu/startup.md). The server never opens a GL context, so none crosses a
+fork. Where there is no fork server, each process starts fresh (spawn).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import signal
+import threading
+from collections.abc import Iterator
+
+PRELOAD = "worker.local_pool"
+
+
+def pool_context():
+    """The multiprocessing context of the render processes."""
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload([PRELOAD])
+        return ctx
+    return mp.get_context("spawn")
+
+
+def start_early() -> None:
+    """Start the fork server now (it imports the pipeline meanwhile), with SIGINT blocked as the render processes
+    must begin: they inherit the server's mask."""
+    ctx = pool_context()
+    if ctx.get_start_method() == "forkserver":
+        from multiprocessing import forkserver
+
+        with sigint_blocked_for_children():
+            forkserver.ensure_running()
+
+
+@contextlib.contextmanager
+def sigint_blocked_for_children() -> Iterator[None]:
+    """Processes started inside begin with SIGINT blocked, imports included (a signal mask survives fork and exec),
+    and worker.local_pool's `_pool_main` ignores it before unblocking: Ctrl-C reaches the whole process group, but
+    only this process acts on it, and it stops the workers. The fork server is started inside too (its children
+    inherit its mask), and ignores SIGINT itself.
+
+    Only this thread's mask changes. Setting SIGINT's disposition to SIG_IGN here instead would lose a Ctrl-C that
+    came meanwhile: another thread of this process (a queue's feeder, the progress bar) would take it and discard
+    it. Blocked, it waits for this thread or is handled by another, and Python raises it in the main thread.
+    """
+    if threading.current_thread() is not threading.main_thread():  # signals are the main thread's business
+        yield
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
