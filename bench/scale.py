@@ -101,7 +101,18 @@ def run_cli(spec, workers: int, platform: str, gpus: GpuChoice | None = None) ->
         generate(spec, Path(tmp) / "out", workers=workers, platform=platform, gpus=gpus,
                  on_frames=lambda n: stamps.extend([time.perf_counter()] * n))
         wall = time.perf_counter() - t0
+    stop_fork_server()
     return {"frames": len(stamps), **rates(stamps, t0, wall), "gpu_util": gpu.mean(), "cpu_util": cpu.util}
+
+
+def stop_fork_server() -> None:
+    """Stop this process's fork server (worker.pool_start), so the next row starts its processes as a new
+    `seasynth generate` would: the server's imports are part of start-up."""
+    from multiprocessing import forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    if server is not None and hasattr(server, "_stop"):  # CPython's own; without it rows after the first start warm
+        server._stop()
 
 
 def gpus_used(platform: str, gpus: GpuChoice | None, workers: int) -> int:
