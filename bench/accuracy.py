@@ -136,7 +136,7 @@ class Reference:
 
 
 def reference(session, spec: DatasetSpec) -> Reference:
-    from worker.formation import encode_srgb8
+    from worker.srgb import encode_srgb8
     from worker.pipeline import scene_light
     from worker.render import Sampling, View
 
@@ -175,7 +175,7 @@ def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
 
     from PIL import Image
 
-    from worker.formation import encode_srgb8
+    from worker.srgb import encode_srgb8
     from worker.pipeline import PRESETS, Passes, scene_light
 
     s = spec.model_copy(update={"quality": preset})

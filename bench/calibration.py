@@ -83,7 +83,8 @@ def hazed_photo(J: np.ndarray, range_m: np.ndarray, water: str, sigma: float, se
     """8-bit sRGB photo (h, w, 3) uint8 of J through bench water `water` (see water_beta), with Gaussian noise sigma
     (linear), and the truth {beta_D, beta_B, B_inf: (3,) lists}."""
     from service.water import jerlov_veiling_light
-    from worker.formation import encode_srgb8, haze
+    from worker.formation import haze
+    from worker.srgb import encode_srgb8
 
     bd = water_beta(water)
     truth = {"beta_D": bd, "beta_B": BACKSCATTER_RATIO * bd,

@@ -214,7 +214,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
     from bench import pathtracer
     from bench.reference import render_reference
     from bench.throughput import machine_description
-    from worker.formation import encode_srgb8
+    from worker.srgb import encode_srgb8
     from worker.pipeline import RenderSession
 
     rows, pictures, sources = [], [], {}

@@ -36,7 +36,7 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
     from bench import fidelity
     from bench.accuracy import psnr_db
     from bench.reference import REF_SUFFIX, load_reference
-    from worker.formation import encode_srgb8
+    from worker.srgb import encode_srgb8
 
     result = json.loads((RESULTS / "cpu" / "fidelity.json").read_text())
     assert result["configs"] == fidelity.CONFIGS and result["resolution"] == [fidelity.WIDTH, fidelity.HEIGHT]

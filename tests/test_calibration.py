@@ -14,19 +14,13 @@ import pytest
 import yaml
 from PIL import Image
 
-from service.calibration import (
-    DEFAULT_BOOTSTRAP,
-    WaterEstimate,
-    describe,
-    estimate_water,
-    half_code,
-    srgb8_to_linear_table,
-    to_spec_water,
-)
+from service.calibration import DEFAULT_BOOTSTRAP, WaterEstimate, estimate_water, half_code, srgb8_to_linear_table
 from service.calibration_io import MAX_PHOTO_PIXELS, read_photo, read_range
+from service.calibration_output import describe, to_spec_water
 from service.errors import CalibrationError
 from service.spec import DatasetSpec, read_spec_file
-from worker.formation import SRGB8_TO_LINEAR, encode_srgb8, haze
+from worker.formation import haze
+from worker.srgb import SRGB8_TO_LINEAR, encode_srgb8
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 BETA_D = np.array([0.34, 0.20, 0.22])  # 1/m, Jerlov 3C

@@ -18,7 +18,8 @@ from PIL import Image
 import service
 from service.spec import load_spec
 from worker import kitti
-from worker.formation import decode_srgb8, encode_srgb8, haze
+from worker.formation import haze
+from worker.srgb import decode_srgb8, encode_srgb8
 from worker.generate import RECORD, generate, reproduce
 from worker.labels import tight_boxes
 

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from test_render import draw, pinhole
 
-from worker.formation import encode_srgb8
+from worker.srgb import encode_srgb8
 from worker.light import Lamp, Medium, PhysicalLight, Terms
 from worker.light.sun import sun_in_water
 from worker.light.volume import volume

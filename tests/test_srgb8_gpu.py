@@ -1,11 +1,11 @@
-"""8-bit sRGB on the GPU (Passes.srgb8, formation.GLSL_SRGB8): the shader's codes equal encode_srgb8 on every
+"""8-bit sRGB on the GPU (Passes.srgb8, srgb.GLSL_SRGB8): the shader's codes equal encode_srgb8 on every
 threshold, on the float32 just below it, on the hard values, and on whole frames; NaN is refused as on the CPU."""
 
 import numpy as np
 import pytest
 
 from service.spec import load_spec
-from worker.formation import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
+from worker.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
 from worker.pipeline import PRESETS, scene_light
 from worker.render import Passes
 from worker.render.shaders import FULLSCREEN

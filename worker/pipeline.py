@@ -18,7 +18,7 @@ from worker import kitti, labels
 from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
 from worker.assets.terrain import Terrain, apply_texture
-from worker.formation import decode_srgb8, encode_srgb8
+from worker.srgb import decode_srgb8, encode_srgb8
 from worker.frame_meta import frame_meta
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from worker.scene import Placed, Scene, on_trajectory, sample_scene

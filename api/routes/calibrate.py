@@ -8,7 +8,8 @@ from fastapi import APIRouter, Query, UploadFile
 
 from api.models import CalibrationPublic, WaterEstimatePublic, error_responses
 from api.slots import RenderGate
-from service.calibration import WaterEstimate, estimate_water, to_spec_water
+from service.calibration import WaterEstimate, estimate_water
+from service.calibration_output import to_spec_water
 from service.calibration_io import read_inputs
 
 router = APIRouter(tags=["calibration"])

@@ -228,7 +228,8 @@ def calibrate(
 ) -> None:
     """Estimate the water (beta_D, beta_B, B_inf with uncertainties) of a real photo, with or without a range map,
     and write it as a spec water: section."""
-    from service.calibration import describe, estimate_water, to_spec_water
+    from service.calibration import estimate_water
+    from service.calibration_output import describe, to_spec_water
     from service.calibration_io import read_inputs
     from service.errors import CalibrationError
 

@@ -99,7 +99,7 @@ class Passes:
     # Per-pixel range: +inf exactly where no sample of the pixel hits a surface (the pixel is pure water); else
     # the range at the pixel centre where it hits a surface, else the nearest of the pixel's samples that does.
     range: bool = False
-    # The image as exact 8-bit sRGB codes ((h, w, 3) uint8, equal to formation.encode_srgb8 of the float image),
+    # The image as exact 8-bit sRGB codes ((h, w, 3) uint8, equal to srgb.encode_srgb8 of the float image),
     # encoded on the GPU and read back at a quarter of the bytes. For frames whose image needs nothing more in float.
     srgb8: bool = False
 

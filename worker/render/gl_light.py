@@ -36,6 +36,7 @@ def _shadow_target(r, size: int, slot: int):
     def build():
         t = r.targets.new_fbo()
         tex = GL.glGenTextures(1)
+        before = int(GL.glGetIntegerv(GL.GL_TEXTURE_BINDING_2D))  # the active unit keeps what a pass bound there
         GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
         GL.glTexStorage2D(GL.GL_TEXTURE_2D, 1, GL.GL_DEPTH_COMPONENT32F, size, size)
         for k, v in ((GL.GL_TEXTURE_MIN_FILTER, GL.GL_LINEAR), (GL.GL_TEXTURE_MAG_FILTER, GL.GL_LINEAR),
@@ -43,6 +44,7 @@ def _shadow_target(r, size: int, slot: int):
                      (GL.GL_TEXTURE_COMPARE_MODE, GL.GL_COMPARE_REF_TO_TEXTURE),
                      (GL.GL_TEXTURE_COMPARE_FUNC, GL.GL_LEQUAL)):
             GL.glTexParameteri(GL.GL_TEXTURE_2D, k, v)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, before)
         GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_TEXTURE_2D, tex, 0)
         GL.glDrawBuffers([GL.GL_NONE])
         GL.glReadBuffer(GL.GL_NONE)

@@ -54,7 +54,9 @@ def surface_pass(
     if done is not None:
         done("render")
 
-    from worker.formation import GLSL_HAZE, GLSL_SRGB8, SRGB8_THRESHOLDS_F32
+    from worker.formation import GLSL_HAZE
+
+    from worker.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 
     second = want_clean or sample_range
     # 8-bit codes are read back packed as RGB (unpacking RGBA on the CPU cost 23 ms a 1080p frame on llvmpipe,
