@@ -253,12 +253,14 @@ def grid_sse(y, h, nodes, bd, bb, y_inf: float, w2: float, drift: np.ndarray | N
     y: (G, K). bd: (nD,), bb: (nB,) 1/m. The per-group m_g and B are solved in closed form (m_g eliminated by
     projection, B clipped to [0, 1]). Returns sse (nD, nB) and B (nD, nB)."""
     direct = np.exp(-bd[:, None] * nodes[None])
-    t = np.einsum("dz,gkz->dgk", direct if drift is None else direct * drift, h)  # (nD, G, K)
-    u = np.einsum("bz,gkz->bgk", -np.expm1(-bb[:, None] * nodes[None]), h)  # (nB, G, K)
+    g, k, z = h.shape
+    hz = h.reshape(g * k, z).T  # contractions as matrix products (BLAS): einsum's loops took 2/3 of an estimate
+    t = ((direct if drift is None else direct * drift) @ hz).reshape(-1, g, k)  # (nD, G, K)
+    u = (-np.expm1(-bb[:, None] * nodes[None]) @ hz).reshape(-1, g, k)  # (nB, G, K)
     stt = np.maximum((t * t).sum(-1), 1e-300)  # (nD, G)
     sty = (t * y).sum(-1)
     syy = (y * y).sum(-1)  # (G,)
-    stu = np.einsum("dgk,bgk->dbg", t, u)  # (nD, nB, G)
+    stu = (t.transpose(1, 0, 2) @ u.transpose(1, 2, 0)).transpose(1, 2, 0)  # (nD, nB, G)
     suu = (u * u).sum(-1)  # (nB, G)
     suy = (u * y).sum(-1)
     a = sty / stt  # (nD, G)
