@@ -123,7 +123,7 @@ def _run(settings: Settings, concurrency: int, queues: list[str], loglevel: str)
     try:
         # The pool processes share terrain variants through this folder (worker.variant_cache); only this process
         # removes it (they leave through os._exit).
-        with tempfile.TemporaryDirectory(prefix="seasynth-variants-") as variants:
+        with tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True) as variants:
             resources.variant_folder = variants
             app.worker_main(worker_argv(concurrency, queues, loglevel))
     finally:

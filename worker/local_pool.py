@@ -18,11 +18,17 @@ from worker.pool_start import pool_context, sigint_blocked_for_children
 
 
 def run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> str:
-    with tempfile.TemporaryDirectory(prefix="seasynth-variants-") as variants:
+    """Render `todo` with `workers` processes sharing terrain variants through a temporary folder (none where no
+    temporary folder can be made: each process then keeps its own)."""
+    try:
+        folder = tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True)
+    except OSError:
+        return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, None)
+    with folder as variants:
         return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants)
 
 
-def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants: str) -> str:
+def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants: str | None) -> str:
     ctx = pool_context()
     tasks, results = ctx.Queue(), ctx.Queue()
     chunks = [todo[k : k + CHUNK] for k in range(0, len(todo), CHUNK)]
@@ -85,7 +91,7 @@ def _ignore_sigint() -> None:
 
 
 def _pool_main(payload: str, out: str, tasks, results, platform: str, gpus: GpuChoice | None, k: int,
-               pinned: str | None, env: dict[str, str], variants: str) -> None:
+               pinned: str | None, env: dict[str, str], variants: str | None) -> None:
     _ignore_sigint()
     os.environ.clear()
     os.environ.update(env)  # before OpenGL is imported: it reads PYOPENGL_PLATFORM once
