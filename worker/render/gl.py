@@ -21,6 +21,7 @@ from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampli
 from worker.render import shaders
 from worker.render.coverage import pixels_alone
 from worker.render.devices import egl_platform, parse_platform, prepare_environment
+from worker.render.readback import Readback
 from worker.render.surface import surface_pass
 from worker.render.targets import Target, Targets
 
@@ -133,6 +134,7 @@ class GLRenderer:
         self._call = 0  # counts render/samples/pixels_alone calls: meshes drawn by the current one stay
         self._programs: dict[tuple, tuple[int, dict[str, int]]] = {}
         self.targets = Targets(GL, self.name, targets_per_kind)
+        self.readback = Readback(GL)
         self._empty_vao = GL.glGenVertexArrays(1)
         GL.glEnable(GL.GL_DEPTH_TEST)
         GL.glDepthFunc(GL.GL_LESS)
@@ -151,6 +153,7 @@ class GLRenderer:
         for prog, _ in self._programs.values():
             GL.glDeleteProgram(prog)
         self.targets.clear()
+        self.readback.clear()
         GL.glDeleteVertexArrays(1, [self._empty_vao])
         self._programs.clear()
         if self._platform_name == "egl":
@@ -318,15 +321,16 @@ class GLRenderer:
         self._call += 1
         done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
         log: list[str] = []
-        image, clean, nearest = surface_pass(
+        reads = surface_pass(
             self, view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done,
             log=log, srgb8=passes.srgb8,
         )
         centres = passes.range and sampling.per_pixel > 1
-        instance = centre = None
-        if passes.ids or centres:
-            instance, centre = self._ids(view, items, passes.ids, centres, log=log)
-            done("ids")
+        ids = self._queue_ids(view, items, passes.ids, centres, log=log) if passes.ids or centres else (None, None)
+        done("ids")
+        # One wait for the GPU, after every pass of the frame is queued (worker.render.readback).
+        image, clean, nearest = reads.fetch(self.readback)
+        instance, centre = (None if q is None else self.readback.fetch(q) for q in ids)
         # A sliver can cover a pixel centre and none of its samples: the image shows water there, so must range.
         range_m = nearest if centre is None else np.where(np.isfinite(centre) & np.isfinite(nearest), centre, nearest)
         return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m, passes=tuple(log))
@@ -339,13 +343,21 @@ class GLRenderer:
         self._call += 1
         Js, Rs = [], []
         for k in range(sampling.per_pixel):
-            J, R, _ = surface_pass(self, view, items, lighting, None, sampling, False, k, sample_range=True)
+            J, R, _ = surface_pass(self, view, items, lighting, None, sampling, False, k,
+                                   sample_range=True).fetch(self.readback)
             Js.append(J)
             Rs.append(R[..., 0])
         return np.stack(Js), np.stack(Rs)
 
     def _ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool, log: list[str] | None = None):
-        """Draw ids and/or range at pixel centres (one sample); log (if given) gets the pass and the reads."""
+        """Draw ids and/or range at pixel centres (one sample) and read them: (ids or None, range or None)."""
+        return tuple(None if q is None else self.readback.fetch(q)
+                     for q in self._queue_ids(view, items, want_ids, want_range, log))
+
+    def _queue_ids(self, view: View, items: list[DrawItem], want_ids: bool, want_range: bool,
+                   log: list[str] | None = None):
+        """Draw ids and/or range at pixel centres and queue their reads (readback Pending or None each); log (if
+        given) gets the pass and the reads."""
         GL = self._gl
         log = [] if log is None else log
         w, h = view.width, view.height
@@ -358,10 +370,10 @@ class GLRenderer:
         log.append("+".join(["ids"] * want_ids + ["range"] * want_range))
         ids = rng = None
         if want_ids:
-            ids = self._read(0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1)
+            ids = self.readback.queue(0, w, h, GL.GL_RED_INTEGER, GL.GL_UNSIGNED_INT, np.uint32, 1)
             log.append("read ids")
         if want_range:
-            rng = self._read(int(want_ids), w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
+            rng = self.readback.queue(int(want_ids), w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
             log.append("read range")
         return ids, rng
 

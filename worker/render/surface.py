@@ -4,20 +4,23 @@ applied to each sample, each pixel's samples averaged and the outputs read back.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from service.errors import RenderError
 from worker.light import PhysicalLight
 from worker.render import gl_light, shaders
+from worker.render.readback import Pending, Readback
 
 
 def surface_pass(
     r, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, want_nearest=False,
     done=None, log=None, srgb8=False,
 ):
-    """Draw the surface pass and resolve it on GLRenderer `r` (its context current): (image, clean or the one
-    sample's range, nearest sample range), the last two None unless asked. log (if given) gets the passes drawn and
-    attachments read."""
+    """Draw the surface pass and resolve it on GLRenderer `r` (its context current), and queue the reads of its
+    outputs: SurfaceReads, whose fetch gives (image, clean or the one sample's range, nearest sample range), the last
+    two None unless asked. log (if given) gets the passes drawn and attachments read."""
     GL = r._gl
     log = [] if log is None else log
     if sampling.msaa > r.max_samples:
@@ -128,21 +131,40 @@ def surface_pass(
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)
     log.append("resolve+haze" if water is not None else "resolve+water" if volume else "resolve")
+    rb = r.readback
+    nan = rb.queue(nan_slot, w, h, GL.GL_RED, GL.GL_UNSIGNED_BYTE, np.uint8, 1) if srgb8 else None
     if srgb8:
-        if r._read(nan_slot, w, h, GL.GL_RED, GL.GL_UNSIGNED_BYTE, np.uint8, 1).any():
-            raise ValueError("encode_srgb8: linear image contains NaN")  # as the CPU encoder says it
-        image = r._read(0, w, h, GL.GL_RGB, GL.GL_UNSIGNED_BYTE, np.uint8, 3)
+        image = rb.queue(0, w, h, GL.GL_RGB, GL.GL_UNSIGNED_BYTE, np.uint8, 3)
         log.append("read image srgb8")
     else:
-        image = r._read(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+        image = rb.queue(0, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
         log.append("read image")
     extra = nearest = None
     if second:
-        extra = r._read(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
+        extra = rb.queue(1, w, h, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3)
         log.append("read sample range" if sample_range else "read clean")
     if want_nearest:
-        nearest = r._read(1 + second, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
+        nearest = rb.queue(1 + second, w, h, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)
         log.append("read nearest range")
     if done is not None:
         done("formation")
-    return image, extra, nearest
+    return SurfaceReads(image, extra, nearest, nan)
+
+
+@dataclass
+class SurfaceReads:
+    """The surface pass's outputs, queued (worker.render.readback): fetched after the frame's last pass."""
+
+    image: Pending
+    extra: Pending | None
+    nearest: Pending | None
+    nan: Pending | None  # 8-bit frames: where the linear colour was NaN
+
+    def fetch(self, rb: Readback) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(image, clean or the one sample's range, nearest sample range), as surface_pass describes them."""
+        image = rb.fetch(self.image)
+        extra = None if self.extra is None else rb.fetch(self.extra)
+        nearest = None if self.nearest is None else rb.fetch(self.nearest)
+        if self.nan is not None and rb.fetch(self.nan).any():
+            raise ValueError("encode_srgb8: linear image contains NaN")  # as the CPU encoder says it
+        return image, extra, nearest

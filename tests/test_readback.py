@@ -1,0 +1,68 @@
+"""Reads through pixel buffer objects (worker.render.readback): queued without a wait, fetched in any order, the
+same pixels as a direct read, buffers reused and bounded."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_render import LIGHT, camera_view, draw, fronto_quad, pinhole
+
+from worker.pipeline import PRESETS
+from worker.render import Passes
+from worker.render.readback import KEEP_PER_SIZE, KEEP_SIZES
+
+W, H = 13, 7  # rows of 13 RGB bytes: not a multiple of 4, so a wrong pack alignment would show
+
+
+def filled_target(renderer, values: list[float]):
+    """A resolve-kind target of three float slots, each cleared to its value in every channel."""
+    GL = renderer._gl
+    t = renderer.targets.resolve(W, H, (GL.GL_RGBA32F, GL.GL_RGBA8, GL.GL_R32F))
+    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
+    GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(values))])
+    for slot, v in enumerate(values):
+        GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([v, v / 2, v / 4, 1.0], np.float32))
+    return t
+
+
+def test_queued_reads_fetched_in_any_order_equal_direct_reads(renderer):
+    GL = renderer._gl
+    rb = renderer.readback
+    filled_target(renderer, [0.75, 0.8, 3.25])
+    reads = [(0, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3), (1, GL.GL_RGB, GL.GL_UNSIGNED_BYTE, np.uint8, 3),
+             (2, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)]
+    direct = [renderer._read(slot, W, H, fmt, typ, dt, ch) for slot, fmt, typ, dt, ch in reads]
+    queued = [rb.queue(slot, W, H, fmt, typ, dt, ch) for slot, fmt, typ, dt, ch in reads]
+    fetched = [rb.fetch(q) for q in reversed(queued)][::-1]
+    for want, got in zip(direct, fetched):
+        assert got.dtype == want.dtype and got.shape == want.shape
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(fetched[0][0, 0], [0.75, 0.375, 0.1875])
+    np.testing.assert_array_equal(fetched[1], np.broadcast_to(np.array([204, 102, 51], np.uint8), (H, W, 3)))
+    np.testing.assert_array_equal(fetched[2], np.full((H, W), 3.25, np.float32))
+
+
+def test_a_frame_waits_once_and_its_buffers_are_reused(renderer):
+    K = pinhole(32, 24, 60.0)
+    view = camera_view(K, 32, 24)
+    item = draw("test/readback/quad", fronto_quad(K, (4.5, 20.5), (3.5, 15.5), 5.0), 7)
+    passes = Passes(ids=True, range=True, srgb8=True)
+    first = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+    alive = renderer.readback.buffers
+    for _ in range(3):
+        again = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+        assert renderer.readback.buffers == alive  # the same buffers, none left queued
+    for name in ("image", "instance", "range_m"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(first, name), err_msg=name)
+    assert set(np.unique(first.instance)) == {0, 7}
+
+
+def test_buffers_of_many_sizes_stay_bounded(renderer):
+    rb = renderer.readback
+    item_key = "test/readback/sizes"
+    for w in range(20, 20 + 3 * KEEP_SIZES):
+        K = pinhole(w, 12, 60.0)
+        item = draw(item_key, fronto_quad(pinhole(20, 12, 60.0), (2.5, 10.5), (2.5, 8.5), 5.0), 3)
+        renderer.render(camera_view(K, w, 12), [item], LIGHT, None, PRESETS["draft"], Passes(ids=True, srgb8=True))
+    # a frame of 8-bit image, NaN flags and ids reads three sizes of buffer; KEEP_SIZES sizes are kept
+    assert rb.buffers <= KEEP_SIZES * KEEP_PER_SIZE
+    assert len(rb._free) <= KEEP_SIZES
