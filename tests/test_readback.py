@@ -16,6 +16,7 @@ W, H = 13, 7  # rows of 13 RGB bytes: not a multiple of 4, so a wrong pack align
 def filled_target(renderer, values: list[float]):
     """A resolve-kind target of three float slots, each cleared to its value in every channel."""
     GL = renderer._gl
+    renderer._platform.make_current()  # other tests' renderers may have made their own context current
     t = renderer.targets.resolve(W, H, (GL.GL_RGBA32F, GL.GL_RGBA8, GL.GL_R32F))
     GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
     GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(values))])
