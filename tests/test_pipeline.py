@@ -19,9 +19,9 @@ import service
 from service.spec import load_spec
 from worker import kitti
 from worker.formation import haze
-from worker.srgb import decode_srgb8, encode_srgb8
 from worker.generate import RECORD, generate, reproduce
 from worker.labels import tight_boxes
+from worker.srgb import decode_srgb8, encode_srgb8
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SMALL = {"camera.width": 96, "camera.height": 72, "frames": 5}

@@ -8,12 +8,12 @@ import pytest
 import trimesh
 from test_render import draw, pinhole
 
-from worker.srgb import encode_srgb8
 from worker.light import Lamp, Medium, PhysicalLight, Terms
 from worker.light.sun import sun_in_water
 from worker.light.volume import volume
 from worker.render import Passes, Sampling, View
 from worker.scene import look_at_pose, rigid_inverse
+from worker.srgb import encode_srgb8
 
 ONE = Sampling(msaa=1, supersample=1)
 W, H = 48, 36

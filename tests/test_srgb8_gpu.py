@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from service.spec import load_spec
-from worker.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
 from worker.pipeline import PRESETS, scene_light
 from worker.render import Passes
 from worker.render.shaders import FULLSCREEN
+from worker.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
 
 PROBE = """
 #version 330 core

@@ -18,12 +18,12 @@ from worker import kitti, labels
 from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
 from worker.assets.terrain import Terrain, apply_texture
-from worker.srgb import decode_srgb8, encode_srgb8
 from worker.frame_meta import frame_meta
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from worker.scene import Placed, Scene, on_trajectory, sample_scene
-from worker.variant_cache import VariantCache
 from worker.sensors.outputs import SensorFrame, sensor_frame, sensor_paths, sensors_on
+from worker.srgb import decode_srgb8, encode_srgb8
+from worker.variant_cache import VariantCache
 
 # Quality presets: how many samples make a pixel and where they are shaded. The water is always applied per
 # sample, in float32, before samples are averaged in linear light. `fast` shades once per pixel at its centre

@@ -58,7 +58,6 @@ def surface_pass(
         done("render")
 
     from worker.formation import GLSL_HAZE
-
     from worker.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 
     second = want_clean or sample_range
