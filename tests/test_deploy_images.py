@@ -84,6 +84,9 @@ def _imports(path: Path) -> list[tuple[str, str, int]]:
     return found
 
 
+# The benchmark commands import bench/, which no image ships.
+BENCH_COMMANDS = {("service/cli/bench.py", f"bench_{name}"): {"bench"} for name in (
+    "playground", "throughput", "accuracy", "fidelity", "scale", "load", "calibration", "blender")}
 # CLI commands shipped in every image but run only where their package is: (module, function) -> the project
 # packages they may import that an image lacks. Nothing else is excused.
 COMMANDS_OF_OTHER_IMAGES = {
@@ -96,27 +99,13 @@ COMMANDS_OF_OTHER_IMAGES = {
         ("service/cli/datasets.py", "fetch"): {"worker"},  # --format merges export parts with worker.export
         ("service/cli/servers.py", "worker"): {"worker"},
         ("service/cli/servers.py", "playground"): {"worker"},  # the playground with no servers renders in-process
-        ("service/cli/bench.py", "bench_playground"): {"bench"},
-        ("service/cli/bench.py", "bench_throughput"): {"bench"},
-        ("service/cli/bench.py", "bench_accuracy"): {"bench"},
-        ("service/cli/bench.py", "bench_fidelity"): {"bench"},
-        ("service/cli/bench.py", "bench_scale"): {"bench"},
-        ("service/cli/bench.py", "bench_load"): {"bench"},
-        ("service/cli/bench.py", "bench_calibration"): {"bench"},
-        ("service/cli/bench.py", "bench_blender"): {"bench"},
+        **BENCH_COMMANDS,
     },
     "worker": {
         ("service/cli/servers.py", "serve"): {"api"},
         ("service/cli/servers.py", "reconcile"): {"api"},
         ("service/cli/servers.py", "playground"): {"api", "uvicorn"},
-        ("service/cli/bench.py", "bench_playground"): {"bench"},
-        ("service/cli/bench.py", "bench_throughput"): {"bench"},
-        ("service/cli/bench.py", "bench_accuracy"): {"bench"},
-        ("service/cli/bench.py", "bench_fidelity"): {"bench"},
-        ("service/cli/bench.py", "bench_scale"): {"bench"},
-        ("service/cli/bench.py", "bench_load"): {"bench"},
-        ("service/cli/bench.py", "bench_calibration"): {"bench"},
-        ("service/cli/bench.py", "bench_blender"): {"bench"},
+        **BENCH_COMMANDS,
     },
 }
 
