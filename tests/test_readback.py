@@ -25,13 +25,20 @@ def filled_target(renderer, values: list[float]):
     return t
 
 
+def direct_read(GL, slot: int, fmt: int, typ: int, dtype, channels: int) -> np.ndarray:
+    """glReadPixels into memory: a wait for the GPU, no buffer object."""
+    GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + slot)
+    arr = np.frombuffer(GL.glReadPixels(0, 0, W, H, fmt, typ), dtype=dtype)
+    return arr.reshape(H, W, channels) if channels > 1 else arr.reshape(H, W)
+
+
 def test_queued_reads_fetched_in_any_order_equal_direct_reads(renderer):
     GL = renderer._gl
     rb = renderer.readback
     filled_target(renderer, [0.75, 0.8, 3.25])
     reads = [(0, GL.GL_RGB, GL.GL_FLOAT, np.float32, 3), (1, GL.GL_RGB, GL.GL_UNSIGNED_BYTE, np.uint8, 3),
              (2, GL.GL_RED, GL.GL_FLOAT, np.float32, 1)]
-    direct = [renderer._read(slot, W, H, fmt, typ, dt, ch) for slot, fmt, typ, dt, ch in reads]
+    direct = [direct_read(GL, slot, fmt, typ, dt, ch) for slot, fmt, typ, dt, ch in reads]
     queued = [rb.queue(slot, W, H, fmt, typ, dt, ch) for slot, fmt, typ, dt, ch in reads]
     fetched = [rb.fetch(q) for q in reversed(queued)][::-1]
     for want, got in zip(direct, fetched):

@@ -48,7 +48,8 @@ def gpu_codes(renderer, values: np.ndarray) -> np.ndarray:
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)
-        return renderer._read(0, n, 1, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, np.uint8, 4)[0]
+        rb = renderer.readback
+        return rb.fetch(rb.queue(0, n, 1, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, np.uint8, 4))[0]
     finally:
         GL.glDeleteTextures([tex])
 

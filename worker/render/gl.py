@@ -291,13 +291,6 @@ class GLRenderer:
                 GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([value, 0, 0, 0], np.float32))
         GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
 
-    def _read(self, slot: int, w: int, h: int, fmt: int, typ: int, dtype, channels: int, x: int = 0, y: int = 0):
-        GL = self._gl
-        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + slot)
-        data = GL.glReadPixels(x, y, w, h, fmt, typ)
-        arr = np.frombuffer(data, dtype=dtype)
-        return arr.reshape(h, w, channels) if channels > 1 else arr.reshape(h, w)
-
     def render(
         self,
         view: View,
