@@ -279,11 +279,13 @@ class GLRenderer:
 
     def _bind_and_clear(self, t: Target, clears: tuple[str, ...]) -> None:
         """Bind a geometry target and draw into its colour attachments in slot order, each cleared as named:
-        "ids" to 0, "colour" to 0, "range" to +inf; depth to far."""
+        "ids" to 0, "colour" to 0, "range" to +inf, "keep" not at all (what the last frame left); depth to far."""
         GL = self._gl
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(clears))])
         for slot, what in enumerate(clears):
+            if what == "keep":
+                continue
             if what == "ids":
                 GL.glClearBufferuiv(GL.GL_COLOR, slot, np.zeros(4, np.uint32))
             else:

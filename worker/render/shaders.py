@@ -188,20 +188,25 @@ void main() {
                 int k = (dy * SUPERSAMPLE + dx) * SAMPLES + s;
                 if (u_only_sample >= 0 && k != u_only_sample) continue;
                 vec3 J = FETCH(u_J, q, s).rgb;
+#ifdef RANGE_IN
+                // Range +inf: no surface at this sample. The surface pass does not clear the colour where it draws
+                // range, so whatever a previous frame left there is replaced by 0 here.
+                float z = FETCH(u_R, q, s).r;
+                if (isinf(z)) J = vec3(0.0);
+#endif
                 clean += J;
 #ifdef WITH_HAZE
-                float z = FETCH(u_R, q, s).r;
                 acc += haze(J, z, u_betaD, u_betaB, u_Binf);
 #elif defined(PHYSICAL)
-                acc += water(J, FETCH(u_R, q, s).r, w_world, w_cam);
+                acc += water(J, z, w_world, w_cam);
 #else
                 acc += J;
 #endif
 #ifdef WITH_SAMPLE_RANGE
-                OUT_SECOND(vec4(FETCH(u_R, q, s).r, 0.0, 0.0, 1.0));
+                OUT_SECOND(vec4(z, 0.0, 0.0, 1.0));
 #endif
 #ifdef WITH_NEAREST
-                nearest = min(nearest, FETCH(u_R, q, s).r);
+                nearest = min(nearest, z);
 #endif
                 n += 1.0;
             }

@@ -31,7 +31,9 @@ def surface_pass(
     with_range = water is not None or physical or sample_range or want_nearest
     maps = gl_light.shadow_maps(r, view, items, lighting, log) if physical else None
     surf = r.targets.surface(W, H, msaa, with_range)
-    r._bind_and_clear(surf, ("colour", "range")[: 1 + with_range])
+    # With range, the resolve takes a sample's colour as 0 wherever its range is +inf (nothing drawn there), so the
+    # colour is not cleared: on an H100 that clear of 4 float16 samples a pixel took 1.2 of a 1080p frame's 6.2 ms.
+    r._bind_and_clear(surf, ("keep", "range") if with_range else ("colour",))
     if physical:
         from worker.light.glsl import SURFACE as PHYSICAL_SURFACE
 
@@ -88,6 +90,7 @@ def surface_pass(
         IMG_FORMAT=("rgba8" if srgb8 else "rgba32f") if compute else False,
         SAMPLES=msaa,
         SUPERSAMPLE=ss,
+        RANGE_IN=with_range,
         WITH_HAZE=water is not None,
         WITH_CLEAN=want_clean and not sample_range,
         WITH_SAMPLE_RANGE=sample_range,
