@@ -10,8 +10,8 @@ time between the stamps before and after it (work still running from the stage b
 
 VARIANT (default: none): measurement-only changes of the surface target, whose frames are not valid: `range-off`
 (no range attachment), `colour-rgba8`, `colour-rgba32f` (colour format instead of RGBA16F), `depth24` (24-bit
-depth instead of 32-bit float), `clear-colour` (clear the colour attachment as the renderer did before it kept
-it), `flat-shader` (a one-line surface shader instead of the physical one). Results: bench/results/gpu/clear.md.
+depth instead of 32-bit float), `clear-colour` (clear colour and range as the renderer did before it kept them),
+`flat-shader` (a one-line surface shader instead of the physical one). Results: bench/results/gpu/clear.md.
 """
 from __future__ import annotations
 
@@ -62,7 +62,10 @@ def apply_variants(variants: list[str]) -> None:
             self._attach_texture(t, 0, fmt, w, h, msaa)
             if with_range and "range-off" not in variants:
                 self._attach_texture(t, 1, GL.GL_R32F, w, h, msaa)
-            self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, depth, w, h, msaa)
+            if with_range:
+                self._attach_texture(t, 2, depth, w, h, msaa, attachment=GL.GL_DEPTH_ATTACHMENT)
+            else:
+                self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, depth, w, h, msaa)
             return t
         return self.get(("surface", w, h, msaa, with_range), build)
 
@@ -70,7 +73,7 @@ def apply_variants(variants: list[str]) -> None:
     if "clear-colour" in variants:
         real = gl_renderer.GLRenderer._bind_and_clear
         gl_renderer.GLRenderer._bind_and_clear = lambda self, t, clears: real(
-            self, t, tuple("colour" if c == "keep" else c for c in clears))
+            self, t, ("colour", "range")[: len(clears)] if clears[0] == "keep" else clears)
 
 
 class Stamps:
@@ -118,7 +121,7 @@ def main(w: int, h: int, preset_name: str, variants: list[str], seconds: float =
 
         def bind_and_clear(t, clears):
             real_clear(t, clears)
-            if clears and clears[-1] == "range" or clears == ("colour",):
+            if clears[0] in ("keep", "colour"):
                 current[-1]("clear")
 
         gl_light.shadow_maps, r._bind_and_clear = maps, bind_and_clear

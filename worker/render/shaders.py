@@ -4,7 +4,7 @@
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
     "u_cam_from_obj", "u_nrm_cam", "u_proj", "u_scale", "u_bias", "u_sun_cam", "u_sun", "u_ambient",
-    "u_range_bounds", "u_id", "u_J", "u_R", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr", "u_size",
+    "u_range_bounds", "u_id", "u_J", "u_R", "u_D", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr", "u_size",
 )
 
 # Range is interpolated at the pixel centre even for multisample coverage (no per-sample shading); a sample that
@@ -111,10 +111,12 @@ RESOLVE = """
 #if SAMPLES > 1
 uniform sampler2DMS u_J;
 uniform sampler2DMS u_R;
+uniform sampler2DMS u_D;
 #define FETCH(t, q, s) texelFetch(t, q, s)
 #else
 uniform sampler2D u_J;
 uniform sampler2D u_R;
+uniform sampler2D u_D;
 #define FETCH(t, q, s) texelFetch(t, q, 0)
 #endif
 uniform vec3 u_betaD;
@@ -172,8 +174,7 @@ void main() {
 #endif
     vec3 acc = vec3(0.0);
     vec3 clean = vec3(0.0);
-    // Any sample will do to start the minimum: an uncovered one holds the +inf its buffer was cleared to.
-    float nearest = FETCH(u_R, px * SUPERSAMPLE, 0).r;
+    float nearest = uintBitsToFloat(0x7F800000u);
     float n = 0.0;
 #ifdef PHYSICAL
     // The view ray through the pixel centre (pixel centres at integer coordinates, rows already in image order).
@@ -189,10 +190,11 @@ void main() {
                 if (u_only_sample >= 0 && k != u_only_sample) continue;
                 vec3 J = FETCH(u_J, q, s).rgb;
 #ifdef RANGE_IN
-                // Range +inf: no surface at this sample. The surface pass does not clear the colour where it draws
-                // range, so whatever a previous frame left there is replaced by 0 here.
-                float z = FETCH(u_R, q, s).r;
-                if (isinf(z)) J = vec3(0.0);
+                // Depth still 1.0 (its clear): nothing was drawn at this sample, so range +inf and colour 0. The
+                // surface pass clears neither where it draws range: what a previous frame left there is replaced.
+                bool drawn = FETCH(u_D, q, s).r < 1.0;
+                float z = drawn ? FETCH(u_R, q, s).r : uintBitsToFloat(0x7F800000u);
+                if (!drawn) J = vec3(0.0);
 #endif
                 clean += J;
 #ifdef WITH_HAZE

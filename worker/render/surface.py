@@ -31,9 +31,10 @@ def surface_pass(
     with_range = water is not None or physical or sample_range or want_nearest
     maps = gl_light.shadow_maps(r, view, items, lighting, log) if physical else None
     surf = r.targets.surface(W, H, msaa, with_range)
-    # With range, the resolve takes a sample's colour as 0 wherever its range is +inf (nothing drawn there), so the
-    # colour is not cleared: on an H100 that clear of 4 float16 samples a pixel took 1.2 of a 1080p frame's 6.2 ms.
-    r._bind_and_clear(surf, ("keep", "range") if with_range else ("colour",))
+    # With range, the resolve reads where anything was drawn from the depth (still the clear's 1.0 where nothing
+    # was) and takes colour 0 and range +inf there, so neither is cleared: on an H100 these clears of 4 samples a
+    # pixel took 1.8 ms of a 1080p frame's 6.2 (the pass costs the bytes it writes, not its shading).
+    r._bind_and_clear(surf, ("keep", "keep") if with_range else ("colour",))
     if physical:
         from worker.light.glsl import SURFACE as PHYSICAL_SURFACE
 
@@ -101,7 +102,7 @@ def surface_pass(
     )
     GL.glUseProgram(prog)
     tex_target = GL.GL_TEXTURE_2D_MULTISAMPLE if msaa > 1 else GL.GL_TEXTURE_2D
-    for unit, (name, tex) in enumerate(zip(("u_J", "u_R"), surf.textures)):
+    for unit, (name, tex) in enumerate(zip(("u_J", "u_R", "u_D"), surf.textures)):
         GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
         GL.glBindTexture(tex_target, tex)
         if name in locs:

@@ -73,7 +73,8 @@ class Targets:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
         return t
 
-    def _attach_texture(self, t: Target, slot: int, fmt: int, w: int, h: int, samples: int) -> None:
+    def _attach_texture(self, t: Target, slot: int, fmt: int, w: int, h: int, samples: int,
+                        attachment: int | None = None) -> None:
         """A new texture as colour attachment `slot`. The active texture unit keeps what was bound to it: a target
         built between binding a pass's inputs and drawing must not replace one of them."""
         GL = self._gl
@@ -91,7 +92,8 @@ class Targets:
             GL.glTexParameteri(target, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
             GL.glTexParameteri(target, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
         GL.glBindTexture(target, before)
-        GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + slot, target, tex, 0)
+        where = GL.GL_COLOR_ATTACHMENT0 + slot if attachment is None else attachment
+        GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, where, target, tex, 0)
         t.textures.append(tex)
 
     def _attach_renderbuffer(self, t: Target, attachment: int, fmt: int, w: int, h: int, samples: int) -> None:
@@ -107,7 +109,8 @@ class Targets:
 
     def surface(self, w: int, h: int, msaa: int, with_range: bool) -> Target:
         """The surface pass's: colour (RGBA16F, slot 0) and range (R32F, slot 1, when asked for) textures of msaa
-        samples a pixel, and depth."""
+        samples a pixel, and depth: a texture after them with range (the resolve reads where anything was drawn from
+        it), else a renderbuffer."""
 
         def build() -> Target:
             GL = self._gl
@@ -115,7 +118,9 @@ class Targets:
             self._attach_texture(t, 0, GL.GL_RGBA16F, w, h, msaa)
             if with_range:
                 self._attach_texture(t, 1, GL.GL_R32F, w, h, msaa)
-            self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, msaa)
+                self._attach_texture(t, 2, GL.GL_DEPTH_COMPONENT32F, w, h, msaa, attachment=GL.GL_DEPTH_ATTACHMENT)
+            else:
+                self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, msaa)
             return t
 
         return self.get(("surface", w, h, msaa, with_range), build)
