@@ -194,25 +194,27 @@ class Work:
         z = self.z[idx]
         open_ = idx[np.isinf(z) & (z > 0)]
         fin = idx[self.bin[idx] >= 0]
-        ys, hs = [], []
-        for k in range(RANGE_BINS):
-            sel = fin[self.bin[fin] == k]
-            n = sel.size
-            if n < MIN_BIN_PIXELS:
-                continue
-            groups = np.arange(n) * GROUPS // n
-            counts = np.bincount(groups, minlength=GROUPS)
-            yk, hk = np.empty((3, GROUPS)), np.empty((3, GROUPS, Z_NODES))
-            for c in range(3):
-                s = sel[np.argsort(self.rank[sel, c], kind="stable")]
-                yk[c] = np.bincount(groups, weights=self.lin[s, c], minlength=GROUPS) / counts
-                at, f = groups * Z_NODES + self.node[s], self.node_frac[s]
-                hist = (np.bincount(at, 1 - f, GROUPS * Z_NODES) + np.bincount(at + 1, f, GROUPS * Z_NODES + 1)[:-1])
-                hk[c] = hist.reshape(GROUPS, Z_NODES) / counts[:, None]
-            ys.append(yk)
-            hs.append(hk)
-        y = np.stack(ys, axis=2) if ys else np.zeros((3, GROUPS, 0))
-        hh = np.stack(hs, axis=2) if hs else np.zeros((3, GROUPS, 0, Z_NODES))
+        # Every bin at once: per channel, the pixels sorted by bin and, within a bin, by their neighbours' mean
+        # (stable: ties keep their order in idx), each bin cut into GROUPS equal-count groups ("cells").
+        b = self.bin[fin]
+        size = np.bincount(b, minlength=RANGE_BINS)
+        keep = size >= MIN_BIN_PIXELS
+        start = np.cumsum(size) - size
+        cells = RANGE_BINS * GROUPS
+        y = np.empty((3, RANGE_BINS, GROUPS))
+        hh = np.empty((3, RANGE_BINS, GROUPS, Z_NODES))
+        by_bin = np.split(fin[np.argsort(b, kind="stable")], np.cumsum(size)[:-1])
+        bs = np.repeat(np.arange(RANGE_BINS), size)
+        for c in range(3):
+            s = np.concatenate([p[np.argsort(self.rank[p, c], kind="stable")] for p in by_bin])
+            cell = bs * GROUPS + (np.arange(s.size) - start[bs]) * GROUPS // size[bs]
+            counts = np.maximum(np.bincount(cell, minlength=cells), 1)
+            y[c] = (np.bincount(cell, weights=self.lin[s, c], minlength=cells) / counts).reshape(RANGE_BINS, GROUPS)
+            at, f = cell * Z_NODES + self.node[s], self.node_frac[s]
+            hist = np.bincount(at, 1 - f, cells * Z_NODES) + np.bincount(at + 1, f, cells * Z_NODES + 1)[:-1]
+            hh[c] = (hist.reshape(cells, Z_NODES) / counts[:, None]).reshape(RANGE_BINS, GROUPS, Z_NODES)
+        y = y[:, keep].transpose(0, 2, 1)  # (3, GROUPS, bins)
+        hh = hh[:, keep].transpose(0, 2, 1, 3)  # (3, GROUPS, bins, Z)
         ok = open_.size >= MIN_BIN_PIXELS
         zfin = self.z[fin]
         return RangeData(
@@ -251,7 +253,9 @@ def grid_sse(y, h, nodes, bd, bb, y_inf: float, w2: float, drift: np.ndarray | N
     <.>_g the mean over group g's ranges (h: (G, K, Z) shares at nodes (Z,) metres), d the drift (Z,) (None: 1).
 
     y: (G, K). bd: (nD,), bb: (nB,) 1/m. The per-group m_g and B are solved in closed form (m_g eliminated by
-    projection, B clipped to [0, 1]). Returns sse (nD, nB) and B (nD, nB)."""
+    projection, B clipped to [0, 1]). Returns sse (nD, nB) and B (nD, nB); with BACKSCATTER_PRIOR, only the grid
+    points inside it are solved (sse +inf and B 0 elsewhere, as restrict_ratio gives): on log grids that is a band of
+    a few columns a row."""
     direct = np.exp(-bd[:, None] * nodes[None])
     g, k, z = h.shape
     hz = h.reshape(g * k, z).T  # contractions as matrix products (BLAS): einsum's loops took 2/3 of an estimate
@@ -265,12 +269,34 @@ def grid_sse(y, h, nodes, bd, bb, y_inf: float, w2: float, drift: np.ndarray | N
     suy = (u * y).sum(-1)
     a = sty / stt  # (nD, G)
     yy = (syy[None] - sty * a).sum(-1)  # (nD,)
-    uy = (suy[None] - stu * a[:, None, :]).sum(-1)  # (nD, nB)
-    uu = (suu[None] - stu**2 / stt[:, None, :]).sum(-1)
+    rows, cols, inside = ratio_band(bd, bb)  # (nD, W) each: the grid points solved
+    stu = stu[rows, cols]  # (nD, W, G)
+    uy = (suy[cols] - stu * a[:, None, :]).sum(-1)  # (nD, W)
+    uu = (suu[cols] - stu**2 / stt[:, None, :]).sum(-1)
     den = uu + w2
-    B = np.clip(np.divide(uy + w2 * y_inf, den, out=np.zeros_like(den), where=den > 1e-300), 0.0, 1.0)
-    sse = np.maximum(yy[:, None] - 2 * B * uy + B**2 * uu + w2 * (y_inf - B) ** 2, 0.0)
+    Bw = np.clip(np.divide(uy + w2 * y_inf, den, out=np.zeros_like(den), where=den > 1e-300), 0.0, 1.0)
+    ssew = np.maximum(yy[:, None] - 2 * Bw * uy + Bw**2 * uu + w2 * (y_inf - Bw) ** 2, 0.0)
+    sse, B = np.full((bd.size, bb.size), np.inf), np.zeros((bd.size, bb.size))
+    sse[rows[inside], cols[inside]] = ssew[inside]
+    B[rows[inside], cols[inside]] = Bw[inside]
     return sse, B
+
+
+def ratio_band(bd: np.ndarray, bb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (beta_D, beta_B) grid points a fit solves: per row of bd, the columns of bb (ascending) inside
+    BACKSCATTER_PRIOR, as (rows, cols, inside) index arrays (nD, W), W the widest row's count (inside: False where a
+    narrower row's columns are padding). No prior: every column."""
+    n, m = bd.size, bb.size
+    if BACKSCATTER_PRIOR is None:
+        return np.repeat(np.arange(n)[:, None], m, 1), np.tile(np.arange(m), (n, 1)), np.ones((n, m), bool)
+    r = bb[None, :] / bd[:, None]
+    ok = (r >= BACKSCATTER_PRIOR[0]) & (r <= BACKSCATTER_PRIOR[1])  # (nD, nB): one run of columns a row
+    first = np.argmax(ok, axis=1)
+    count = ok.sum(axis=1)
+    width = max(int(count.max()), 1)
+    cols = np.minimum(first[:, None] + np.arange(width)[None, :], m - 1)
+    inside = np.arange(width)[None, :] < count[:, None]
+    return np.repeat(np.arange(n)[:, None], width, 1), cols, inside
 
 
 def _profile(sse: np.ndarray, axis: int, threshold: float) -> tuple[float, bool]:

@@ -41,23 +41,28 @@ def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[Ra
         sse = grid_sse(y, data.h[c], data.z_nodes, BETA_GRID, BETA_GRID, float(data.open_mean[c]), w2, data.drift)[0]
         low = float(restrict_ratio(sse, BETA_GRID, BETA_GRID).min())
         free[c] = (low, max(low / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2))
+    # Per channel, every member's scaled grid in one least-squares pass (the backscatter's side of the fit is the
+    # same for all of them): (members, scales) each of beta_D, the best beta_B, its B_inf and the scaled excess SSE.
+    names, n = list(family), PRIOR_SCALE.size
+    rows = np.arange(len(names) * n)
+    per_channel = {}
+    for c in ch:
+        bd = np.concatenate([PRIOR_SCALE * family[name][c] for name in names])
+        sse, B = grid_sse(data.y[c], data.h[c], data.z_nodes, bd, BETA_GRID, float(data.open_mean[c]), w2, data.drift)
+        sse = restrict_ratio(sse, bd, BETA_GRID)
+        j = np.argmin(sse, axis=1)
+        per_channel[c] = tuple(a.reshape(len(names), n) for a in (
+            bd, BETA_GRID[j], B[rows, j], (sse[rows, j] - free[c][0]) / free[c][1]))
     best = (np.inf, "", 0, None)
     totals = {}
-    for name, beta in family.items():
-        total = np.zeros(PRIOR_SCALE.size)
-        per = []
+    for m, name in enumerate(names):
+        total = np.zeros(n)
         for c in ch:
-            y, h, y_inf = data.y[c], data.h[c], float(data.open_mean[c])
-            bd = PRIOR_SCALE * beta[c]
-            sse, B = grid_sse(y, h, data.z_nodes, bd, BETA_GRID, y_inf, w2, data.drift)
-            sse = restrict_ratio(sse, bd, BETA_GRID)
-            j = np.argmin(sse, axis=1)
-            total += (sse[np.arange(bd.size), j] - free[c][0]) / free[c][1]
-            per.append((c, bd, BETA_GRID[j], B[np.arange(bd.size), j]))
+            total += per_channel[c][3][m]
         totals[name] = total
         k = int(np.argmin(total))
         if total[k] < best[0]:
-            best = (float(total[k]), name, k, per)
+            best = (float(total[k]), name, k, [(c, *(a[m] for a in per_channel[c][:3])) for c in ch])
     score, name, k, per = best
     bd, bb, binf = np.zeros(3), np.zeros(3), data.open_mean.astype(np.float64).copy()
     for c, bdc, bbc, Bc in per:
