@@ -4,7 +4,8 @@
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
     "u_cam_from_obj", "u_nrm_cam", "u_proj", "u_scale", "u_bias", "u_sun_cam", "u_sun", "u_ambient",
-    "u_range_bounds", "u_id", "u_J", "u_R", "u_D", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr", "u_size",
+    "u_range_bounds", "u_id", "u_J", "u_R", "u_D", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr",
+    "u_size",
 )
 
 # Range is interpolated at the pixel centre even for multisample coverage (no per-sample shading); a sample that
