@@ -14,7 +14,7 @@ from worker.render import DrawItem, View
 from worker.render import shadows
 from worker.render.shaders import DEPTH_ONLY, VERTEX
 
-SHADOW_UNIT = 2  # texture units from here on hold shadow maps (0 and 1 are the resolve's)
+SHADOW_UNIT = 3  # texture units from here on hold shadow maps (0, 1 and 2 are the resolve's: colour, range, depth)
 
 
 def defines(light: PhysicalLight) -> dict[str, object]:
