@@ -75,8 +75,9 @@ class Targets:
 
     def _attach_texture(self, t: Target, slot: int, fmt: int, w: int, h: int, samples: int,
                         attachment: int | None = None) -> None:
-        """A new texture as colour attachment `slot`. The active texture unit keeps what was bound to it: a target
-        built between binding a pass's inputs and drawing must not replace one of them."""
+        """A new texture as colour attachment `slot` (or at `attachment`, e.g. GL_DEPTH_ATTACHMENT; slot is then its
+        place in t.textures). The active texture unit keeps what was bound to it: a target built between binding a
+        pass's inputs and drawing must not replace one of them."""
         GL = self._gl
         tex = GL.glGenTextures(1)
         if samples > 1:
