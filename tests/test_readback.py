@@ -1,9 +1,10 @@
 """Reads through pixel buffer objects (worker.render.readback): queued without a wait, fetched in any order, the
-same pixels as a direct read, buffers reused and bounded."""
+same pixels as a direct read, buffers reused and bounded, and given back when a frame fails before fetching."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_render import LIGHT, camera_view, draw, fronto_quad, pinhole
 
 from worker.pipeline import PRESETS
@@ -74,3 +75,28 @@ def test_buffers_of_many_sizes_stay_bounded(renderer):
     # a frame of 8-bit image, NaN flags and ids reads three sizes of buffer; KEEP_SIZES sizes are kept
     assert rb.buffers <= KEEP_SIZES * KEEP_PER_SIZE
     assert len(rb._free) <= KEEP_SIZES
+
+
+def test_a_frame_that_fails_after_queueing_its_reads_gives_their_buffers_back(renderer, monkeypatch):
+    K = pinhole(32, 24, 60.0)
+    view = camera_view(K, 32, 24)
+    item = draw("test/readback/fail", fronto_quad(K, (4.5, 20.5), (3.5, 15.5), 5.0), 5)
+    passes = Passes(ids=True, range=True, srgb8=True)
+    good = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+    alive = renderer.readback.buffers
+    real = renderer._queue_ids
+
+    def queue_then_fail(*a, **k):
+        real(*a, **k)  # the frame's image, NaN flag, nearest range, ids and centre range are all queued now
+        raise RuntimeError("GL error after the reads were queued")
+
+    monkeypatch.setattr(renderer, "_queue_ids", queue_then_fail)
+    for _ in range(2 * KEEP_PER_SIZE):
+        with pytest.raises(RuntimeError, match="after the reads were queued"):
+            renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+        assert renderer.readback.queued == 0
+    assert renderer.readback.buffers == alive  # reused, not one more per failed frame
+    monkeypatch.undo()
+    again = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+    for name in ("image", "instance", "range_m"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(good, name), err_msg=name)

@@ -316,16 +316,20 @@ class GLRenderer:
         self._call += 1
         done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
         log: list[str] = []
-        reads = surface_pass(
-            self, view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done,
-            log=log, srgb8=passes.srgb8,
-        )
-        centres = passes.range and sampling.per_pixel > 1
-        ids = self._queue_ids(view, items, passes.ids, centres, log=log) if passes.ids or centres else (None, None)
-        done("ids")
-        # One wait for the GPU, after every pass of the frame is queued (worker.render.readback).
-        image, clean, nearest = reads.fetch(self.readback)
-        instance, centre = (None if q is None else self.readback.fetch(q) for q in ids)
+        try:
+            reads = surface_pass(
+                self, view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done,
+                log=log, srgb8=passes.srgb8,
+            )
+            centres = passes.range and sampling.per_pixel > 1
+            ids = self._queue_ids(view, items, passes.ids, centres, log=log) if passes.ids or centres else (None, None)
+            done("ids")
+            # One wait for the GPU, after every pass of the frame is queued (worker.render.readback).
+            image, clean, nearest = reads.fetch(self.readback)
+            instance, centre = (None if q is None else self.readback.fetch(q) for q in ids)
+        except BaseException:
+            self.readback.abandon()
+            raise
         # A sliver can cover a pixel centre and none of its samples: the image shows water there, so must range.
         range_m = nearest if centre is None else np.where(np.isfinite(centre) & np.isfinite(nearest), centre, nearest)
         return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m, passes=tuple(log))

@@ -33,6 +33,7 @@ class Readback:
         self._gl = gl
         self._free: OrderedDict[int, list[int]] = OrderedDict()  # by size, least recently used first
         self._all: set[int] = set()
+        self._queued: dict[int, Pending] = {}  # reads queued and not yet fetched, by buffer
 
     def queue(self, slot: int, w: int, h: int, fmt: int, typ: int, dtype, channels: int, x: int = 0,
               y: int = 0) -> Pending:
@@ -55,7 +56,9 @@ class Readback:
         GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + slot)
         glReadPixels(x, y, w, h, fmt, typ, ctypes.c_void_p(0))
         GL.glBindBuffer(GL.GL_PIXEL_PACK_BUFFER, 0)
-        return Pending(pbo, nbytes, shape, dtype)
+        p = Pending(pbo, nbytes, shape, dtype)
+        self._queued[pbo] = p
+        return p
 
     def fetch(self, p: Pending) -> np.ndarray:
         """The read's pixels (waits for the GPU where it has not finished them); its buffer is reused."""
@@ -74,12 +77,24 @@ class Readback:
         self._release(p)
         return out
 
+    def abandon(self) -> None:
+        """Give back the buffers of every read queued and not fetched, unread: a frame that failed between queueing
+        its reads and fetching them (a GL error, NaN in its image) must not keep them until the context closes."""
+        for p in list(self._queued.values()):
+            self._release(p)
+
+    @property
+    def queued(self) -> int:
+        """Reads queued and not yet fetched (for tests)."""
+        return len(self._queued)
+
     @property
     def buffers(self) -> int:
         """Buffers alive, queued reads' included (for tests)."""
         return len(self._all)
 
     def _release(self, p: Pending) -> None:
+        self._queued.pop(p.pbo, None)
         free = self._free.setdefault(p.nbytes, [])
         self._free.move_to_end(p.nbytes)
         free.append(p.pbo)
@@ -97,3 +112,4 @@ class Readback:
             self._gl.glDeleteBuffers(len(self._all), list(self._all))
         self._all.clear()
         self._free.clear()
+        self._queued.clear()
