@@ -50,15 +50,21 @@ def test_queued_reads_fetched_in_any_order_equal_direct_reads(renderer):
     np.testing.assert_array_equal(fetched[2], np.full((H, W), 3.25, np.float32))
 
 
-def test_a_frame_waits_once_and_its_buffers_are_reused(renderer):
+def quad_frame(renderer, key: str, instance_id: int):
+    """A function rendering one 32x24 frame of a quad (8-bit image, ids and range: five reads)."""
     K = pinhole(32, 24, 60.0)
     view = camera_view(K, 32, 24)
-    item = draw("test/readback/quad", fronto_quad(K, (4.5, 20.5), (3.5, 15.5), 5.0), 7)
-    passes = Passes(ids=True, range=True, srgb8=True)
-    first = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+    item = draw(key, fronto_quad(K, (4.5, 20.5), (3.5, 15.5), 5.0), instance_id)
+    return lambda: renderer.render(view, [item], LIGHT, None, PRESETS["default"],
+                                   Passes(ids=True, range=True, srgb8=True))
+
+
+def test_a_frame_waits_once_and_its_buffers_are_reused(renderer):
+    frame = quad_frame(renderer, "test/readback/quad", 7)
+    first = frame()
     alive = renderer.readback.buffers
     for _ in range(3):
-        again = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+        again = frame()
         assert renderer.readback.buffers == alive  # the same buffers, none left queued
     for name in ("image", "instance", "range_m"):
         np.testing.assert_array_equal(getattr(again, name), getattr(first, name), err_msg=name)
@@ -78,11 +84,8 @@ def test_buffers_of_many_sizes_stay_bounded(renderer):
 
 
 def test_a_frame_that_fails_after_queueing_its_reads_gives_their_buffers_back(renderer, monkeypatch):
-    K = pinhole(32, 24, 60.0)
-    view = camera_view(K, 32, 24)
-    item = draw("test/readback/fail", fronto_quad(K, (4.5, 20.5), (3.5, 15.5), 5.0), 5)
-    passes = Passes(ids=True, range=True, srgb8=True)
-    good = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+    frame = quad_frame(renderer, "test/readback/fail", 5)
+    good = frame()
     alive = renderer.readback.buffers
     real = renderer._queue_ids
 
@@ -93,10 +96,10 @@ def test_a_frame_that_fails_after_queueing_its_reads_gives_their_buffers_back(re
     monkeypatch.setattr(renderer, "_queue_ids", queue_then_fail)
     for _ in range(2 * KEEP_PER_SIZE):
         with pytest.raises(RuntimeError, match="after the reads were queued"):
-            renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+            frame()
         assert renderer.readback.queued == 0
     assert renderer.readback.buffers == alive  # reused, not one more per failed frame
     monkeypatch.undo()
-    again = renderer.render(view, [item], LIGHT, None, PRESETS["default"], passes)
+    again = frame()
     for name in ("image", "instance", "range_m"):
         np.testing.assert_array_equal(getattr(again, name), getattr(good, name), err_msg=name)
