@@ -86,22 +86,19 @@ def psnr_db(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def hazed_mean(J: np.ndarray, R: np.ndarray, scene, view) -> np.ndarray:
-    """Per-sample float64 water of the scene's model (the paper's haze, or the physical model's `volume`), averaged
+    """Float64 water of the scene's model per sample (the paper's haze, or the physical model's `volume_pixels`), averaged
     in linear light. J: (k, h, w, 3), R: (k, h, w) -> (h, w, 3) float64."""
     from worker.formation import haze
-    from worker.light.volume import camera_depth, pixel_rays, volume
+    from worker.light.volume import camera_depth, pixel_rays, volume_pixels
 
     water, light = scene.water, scene.light
     if light is not None:
         dirs_world, dirs_cam = pixel_rays(view.K, view.width, view.height, scene.world_from_cam)
-        depth = camera_depth(light, scene.world_from_cam)
+        return volume_pixels(J, R, dirs_world, dirs_cam, camera_depth(light, scene.world_from_cam), light)
     acc = np.zeros(J.shape[1:], np.float64)
     for Jk, Rk in zip(J, R):
         Jk = Jk.astype(np.float64)
-        if light is not None:
-            acc += volume(Jk, Rk, dirs_world, dirs_cam, depth, light)
-        else:
-            acc += Jk if water is None else haze(Jk, Rk, water.beta_D, water.beta_B, water.B_inf, np.float64)
+        acc += Jk if water is None else haze(Jk, Rk, water.beta_D, water.beta_B, water.B_inf, np.float64)
     return acc / len(J)
 
 

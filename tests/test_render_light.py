@@ -10,6 +10,7 @@ from test_render import draw, pinhole
 
 from worker.light import Lamp, Medium, PhysicalLight, Terms
 from worker.light.sun import sun_in_water
+from worker.light.lamps import LAMP_Z_SPREAD
 from worker.light.volume import volume
 from worker.render import Passes, Sampling, View
 from worker.scene import look_at_pose, rigid_inverse
@@ -278,3 +279,29 @@ def test_a_frame_draws_one_shadow_map_per_lamp_after_the_suns(renderer):
     everything = light(CLEAR, SCATTERING, lamps=lamps[:1])
     assert renderer.render(VIEW, SCENE, everything, None, ONE, Passes()).passes == (
         "sun shadow", "lamp0 shadow", *DRAW_AND_READ)
+
+
+FOUR = Sampling(msaa=4, supersample=1)
+
+
+@pytest.mark.parametrize("name", list(LAMP_CASES))
+def test_with_four_samples_a_pixel_the_resolve_is_its_twin_and_lamp_scattering_once_a_pixel_costs_no_accuracy(
+        renderer, name):
+    """volume_pixels (the lamps' scattering once a pixel where the samples' ray ends agree within LAMP_Z_SPREAD) is
+    the shader to one code; against every sample integrated on its own it differs by under 1e-6 (linear; 4e-7
+    measured), on frames where most pixels take the once-a-pixel path with their samples' ends apart."""
+    from worker.light.volume import volume_pixels
+
+    lt = LAMP_CASES[name]
+    J, R = renderer.samples(VIEW, SCENE, lt, FOUR)
+    dirs_world, dirs_cam = pixel_rays(VIEW, WORLD_FROM_CAM)
+    depth = lt.medium.surface_z - WORLD_FROM_CAM[2, 3]
+    twin = volume_pixels(J, R, dirs_world, dirs_cam, depth, lt)
+    image = renderer.render(VIEW, SCENE, lt, None, FOUR, Passes()).image
+    assert np.abs(encode_srgb8(image).astype(int) - encode_srgb8(twin).astype(int)).max() <= 1
+    per_sample = np.mean([volume(Jk.astype(np.float64), Rk, dirs_world, dirs_cam, depth, lt)
+                          for Jk, Rk in zip(J, R)], axis=0)
+    assert np.abs(twin - per_sample).max() < 1e-6
+    lo, hi = R.min(axis=0), R.max(axis=0)  # the scene's surfaces lie below the water surface: ends are ranges
+    with np.errstate(invalid="ignore"):  # open water: inf - inf
+        assert ((hi > lo) & (hi - lo <= LAMP_Z_SPREAD * lo)).mean() > 0.5

@@ -3,7 +3,8 @@ rays (`VOLUME`, the twin of `worker.light.volume`). Terms are compiled in or out
 WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
 
 from worker.light import caustics
-from worker.light.lamps import BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M, REACH_MARGIN_RAD
+from worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
+                                REACH_MARGIN_RAD)
 from worker.light.sky import SKY_PHASE_NODES
 from worker.light.volume import MU_SKY
 
@@ -310,7 +311,16 @@ vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
 #ifdef WITH_SKY
     if (isinf(z) && w.z > SNELL_COS) I += u_Esky / SNELL_SIN2 * exp_neg3(u_K * g_to_surface);
 #endif
+    return I;
+}}
 #if defined(WITH_SCATTER) && LAMPS > 0
+// The lamps' single scattering along the pixel's ray up to ray_end(z) of a sample (lamps.lamp_backscatter): the
+// resolve calls it once a pixel where its samples' ray ends agree within LAMP_Z_SPREAD, else once a sample.
+#define PIXEL_TERMS
+const float LAMP_Z_SPREAD = {LAMP_Z_SPREAD!r};
+float ray_end(float z) {{ return min(z, g_to_surface); }}
+vec3 pixel_terms(float zs, vec3 w_cam) {{
+    vec3 I = vec3(0.0);
     float kmin = 1e30;
     for (int c = 0; c < 3; ++c) if (u_b[c] > 0.0) kmin = min(kmin, u_K[c]);
     float t_end = min(zs, {CUTOFF_OPTICAL_DEPTH!r} / max(kmin, 1e-30));
@@ -334,8 +344,8 @@ vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
         }}
         I += acc * du * u_b * (PI * u_lamp_I[l]);
     }}
-#endif
     return I;
 }}
+#endif
 """
 )

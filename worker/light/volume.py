@@ -18,8 +18,8 @@ import math
 import numpy as np
 
 from worker.light import SNELL_CONE_DEG, PhysicalLight
-from worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, MIN_LAMP_DISTANCE_M, cone_interval,
-                                light_factor, reach)
+from worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
+                                cone_interval, light_factor, reach)
 from worker.light.sky import sky_phase, sky_phase_table, window_radiance
 
 MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
@@ -47,9 +47,10 @@ def segment(x1: np.ndarray, alpha: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.ndarray, cam_depth: float,
-           light: PhysicalLight) -> np.ndarray:
+           light: PhysicalLight, lamp_scattering: bool = True) -> np.ndarray:
     """I for samples: J (..., 3) linear, z (...) metres (+inf: no surface), dirs_world/dirs_cam (..., 3) unit view
-    directions in the world (z up) and camera frames. Returns (..., 3) float64."""
+    directions in the world (z up) and camera frames. Returns (..., 3) float64. lamp_scattering=False leaves the
+    lamps' single scattering out (volume_pixels adds it a pixel at a time, as the resolve shader does)."""
     m = light.medium
     K, b = m.k, m.b
     z = np.asarray(z, dtype=np.float64)
@@ -80,10 +81,39 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
         window = (~np.isfinite(z) & (wz > math.cos(math.radians(SNELL_CONE_DEG))))[..., None]
         with np.errstate(divide="ignore", over="ignore"):
             out = out + np.where(window, L * np.exp(-K * np.where(window, to_surface[..., None], 0.0)), 0.0)
-    if t.scattering:
+    if t.scattering and lamp_scattering:
         for lamp in light.lamps[: t.lamps]:
             out = out + lamp_backscatter(lamp, dirs_cam, zs[..., 0], m, t.lamp_spread)
     return out
+
+
+def volume_pixels(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.ndarray, cam_depth: float,
+                  light: PhysicalLight) -> np.ndarray:
+    """The mean of a pixel's samples as the resolve shader forms it: J (k, h, w, 3), z (k, h, w) for k samples
+    looking along the pixel centre's ray (dirs (h, w, 3)). Every term per sample, except the lamps' scattering: once
+    a pixel, to the mean of the samples' ray ends where those agree within LAMP_Z_SPREAD of the nearest (all equal
+    included, open water too), else once a sample. Returns (h, w, 3) float64."""
+    k = J.shape[0]
+    acc = sum(volume(np.asarray(Jk, np.float64), zk, dirs_world, dirs_cam, cam_depth, light, lamp_scattering=False)
+              for Jk, zk in zip(J, z))
+    t, m = light.terms, light.medium
+    if not (t.scattering and t.lamps):
+        return acc / k
+    wz = dirs_world[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_surface = np.where(wz > 0, cam_depth / np.where(wz > 0, wz, 1.0), np.inf)
+        ends = np.minimum(np.asarray(z, np.float64), to_surface)  # (k, h, w)
+        lo, hi = ends.min(axis=0), ends.max(axis=0)
+        once = (hi == lo) | (hi - lo <= LAMP_Z_SPREAD * lo)
+        end = np.where(hi == lo, lo, ends.mean(axis=0))
+    for lamp in light.lamps[: t.lamps]:
+        per_pixel = k * lamp_backscatter(lamp, dirs_cam, end, m, t.lamp_spread)
+        if once.all():
+            acc = acc + per_pixel
+            continue
+        per_sample = sum(lamp_backscatter(lamp, dirs_cam, e, m, t.lamp_spread) for e in ends)
+        acc = acc + np.where(once[..., None], per_pixel, per_sample)
+    return acc / k
 
 
 def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m, spread: bool = True):

@@ -177,6 +177,9 @@ void main() {
     vec3 clean = vec3(0.0);
     float nearest = uintBitsToFloat(0x7F800000u);
     float n = 0.0;
+#ifdef PIXEL_TERMS
+    float end_lo = uintBitsToFloat(0x7F800000u), end_hi = 0.0, end_sum = 0.0;   // the samples' ray ends
+#endif
 #ifdef PHYSICAL
     // The view ray through the pixel centre (pixel centres at integer coordinates, rows already in image order).
     vec3 w_cam = normalize(u_K_inv * vec3(vec2(px), 1.0));
@@ -202,6 +205,12 @@ void main() {
                 acc += haze(J, z, u_betaD, u_betaB, u_Binf);
 #elif defined(PHYSICAL)
                 acc += water(J, z, w_world, w_cam);
+#ifdef PIXEL_TERMS
+                float e = ray_end(z);
+                end_lo = min(end_lo, e);
+                end_hi = max(end_hi, e);
+                end_sum += e;
+#endif
 #else
                 acc += J;
 #endif
@@ -215,6 +224,27 @@ void main() {
             }
         }
     }
+#ifdef PIXEL_TERMS
+    // Terms smooth in a sample's ray end (the lamps' scattering): once at the mean end where the pixel's samples
+    // agree within LAMP_Z_SPREAD (all of them, open water included, on most pixels), else once a sample.
+    if (end_hi == end_lo) {
+        acc += n * pixel_terms(end_lo, w_cam);
+    } else if (end_hi - end_lo <= LAMP_Z_SPREAD * end_lo) {
+        acc += n * pixel_terms(end_sum / n, w_cam);
+    } else {
+        for (int dy = 0; dy < SUPERSAMPLE; ++dy) {
+            for (int dx = 0; dx < SUPERSAMPLE; ++dx) {
+                ivec2 q = px * SUPERSAMPLE + ivec2(dx, dy);
+                for (int s = 0; s < SAMPLES; ++s) {
+                    int k = (dy * SUPERSAMPLE + dx) * SAMPLES + s;
+                    if (u_only_sample >= 0 && k != u_only_sample) continue;
+                    bool drawn = FETCH(u_D, q, s).r < 1.0;
+                    acc += pixel_terms(ray_end(drawn ? FETCH(u_R, q, s).r : uintBitsToFloat(0x7F800000u)), w_cam);
+                }
+            }
+        }
+    }
+#endif
 #ifdef SRGB8_OUT
     vec4 codes = srgb8(acc / n);
     OUT_IMG(codes);
