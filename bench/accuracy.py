@@ -86,8 +86,8 @@ def psnr_db(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def hazed_mean(J: np.ndarray, R: np.ndarray, scene, view) -> np.ndarray:
-    """Float64 water of the scene's model per sample (the paper's haze, or the physical model's `volume_pixels`), averaged
-    in linear light. J: (k, h, w, 3), R: (k, h, w) -> (h, w, 3) float64."""
+    """Float64 water of the scene's model per sample (the paper's haze, or the physical model's `volume_pixels`),
+    averaged in linear light. J: (k, h, w, 3), R: (k, h, w) -> (h, w, 3) float64."""
     from worker.formation import haze
     from worker.light.volume import camera_depth, pixel_rays, volume_pixels
 

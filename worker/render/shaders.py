@@ -178,7 +178,8 @@ void main() {
     float nearest = uintBitsToFloat(0x7F800000u);
     float n = 0.0;
 #ifdef PIXEL_TERMS
-    float end_lo = uintBitsToFloat(0x7F800000u), end_hi = 0.0, end_sum = 0.0;   // the samples' ray ends
+    float ends[SUPERSAMPLE * SUPERSAMPLE * SAMPLES];   // the samples' ray ends
+    float end_lo = uintBitsToFloat(0x7F800000u), end_hi = 0.0, end_sum = 0.0;
 #endif
 #ifdef PHYSICAL
     // The view ray through the pixel centre (pixel centres at integer coordinates, rows already in image order).
@@ -206,10 +207,10 @@ void main() {
 #elif defined(PHYSICAL)
                 acc += water(J, z, w_world, w_cam);
 #ifdef PIXEL_TERMS
-                float e = ray_end(z);
-                end_lo = min(end_lo, e);
-                end_hi = max(end_hi, e);
-                end_sum += e;
+                ends[k] = ray_end(z);
+                end_lo = min(end_lo, ends[k]);
+                end_hi = max(end_hi, ends[k]);
+                end_sum += ends[k];
 #endif
 #else
                 acc += J;
@@ -232,17 +233,8 @@ void main() {
     } else if (end_hi - end_lo <= LAMP_Z_SPREAD * end_lo) {
         acc += n * pixel_terms(end_sum / n, w_cam);
     } else {
-        for (int dy = 0; dy < SUPERSAMPLE; ++dy) {
-            for (int dx = 0; dx < SUPERSAMPLE; ++dx) {
-                ivec2 q = px * SUPERSAMPLE + ivec2(dx, dy);
-                for (int s = 0; s < SAMPLES; ++s) {
-                    int k = (dy * SUPERSAMPLE + dx) * SAMPLES + s;
-                    if (u_only_sample >= 0 && k != u_only_sample) continue;
-                    bool drawn = FETCH(u_D, q, s).r < 1.0;
-                    acc += pixel_terms(ray_end(drawn ? FETCH(u_R, q, s).r : uintBitsToFloat(0x7F800000u)), w_cam);
-                }
-            }
-        }
+        for (int k = 0; k < SUPERSAMPLE * SUPERSAMPLE * SAMPLES; ++k)
+            if (u_only_sample < 0 || k == u_only_sample) acc += pixel_terms(ends[k], w_cam);
     }
 #endif
 #ifdef SRGB8_OUT
