@@ -1,18 +1,36 @@
 """The GPU's ceiling: P processes each rendering (no labels, no encoding, no writing) the same four frames of
 examples/urchins.yaml in a loop for 8 s; prints the frames/s of all of them together.
 
-    python -m bench.gpu_ceiling WIDTHxHEIGHT VARIANT@PROCS ...
+    python -m bench.gpu_ceiling WIDTHxHEIGHT VARIANT@PROCS[@DEPTH] ...
 
+DEPTH (default 1): frames each process keeps in flight; above 1, frame k+1's passes are queued before frame k's
+reads are fetched (the renderer's own steps, as bench.gpu_timeline takes them), so the GPU never waits for it.
 VARIANT: default (the default preset, ids pass, 8-bit codes), fragment (the same with the fragment resolve),
 no-ids, draft, no-sun-shadow, no-scatter (sun and sky scattering off). Results: bench/results/gpu/passes.md.
 """
-import dataclasses, multiprocessing as mp, sys, time
+import collections, dataclasses, multiprocessing as mp, sys, time
 
 
 VARIANTS = ("default", "fragment", "no-ids", "draft", "no-sun-shadow", "no-scatter")
 
 
-def worker(variant, seconds, barrier, q, res):
+def queue_frame(r, view, items, light, water, preset, passes):
+    """A frame's passes and reads queued, nothing fetched: (surface reads, ids read)."""
+    from worker.render.surface import surface_pass
+
+    r._platform.make_current()
+    reads = surface_pass(r, view, items, light, water, preset, False, -1, srgb8=passes.srgb8)
+    return reads, r._queue_ids(view, items, passes.ids, False)[0] if passes.ids else None
+
+
+def fetch_frame(r, queued):
+    reads, ids = queued
+    reads.fetch(r.readback)
+    if ids is not None:
+        r.readback.fetch(ids)
+
+
+def worker(variant, seconds, barrier, q, res, depth=1):
     from service.spec import load_spec
     from worker.pipeline import PRESETS, RenderSession, scene_light
     from worker.render import Passes
@@ -36,10 +54,18 @@ def worker(variant, seconds, barrier, q, res):
             s.renderer.render(v, it, lt, wt, preset, passes)
         barrier.wait()
         t0, n = time.perf_counter(), 0
+        inflight = collections.deque()
         while time.perf_counter() - t0 < seconds:
             v, it, lt, wt = frames[n % 4]
-            s.renderer.render(v, it, lt, wt, preset, passes)
+            if depth == 1:
+                s.renderer.render(v, it, lt, wt, preset, passes)
+            else:
+                inflight.append(queue_frame(s.renderer, v, it, lt, wt, preset, passes))
+                if len(inflight) == depth:
+                    fetch_frame(s.renderer, inflight.popleft())
             n += 1
+        while inflight:
+            fetch_frame(s.renderer, inflight.popleft())
         q.put(n)
 
 
@@ -47,15 +73,16 @@ if __name__ == "__main__":
     ctx = mp.get_context("spawn")
     res = tuple(int(x) for x in sys.argv[1].split("x"))
     for spec in sys.argv[2:]:
-        variant, procs = spec.split("@")
+        variant, procs, *rest = spec.split("@")
         if variant not in VARIANTS:  # an unknown name would otherwise render the default variant under its label
             raise SystemExit(f"variant {variant!r}: one of {', '.join(VARIANTS)}")
-        procs, seconds = int(procs), 8.0
+        procs, depth, seconds = int(procs), int(rest[0]) if rest else 1, 8.0
         barrier, q = ctx.Barrier(procs), ctx.Queue()
-        ps = [ctx.Process(target=worker, args=(variant, seconds, barrier, q, res)) for _ in range(procs)]
+        ps = [ctx.Process(target=worker, args=(variant, seconds, barrier, q, res, depth)) for _ in range(procs)]
         for p in ps:
             p.start()
         total = sum(q.get() for _ in ps)
         for p in ps:
             p.join()
-        print(f"{res[0]}x{res[1]} {variant:14s} procs={procs:3d} render-only fps={total / seconds:7.1f}", flush=True)
+        print(f"{res[0]}x{res[1]} {variant:14s} procs={procs:3d} depth={depth} render-only fps={total / seconds:7.1f}",
+              flush=True)
