@@ -254,8 +254,7 @@ def grid_sse(y, h, nodes, bd, bb, y_inf: float, w2: float, drift: np.ndarray | N
 
     y: (G, K). bd: (nD,), bb: (nB,) 1/m. The per-group m_g and B are solved in closed form (m_g eliminated by
     projection, B clipped to [0, 1]). Returns sse (nD, nB) and B (nD, nB); with BACKSCATTER_PRIOR, only the grid
-    points inside it are solved (sse +inf and B 0 elsewhere, as restrict_ratio gives): on log grids that is a band of
-    a few columns a row."""
+    points inside it are solved (sse +inf and B 0 elsewhere): on log grids that is a band of a few columns a row."""
     direct = np.exp(-bd[:, None] * nodes[None])
     g, k, z = h.shape
     hz = h.reshape(g * k, z).T  # contractions as matrix products (BLAS): einsum's loops took 2/3 of an estimate
@@ -308,14 +307,6 @@ def _profile(sse: np.ndarray, axis: int, threshold: float) -> tuple[float, bool]
     return float(np.log(hi / lo) / 4), bool(ok[0] > 0 and ok[-1] < BETA_GRID.size - 1)
 
 
-def restrict_ratio(sse: np.ndarray, bd: np.ndarray, bb: np.ndarray) -> np.ndarray:
-    """sse (nD, nB) with grid points outside BACKSCATTER_PRIOR (beta_B / beta_D) set to +inf."""
-    if BACKSCATTER_PRIOR is None:
-        return sse
-    r = bb[None, :] / bd[:, None]
-    return np.where((r >= BACKSCATTER_PRIOR[0]) & (r <= BACKSCATTER_PRIOR[1]), sse, np.inf)
-
-
 def fit_range(data: RangeData) -> RangeFit:
     """Per channel: coarse grid argmin, then a fine grid between the argmin's neighbours; profile widths from the
     coarse grid."""
@@ -333,12 +324,10 @@ def fit_range(data: RangeData) -> RangeFit:
             continue
         y_inf = float(data.open_mean[c])
         sse, _ = grid_sse(y, h, data.z_nodes, BETA_GRID, BETA_GRID, y_inf, w2, data.drift)
-        sse = restrict_ratio(sse, BETA_GRID, BETA_GRID)
         i, j = np.unravel_index(np.argmin(sse), sse.shape)
         fd = np.geomspace(BETA_GRID[max(i - 1, 0)], BETA_GRID[min(i + 1, n - 1)], FINE_POINTS)
         fb = np.geomspace(BETA_GRID[max(j - 1, 0)], BETA_GRID[min(j + 1, n - 1)], FINE_POINTS)
         sse2, B2 = grid_sse(y, h, data.z_nodes, fd, fb, y_inf, w2, data.drift)
-        sse2 = restrict_ratio(sse2, fd, fb)
         k, m = np.unravel_index(np.argmin(sse2), sse2.shape)
         flat = np.ptp(y) < FLAT_SPREAD
         # Residual variance per row (floored at 8-bit quantisation's scale so a perfect fit still has a width).

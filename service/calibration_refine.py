@@ -16,7 +16,6 @@ from service.calibration_fit import (
     RangeFit,
     fit_range,
     grid_sse,
-    restrict_ratio,
 )
 
 
@@ -39,7 +38,7 @@ def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[Ra
     for c in ch:
         y = data.y[c]
         sse = grid_sse(y, data.h[c], data.z_nodes, BETA_GRID, BETA_GRID, float(data.open_mean[c]), w2, data.drift)[0]
-        low = float(restrict_ratio(sse, BETA_GRID, BETA_GRID).min())
+        low = float(sse.min())
         free[c] = (low, max(low / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2))
     # Per channel, every member's scaled grid in one least-squares pass (the backscatter's side of the fit is the
     # same for all of them): (members, scales) each of beta_D, the best beta_B, its B_inf and the scaled excess SSE.
@@ -49,7 +48,6 @@ def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[Ra
     for c in ch:
         bd = np.concatenate([PRIOR_SCALE * family[name][c] for name in names])
         sse, B = grid_sse(data.y[c], data.h[c], data.z_nodes, bd, BETA_GRID, float(data.open_mean[c]), w2, data.drift)
-        sse = restrict_ratio(sse, bd, BETA_GRID)
         j = np.argmin(sse, axis=1)
         per_channel[c] = tuple(a.reshape(len(names), n) for a in (
             bd, BETA_GRID[j], B[rows, j], (sse[rows, j] - free[c][0]) / free[c][1]))

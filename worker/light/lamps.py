@@ -33,7 +33,7 @@ BACKSCATTER_NODES = 24
 # The integral stops where light has crossed this many diffuse attenuation lengths (exp(-16) = 1e-7): open water.
 CUTOFF_OPTICAL_DEPTH = 16.0
 # A pixel's lamp scattering is integrated once, to the mean of its samples' ray ends, where those differ by at most
-# this fraction of the nearest (volume.pixel_lamp_ends): the integral is smooth in its end, and its error there is
+# this fraction of the nearest (volume.volume_pixels, and the resolve shader): the integral is smooth in its end, and its error there is
 # second order in the spread (below 1e-4 of the term at 1%); elsewhere (silhouettes) once a sample.
 LAMP_Z_SPREAD = 0.01
 # The backscatter integral runs over the part of each ray inside the cone that the lamp's light reaches

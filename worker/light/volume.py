@@ -46,6 +46,14 @@ def segment(x1: np.ndarray, alpha: np.ndarray, z: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(z), np.where(small, series, big), np.where(alpha > 0, inf, 0.0))
 
 
+def distance_to_surface(dirs_world: np.ndarray, cam_depth: float) -> np.ndarray:
+    """(...) metres along each unit view direction (..., 3) (world, z up) to the water surface; +inf looking level or
+    down."""
+    wz = dirs_world[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(wz > 0, cam_depth / np.where(wz > 0, wz, 1.0), np.inf)
+
+
 def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.ndarray, cam_depth: float,
            light: PhysicalLight, lamp_scattering: bool = True) -> np.ndarray:
     """I for samples: J (..., 3) linear, z (...) metres (+inf: no surface), dirs_world/dirs_cam (..., 3) unit view
@@ -55,8 +63,7 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
     K, b = m.k, m.b
     z = np.asarray(z, dtype=np.float64)
     wz = dirs_world[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        to_surface = np.where(wz > 0, cam_depth / np.where(wz > 0, wz, 1.0), np.inf)
+    to_surface = distance_to_surface(dirs_world, cam_depth)
     zs = np.minimum(z, to_surface)[..., None]
     out = np.where(np.isfinite(z)[..., None], np.asarray(J, np.float64) * np.exp(-K * np.where(
         np.isfinite(z), z, 0.0)[..., None]), 0.0)
@@ -99,10 +106,8 @@ def volume_pixels(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam
     t, m = light.terms, light.medium
     if not (t.scattering and t.lamps):
         return acc / k
-    wz = dirs_world[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        to_surface = np.where(wz > 0, cam_depth / np.where(wz > 0, wz, 1.0), np.inf)
-        ends = np.minimum(np.asarray(z, np.float64), to_surface)  # (k, h, w)
+    ends = np.minimum(np.asarray(z, np.float64), distance_to_surface(dirs_world, cam_depth))  # (k, h, w)
+    with np.errstate(invalid="ignore"):  # open water looking down: inf - inf
         lo, hi = ends.min(axis=0), ends.max(axis=0)
         once = (hi == lo) | (hi - lo <= LAMP_Z_SPREAD * lo)
         end = np.where(hi == lo, lo, ends.mean(axis=0))
