@@ -8,10 +8,11 @@ Stages: shadow maps, clear (binding and clearing the surface target), surface (t
 resolve (water and the 8-bit codes, reads queued), ids (the ids pass and its read). A stage's time is the GPU's
 time between the stamps before and after it (work still running from the stage before counts to it).
 
-VARIANT (default: none): measurement-only changes of the surface target, whose frames are not valid: `range-off`
-(no range attachment), `colour-rgba8`, `colour-rgba32f` (colour format instead of RGBA16F), `depth24` (24-bit
-depth instead of 32-bit float), `clear-colour` (clear colour and range as the renderer did before it kept them),
-`flat-shader` (a one-line surface shader instead of the physical one). Results: bench/results/gpu/clear.md.
+VARIANT (default: none): measurement-only changes of the surface target, whose frames are not valid:
+`colour-rgba8`, `colour-rgba32f` (colour format instead of RGBA16F), `depth24` (24-bit depth instead of 32-bit
+float), `clear-colour` (clear the colour as the renderer did before it kept it), `flat-shader` (a one-line surface
+shader instead of the physical one). Results: bench/results/gpu/clear.md (0.5.1, whose surface pass also wrote a
+range attachment; since 0.5.2 range comes from the depth: worker.render.depth).
 """
 from __future__ import annotations
 
@@ -21,24 +22,17 @@ import statistics
 import sys
 import time
 
-VARIANTS = ("range-off", "colour-rgba8", "colour-rgba32f", "depth24", "clear-colour", "flat-shader")
+VARIANTS = ("colour-rgba8", "colour-rgba32f", "depth24", "clear-colour", "flat-shader")
 FLAT_SURFACE = """
 #version 330 core
 in vec3 v_pos;
 in vec3 v_nrm;
 in vec3 v_col;
-uniform vec2 u_range_bounds;
 uniform vec3 u_scale;
 uniform vec3 u_bias;
 layout(location = 0) out vec4 o_J;
-#ifdef WITH_RANGE
-layout(location = 1) out float o_range;
-#endif
 void main() {
     o_J = vec4((v_col * u_scale + u_bias) * max(dot(normalize(v_nrm), vec3(0.0, 0.0, -1.0)), 0.0), 1.0);
-#ifdef WITH_RANGE
-    o_range = clamp(length(v_pos), u_range_bounds.x, u_range_bounds.y);
-#endif
 }
 """
 
@@ -60,10 +54,8 @@ def apply_variants(variants: list[str]) -> None:
         def build():
             t = self.new_fbo()
             self._attach_texture(t, 0, fmt, w, h, msaa)
-            if with_range and "range-off" not in variants:
-                self._attach_texture(t, 1, GL.GL_R32F, w, h, msaa)
             if with_range:
-                self._attach_texture(t, 2, depth, w, h, msaa, attachment=GL.GL_DEPTH_ATTACHMENT)
+                self._attach_texture(t, 1, depth, w, h, msaa, attachment=GL.GL_DEPTH_ATTACHMENT)
             else:
                 self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, depth, w, h, msaa)
             return t
@@ -73,7 +65,7 @@ def apply_variants(variants: list[str]) -> None:
     if "clear-colour" in variants:
         real = gl_renderer.GLRenderer._bind_and_clear
         gl_renderer.GLRenderer._bind_and_clear = lambda self, t, clears: real(
-            self, t, ("colour", "range")[: len(clears)] if clears[0] == "keep" else clears)
+            self, t, ("colour",) if clears == ("keep",) else clears)
 
 
 class Stamps:

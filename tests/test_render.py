@@ -242,14 +242,18 @@ def test_an_empty_scene_is_all_open_water(renderer, preset):
 
 
 def test_range_is_the_same_with_or_without_water_and_at_any_sampling(renderer):
-    """With edges on pixel boundaries every pixel centre hits the surface its samples hit, or none does."""
+    """With edges on pixel boundaries every pixel centre hits the surface its samples hit, or none does. One sample a
+    pixel takes range from the sample's depth, several from the centres' pass: the same to a few float32 ulps."""
     K = pinhole(W, H, 60.0)
     quad = fronto_quad(K, (2.5, 5.5), (1.5, 3.5), 5.0)
     item = draw("test/render/open-water-quad", quad, 7)
     view = camera_view(K, W, H)
     dry = renderer.render(view, [item], LIGHT, None, Sampling(msaa=1), Passes(range=True))
     wet = renderer.render(view, [item], LIGHT, WATER, Sampling(msaa=4), Passes(range=True))
-    np.testing.assert_array_equal(dry.range_m, wet.range_m)
+    hit = np.isfinite(dry.range_m)
+    np.testing.assert_array_equal(hit, np.isfinite(wet.range_m))
+    assert hit.sum() == 6 and np.all(dry.range_m[~hit] == np.inf) and np.all(wet.range_m[~hit] == np.inf)
+    np.testing.assert_allclose(dry.range_m[hit], wet.range_m[hit], rtol=1e-6)
 
 
 @pytest.mark.parametrize("preset", sorted(PRESETS))
@@ -265,10 +269,17 @@ def test_range_is_the_centre_where_it_hits_else_the_nearest_sample_and_inf_only_
              draw("test/render/sliver", sliver, 8)]
     sampling = PRESETS[preset]
     result = renderer.render(view, items, LIGHT, WATER, sampling, Passes(range=True))
-    centre = renderer.render(view, items, LIGHT, None, Sampling(msaa=1), Passes(range=True)).range_m
+    centre = renderer.geometry(view, items)[1]  # the pixel centres' pass
     _, samples = renderer.samples(view, items, LIGHT, sampling)  # (k, h, w): every sample of every pixel
     water = np.isinf(samples).all(axis=0)
-    expected = np.where(np.isfinite(centre) & ~water, centre, samples.min(axis=0))
+    if sampling.per_pixel == 1:
+        # The one sample is the centre: the frame's range is its own (from its depth), the centres' pass's to a
+        # few float32 ulps (measured under 4.5e-7 relative on llvmpipe).
+        expected = samples[0]
+        np.testing.assert_array_equal(np.isinf(centre), water)
+        np.testing.assert_allclose(centre[~water], expected[~water], rtol=1e-6)
+    else:
+        expected = np.where(np.isfinite(centre) & ~water, centre, samples.min(axis=0))
     np.testing.assert_array_equal(result.range_m, expected)
     np.testing.assert_array_equal(np.isinf(result.range_m), water)
     assert_veiling_light(result.image[water], sampling)  # open water by the range is the veiling light

@@ -24,14 +24,33 @@ NORMALS = {
     "fronto-parallel": np.array([0.0, 0.0, 1.0]),
     "oblique": np.array([0.35, -0.25, 1.0]) / np.linalg.norm([0.35, -0.25, 1.0]),
 }
-# Presets that shade once at the pixel centre, where the analytic range is known exactly; the others shade each
-# sample at its own position (their per-sample water is checked against the stored sample ranges in test_render).
+# Presets that shade J once a pixel (at its centre), so a plane's clean pixel is every sample's J; water is applied
+# at each sample's own range (from its depth) at every preset.
 CENTRE_SHADED = [name for name, s in PRESETS.items() if s.msaa * s.supersample**2 == 1 or not s.per_sample_shading]
 
 
 def plane_range(normal: np.ndarray, point: np.ndarray) -> np.ndarray:
     """(H, W) float64 metres: range along each pixel-centre ray to the plane through `point` with unit `normal`."""
     d = rays(K_WIDE, W, H)
+    return (normal @ point) / (d @ normal) * np.linalg.norm(d, axis=-1)
+
+
+def sample_rays(renderer, preset: str) -> np.ndarray:
+    """(H, W, k, 3) float64: K^-1 [u, v, 1] through each of a pixel's k samples, at the positions the renderer's
+    multisample pattern puts them (read after a render at that preset)."""
+    s = PRESETS[preset]
+    pos = renderer.sample_positions[s.msaa].astype(np.float64)
+    ss = s.supersample
+    offsets = np.array([((dx + x) / ss - 0.5, (dy + y) / ss - 0.5)
+                        for dy in range(ss) for dx in range(ss) for x, y in pos])  # image pixels from the centre
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    uv1 = np.stack([u[..., None] + offsets[:, 0], v[..., None] + offsets[:, 1], np.ones((H, W, len(offsets)))], -1)
+    return uv1 @ np.linalg.inv(K_WIDE).T
+
+
+def sample_plane_range(renderer, preset: str, normal: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(H, W, k) float64 metres: range to the plane along each sample's ray (sample_rays)."""
+    d = sample_rays(renderer, preset)
     return (normal @ point) / (d @ normal) * np.linalg.norm(d, axis=-1)
 
 
@@ -57,47 +76,51 @@ def coloured_plane(key: str, normal: np.ndarray, rgb: tuple[int, int, int], dist
     return draw(f"test/render-water/{key}", mesh), mesh
 
 
-@pytest.mark.parametrize("preset", CENTRE_SHADED)
+@pytest.mark.parametrize("preset", sorted(PRESETS))
 @pytest.mark.parametrize("orientation", sorted(NORMALS))
 def test_backscatter_of_a_black_plane_follows_the_true_range_across_a_120_degree_view(renderer, orientation, preset):
-    """J = 0, so the image is B_inf (1 - exp(-beta_B z)) with z the range of the surface pass. Float32 range (the
-    plane's corners on the sub-pixel grid) and GLSL exp keep it within 1e-5 relative of float64 on the analytic
-    range (measured under 1e-6, llvmpipe and an H100); z-depth instead of range is off by tens of percent."""
+    """J = 0, so the image is the mean over a pixel's samples of B_inf (1 - exp(-beta_B z)), z each sample's range
+    (from its reversed float depth). Float32 depth (the plane's corners on the sub-pixel grid) and GLSL exp keep it
+    within 1e-5 relative of float64 on the analytic range; z-depth instead of range is off by tens of percent."""
     normal = NORMALS[orientation]
     item, mesh = coloured_plane(f"black/{orientation}", normal, (0, 0, 0))
     result = renderer.render(camera_view(K_WIDE, W, H), [item], LIGHT, WATER, PRESETS[preset], Passes())
     true_range = plane_range(normal, np.array([0.0, 0.0, 100.0]))
-    expected = WATER.B_inf * -np.expm1(-WATER.beta_B * true_range[..., None])
+    at_samples = sample_plane_range(renderer, preset, normal, np.array([0.0, 0.0, 100.0]))
+    expected = (WATER.B_inf * -np.expm1(-WATER.beta_B * at_samples[..., None])).mean(axis=2)
     assert result.image.dtype == np.float32
     np.testing.assert_allclose(result.image, expected, rtol=1e-5, atol=0)
 
-    # The range the image was hazed with, recovered from its best-conditioned channel, matches a trimesh ray cast
-    # (independent of the analytic formula) within 1e-3 at the four corners and the centre.
+    # The range the image was hazed with, recovered from its best-conditioned channel, matches a trimesh ray cast of
+    # the samples' rays (independent of the analytic formula) within 1e-3 at the four corners and the centre.
     rows = np.array([0, 0, H - 1, H - 1, H // 2])
     cols = np.array([0, W - 1, 0, W - 1, W // 2])
-    cast = ray_cast(mesh, rays(K_WIDE, W, H)[rows, cols])
-    np.testing.assert_allclose(cast, true_range[rows, cols], rtol=1e-9)
-    c = 2
-    from_image = -np.log1p(-result.image[rows, cols, c].astype(np.float64) / WATER.B_inf[c]) / WATER.beta_B[c]
-    np.testing.assert_allclose(from_image, cast, rtol=1e-3)
+    sample_dirs = sample_rays(renderer, preset)[rows, cols]  # (5, k, 3)
+    cast = ray_cast(mesh, sample_dirs.reshape(-1, 3)).reshape(sample_dirs.shape[:2])
+    np.testing.assert_allclose(cast, at_samples[rows, cols], rtol=1e-9)
+    c, b = 2, WATER.beta_B[2]
+    from_image = -np.log1p(-result.image[rows, cols, c].astype(np.float64) / WATER.B_inf[c]) / b
+    from_cast = -np.log1p(np.expm1(-b * cast).mean(axis=1)) / b  # the one range whose haze is the samples' mean
+    np.testing.assert_allclose(from_image, from_cast, rtol=1e-3)
     assert true_range[0, 0] > 2 * true_range[H // 2, W // 2]
 
 
 @pytest.mark.parametrize("preset", CENTRE_SHADED)
 @pytest.mark.parametrize("orientation", sorted(NORMALS))
 def test_a_lit_plane_is_the_whole_model_per_pixel(renderer, orientation, preset):
-    """J exp(-beta_D z) + B_inf (1 - exp(-beta_B z)) with J the clean image and z the analytic range, within 1e-5
-    relative. Optical depths stay under 2.4, so float32 range (1e-6) and GLSL exp keep the transmission within
-    3e-6; an error of 2% in its exponent is 2e-3 at the centre and more towards the corners."""
+    """The mean over a pixel's samples of J exp(-beta_D z) + B_inf (1 - exp(-beta_B z)), J the clean image (shaded
+    once a pixel at these presets) and z each sample's analytic range, within 1e-5 relative. Optical depths stay
+    under 2.4, so float32 range (1e-6) and GLSL exp keep the transmission within 3e-6; an error of 2% in its
+    exponent is 2e-3 at the centre and more towards the corners."""
     normal = NORMALS[orientation]
     water = WaterParams(beta_D=np.array([0.01, 0.006, 0.004]), beta_B=np.array([0.008, 0.005, 0.003]), B_inf=B_INF)
     item, _ = coloured_plane(f"grey/{orientation}", normal, (200, 150, 100), distance_m=10.0)
     result = renderer.render(camera_view(K_WIDE, W, H), [item], FRONT_LIGHT, water, PRESETS[preset],
                              Passes(clean=True))
     J = result.clean.astype(np.float64)
-    z = plane_range(normal, np.array([0.0, 0.0, 10.0]))[..., None]
-    direct = J * np.exp(-water.beta_D * z)
-    expected = direct + water.B_inf * -np.expm1(-water.beta_B * z)
+    z = sample_plane_range(renderer, preset, normal, np.array([0.0, 0.0, 10.0]))[..., None]  # (H, W, k, 1)
+    direct = J * np.exp(-water.beta_D * z).mean(axis=2)
+    expected = direct + (water.B_inf * -np.expm1(-water.beta_B * z)).mean(axis=2)
     assert np.all(J > 0.02)
     # Both terms count: the direct signal is most of the central pixel, and the backscatter is there everywhere.
     centre = (H // 2, W // 2)

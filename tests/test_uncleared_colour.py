@@ -1,7 +1,7 @@
-"""The surface pass clears neither its colour nor its range where it draws range (the resolve reads where anything
-was drawn from the depth, and takes colour 0 and range +inf elsewhere): whatever a previous frame left at a sample
-with no surface must never reach an output. Here both kept attachments are overwritten with NaN and infinities
-before every surface pass, and every file of the frame must still be the same bytes."""
+"""The surface pass does not clear its colour where it draws for range (the resolve reads where anything was drawn,
+and each sample's range, from the depth, and takes colour 0 and range +inf elsewhere): whatever a previous frame left
+at a sample with no surface must never reach an output. Here the kept attachment is overwritten with NaN and
+infinities before every surface pass, and every file of the frame must still be the same bytes."""
 
 import numpy as np
 import pytest
@@ -61,6 +61,6 @@ def test_colour_left_by_earlier_frames_never_reaches_a_frames_files(render_sessi
     for want, have in zip(expected, got):
         assert want.keys() == have.keys()
         assert [k for k in want if want[k] != have[k]] == []
-    # Every frame here has water (so range) and keeps colour and range (slots 0 and 1), except without water: no
-    # range is drawn, and the colour is cleared.
-    assert kept == ([] if name == "water-off" else [0, 1, 0, 1])
+    # Every frame here has water (so range) and keeps its colour (slot 0; its only colour attachment), except
+    # without water: no range is needed, and the colour is cleared.
+    assert kept == ([] if name == "water-off" else [0, 0])

@@ -75,7 +75,6 @@ in vec3 v_nrm;
 in vec3 v_col;
 uniform vec3 u_scale;
 uniform vec3 u_bias;
-uniform vec2 u_range_bounds;
 uniform vec4 u_world_z;        // row z of world_from_cam: world z of a camera-frame point
 uniform float u_surface_z;
 uniform vec3 u_c;
@@ -103,9 +102,6 @@ uniform sampler2DShadow u_lamp_shadow[LAMPS];
 uniform float u_lamp_texel[LAMPS];   // metres per lamp-map texel per metre from the lamp
 #endif
 layout(location = 0) out vec4 o_J;
-#ifdef WITH_RANGE
-layout(location = 1) out float o_range;
-#endif
 """
     + _COMMON
     + """
@@ -195,9 +191,6 @@ void main() {
     }
 #endif
     o_J = vec4(albedo * E, 1.0);
-#ifdef WITH_RANGE
-    o_range = clamp(length(v_pos), u_range_bounds.x, u_range_bounds.y);
-#endif
 }
 """
 )

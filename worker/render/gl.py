@@ -2,8 +2,9 @@
 
 Why not pyrender's stock renderer: it writes gamma-encoded colour into an 8-bit 4x MSAA buffer (resolved in that
 space), returns z-depth from one sample with 0 for no hit, and renders passes we may not need. Here colour stays
-linear and float, range is computed per fragment (no depth-buffer precision loss), open water is +inf, the water
-is applied per sample before averaging, and only the passes a frame's outputs need are drawn and read back.
+linear and float, range comes from each sample's reversed float depth (float32 precision at every range:
+worker.render.depth), open water is +inf, the water is applied per sample before averaging, and only the passes a
+frame's outputs need are drawn and read back.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from service.errors import RenderError
 from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
 from worker.render import shaders
 from worker.render.coverage import pixels_alone
+from worker.render.depth import ClipControl, projection
 from worker.render.devices import egl_platform, parse_platform, prepare_environment
 from worker.render.readback import Readback
 from worker.render.surface import surface_pass
@@ -30,24 +32,6 @@ from worker.render.targets import Target, Targets
 # resolve, ids), least recently used first out; one frame uses at most two of a kind.
 MESH_BUDGET_BYTES = 512 * 2**20
 TARGETS_PER_KIND = 4
-
-
-def projection(K: np.ndarray, width: int, height: int, near: float, far: float) -> np.ndarray:
-    """(4, 4) float64 clip-from-camera for KITTI camera coordinates.
-
-    Row v of the image lands on framebuffer row v (GL's bottom row first), so read-back arrays are already in
-    image order; pixel (u, v) centres sit at integer coordinates, matching K.
-    """
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    return np.array(
-        [
-            [2 * fx / width, K[0, 1] * 2 / width, 2 * (cx + 0.5) / width - 1, 0],
-            [0, 2 * fy / height, 2 * (cy + 0.5) / height - 1, 0],
-            [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)],
-            [0, 0, 1, 0],
-        ],
-        dtype=np.float64,
-    )
 
 
 def sphere_in_view(view: View, centre_cam: np.ndarray, radius: float) -> bool:
@@ -136,8 +120,10 @@ class GLRenderer:
         self.targets = Targets(GL, self.name, targets_per_kind)
         self.readback = Readback(GL)
         self._empty_vao = GL.glGenVertexArrays(1)
+        self.clip_control = ClipControl(GL, self.name)
+        self.sample_positions: dict[int, np.ndarray] = {}  # msaa -> (msaa, 2), read once (worker.render.depth)
         GL.glEnable(GL.GL_DEPTH_TEST)
-        GL.glDepthFunc(GL.GL_LESS)
+        self.clip_control.camera()  # reversed depth for the camera's passes; shadow maps switch to GL's own
         GL.glDisable(GL.GL_CULL_FACE)
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
 
@@ -279,7 +265,8 @@ class GLRenderer:
 
     def _bind_and_clear(self, t: Target, clears: tuple[str, ...]) -> None:
         """Bind a geometry target and draw into its colour attachments in slot order, each cleared as named:
-        "ids" to 0, "colour" to 0, "range" to +inf, "keep" not at all (what the last frame left); depth to far."""
+        "ids" to 0, "colour" to 0, "range" to +inf, "keep" not at all (what the last frame left); depth to far
+        (reversed depth's 0)."""
         GL = self._gl
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(clears))])

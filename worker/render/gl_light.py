@@ -14,7 +14,7 @@ from worker.render import DrawItem, View
 from worker.render import shadows
 from worker.render.shaders import DEPTH_ONLY, VERTEX
 
-SHADOW_UNIT = 3  # texture units from here on hold shadow maps (0, 1 and 2 are the resolve's: colour, range, depth)
+SHADOW_UNIT = 3  # texture units from here on hold shadow maps (the resolve's colour and depth use 0 and 1)
 
 
 def defines(light: PhysicalLight) -> dict[str, object]:
@@ -58,22 +58,23 @@ def _draw_depth(r, clip_from_world: np.ndarray, items: list[DrawItem], size: int
     """Draw a shadow map; returns its depth texture."""
     GL = r._gl
     t = _shadow_target(r, size, slot)
-    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
-    GL.glViewport(0, 0, size, size)
-    GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-    prog, locs = r._program(VERTEX, DEPTH_ONLY)
-    GL.glUseProgram(prog)
-    GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, np.eye(4, dtype=np.float32))
-    GL.glEnable(GL.GL_POLYGON_OFFSET_FILL)
-    GL.glPolygonOffset(2.0, 4.0)
-    for it in items:
-        gpu = r._mesh(it.mesh)
-        M = (clip_from_world @ it.world_from_obj).astype(np.float32)
-        GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, M)
-        GL.glBindVertexArray(gpu.vao)
-        GL.glDrawElements(GL.GL_TRIANGLES, gpu.count, GL.GL_UNSIGNED_INT, None)
-    GL.glBindVertexArray(0)
-    GL.glDisable(GL.GL_POLYGON_OFFSET_FILL)
+    with r.clip_control.conventional():  # the maps' samplers compare GL's own depth (LEQUAL)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
+        GL.glViewport(0, 0, size, size)
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        prog, locs = r._program(VERTEX, DEPTH_ONLY)
+        GL.glUseProgram(prog)
+        GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, np.eye(4, dtype=np.float32))
+        GL.glEnable(GL.GL_POLYGON_OFFSET_FILL)
+        GL.glPolygonOffset(2.0, 4.0)
+        for it in items:
+            gpu = r._mesh(it.mesh)
+            M = (clip_from_world @ it.world_from_obj).astype(np.float32)
+            GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, M)
+            GL.glBindVertexArray(gpu.vao)
+            GL.glDrawElements(GL.GL_TRIANGLES, gpu.count, GL.GL_UNSIGNED_INT, None)
+        GL.glBindVertexArray(0)
+        GL.glDisable(GL.GL_POLYGON_OFFSET_FILL)
     return t.textures[0]
 
 
@@ -178,7 +179,6 @@ def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -
     if light.terms.sky and light.terms.scattering:
         table = sky_phase_table(light.medium.g).astype(np.float32)
         _set(GL, locs, "u_sky_phase", GL.glUniform1fv, len(table), table)
-    _set(GL, locs, "u_K_inv", GL.glUniformMatrix3fv, 1, GL.GL_TRUE, np.linalg.inv(view.K).astype(np.float32))
     _set(GL, locs, "u_world_from_cam", GL.glUniformMatrix3fv, 1, GL.GL_TRUE,
          world_from_cam[:3, :3].astype(np.float32))
 

@@ -4,13 +4,14 @@
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
     "u_cam_from_obj", "u_nrm_cam", "u_proj", "u_scale", "u_bias", "u_sun_cam", "u_sun", "u_ambient",
-    "u_range_bounds", "u_id", "u_J", "u_R", "u_D", "u_betaD", "u_betaB", "u_Binf", "u_only_sample", "u_srgb_thr",
+    "u_range_bounds", "u_id", "u_J", "u_D", "u_depth", "u_sample_pos", "u_K_inv", "u_betaD", "u_betaB", "u_Binf",
+    "u_only_sample", "u_srgb_thr",
     "u_size",
 )
 
-# Range is interpolated at the pixel centre even for multisample coverage (no per-sample shading); a sample that
-# covers a silhouette whose pixel centre lies off the triangle gets an extrapolated value, unbounded on receding
-# surfaces. Clamping to the object's bounding-sphere range bounds that error by the object's size.
+# The ids pass's range is interpolated at the pixel centre; clamping to the object's bounding-sphere range bounds
+# any interpolation error by the object's size. (The surface pass writes no range: its resolve derives each sample's
+# range from the sample's depth, worker.render.depth.)
 # Every pass shares this vertex stage, so a surface lands on exactly the same pixels and ranges in each pass.
 VERTEX = """
 #version 330 core
@@ -41,14 +42,10 @@ in vec3 v_nrm;
 in vec3 v_col;
 uniform vec3 u_scale;
 uniform vec3 u_bias;
-uniform vec2 u_range_bounds;   // nearest and farthest range of the object's bounding sphere, metres
 uniform vec3 u_sun_cam;        // unit vector towards the sun, camera frame
 uniform float u_sun;
 uniform float u_ambient;
 layout(location = 0) out vec4 o_J;
-#ifdef WITH_RANGE
-layout(location = 1) out float o_range;
-#endif
 void main() {
     float len = length(v_nrm);
     vec3 n = len > 1e-20 ? v_nrm / len : -normalize(v_pos);
@@ -56,9 +53,6 @@ void main() {
     vec3 albedo = clamp(v_col * u_scale + u_bias, 0.0, 1.0);
     // J is the in-air image (the paper's J): radiance in the sensor's range [0, 1], so clean/ is J exactly.
     o_J = vec4(clamp(albedo * (u_ambient + u_sun * max(dot(n, u_sun_cam), 0.0)), 0.0, 1.0), 1.0);
-#ifdef WITH_RANGE
-    o_range = clamp(length(v_pos), u_range_bounds.x, u_range_bounds.y);
-#endif
 }
 """
 
@@ -111,12 +105,10 @@ RESOLVE = """
 #version 330 core
 #if SAMPLES > 1
 uniform sampler2DMS u_J;
-uniform sampler2DMS u_R;
 uniform sampler2DMS u_D;
 #define FETCH(t, q, s) texelFetch(t, q, s)
 #else
 uniform sampler2D u_J;
-uniform sampler2D u_R;
 uniform sampler2D u_D;
 #define FETCH(t, q, s) texelFetch(t, q, 0)
 #endif
@@ -161,9 +153,14 @@ layout(location = NEAREST_LOCATION) out float o_nearest;   // nearest range of a
 #define OUT_NEAREST(v) o_nearest = v
 #endif
 #endif
+#if defined(RANGE_IN) || defined(PHYSICAL)
+uniform mat3 u_K_inv;
+#endif
+#ifdef RANGE_IN
+RANGE_FUNCTION
+#endif
 HAZE_FUNCTION
 #ifdef PHYSICAL
-uniform mat3 u_K_inv;
 uniform mat3 u_world_from_cam;
 #endif
 void main() {
@@ -195,10 +192,12 @@ void main() {
                 if (u_only_sample >= 0 && k != u_only_sample) continue;
                 vec3 J = FETCH(u_J, q, s).rgb;
 #ifdef RANGE_IN
-                // Depth still 1.0 (its clear): nothing was drawn at this sample, so range +inf and colour 0. The
-                // surface pass clears neither where it draws range: what a previous frame left there is replaced.
-                bool drawn = FETCH(u_D, q, s).r < 1.0;
-                float z = drawn ? FETCH(u_R, q, s).r : uintBitsToFloat(0x7F800000u);
+                // Depth still 0.0 (its clear, reversed depth): nothing was drawn at this sample, so range +inf and
+                // colour 0. The surface pass does not clear its colour where it draws for range: what a previous
+                // frame left there is replaced.
+                float d = FETCH(u_D, q, s).r;
+                bool drawn = d > 0.0;
+                float z = drawn ? sample_range(q, s, d) : uintBitsToFloat(0x7F800000u);
                 if (!drawn) J = vec3(0.0);
 #endif
                 clean += J;

@@ -10,7 +10,7 @@ import numpy as np
 
 from service.errors import RenderError
 from worker.light import PhysicalLight
-from worker.render import gl_light, shaders
+from worker.render import depth, gl_light, shaders
 from worker.render.readback import Pending, Readback
 
 
@@ -31,20 +31,22 @@ def surface_pass(
     with_range = water is not None or physical or sample_range or want_nearest
     maps = gl_light.shadow_maps(r, view, items, lighting, log) if physical else None
     surf = r.targets.surface(W, H, msaa, with_range)
-    # With range, the resolve reads where anything was drawn from the depth (still the clear's 1.0 where nothing
-    # was) and takes colour 0 and range +inf there, so neither is cleared: on an H100 these clears of 4 samples a
-    # pixel took 1.8 ms of a 1080p frame's 6.2 (the pass costs the bytes it writes, not its shading).
-    r._bind_and_clear(surf, ("keep", "keep") if with_range else ("colour",))
+    # With range, the resolve reads where anything was drawn from the depth (still the clear's far where nothing
+    # was) and takes colour 0 and range +inf there, so colour is not cleared: on an H100 a clear of 4 samples a
+    # pixel took 1.2 ms of a 1080p frame's 6.2 (the pass costs the bytes it writes, not its shading).
+    r._bind_and_clear(surf, ("keep",) if with_range else ("colour",))
+    positions = r.sample_positions.get(msaa)
+    if positions is None:  # the pattern is the implementation's, read once from a bound target of msaa samples
+        positions = r.sample_positions[msaa] = depth.sample_positions(GL, msaa)
     if physical:
         from worker.light.glsl import SURFACE as PHYSICAL_SURFACE
 
-        prog, locs = r._program(shaders.VERTEX, PHYSICAL_SURFACE, WITH_RANGE=with_range,
-                                **gl_light.defines(lighting))
+        prog, locs = r._program(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting))
         GL.glUseProgram(prog)
         r._set_view(locs, view, W, H)
         gl_light.surface_uniforms(r, locs, view, lighting, maps)
     else:
-        prog, locs = r._program(shaders.VERTEX, shaders.SURFACE, WITH_RANGE=with_range)
+        prog, locs = r._program(shaders.VERTEX, shaders.SURFACE)
         GL.glUseProgram(prog)
         r._set_view(locs, view, W, H)
         sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
@@ -56,7 +58,7 @@ def surface_pass(
         GL.glMinSampleShading(1.0)
     r._draw(view, items, locs, lit=True, ids=False)
     GL.glDisable(GL.GL_SAMPLE_SHADING)
-    log.append("surface+range" if len(surf.textures) > 1 else "surface")  # what the target holds
+    log.append("surface+range" if len(surf.textures) > 1 else "surface")  # range: from the depth it keeps
     if done is not None:
         done("render")
 
@@ -80,7 +82,7 @@ def surface_pass(
     else:
         src = shaders.RESOLVE.replace("HAZE_FUNCTION", GLSL_HAZE)
         extra_defines = {}
-    src = src.replace("SRGB8_FUNCTION", GLSL_SRGB8)
+    src = src.replace("SRGB8_FUNCTION", GLSL_SRGB8).replace("RANGE_FUNCTION", depth.RANGE_FUNCTION)
     if compute:
         src = src.replace("#version 330 core", r.compute_header, 1)
     prog, locs = r._program(
@@ -102,11 +104,13 @@ def surface_pass(
     )
     GL.glUseProgram(prog)
     tex_target = GL.GL_TEXTURE_2D_MULTISAMPLE if msaa > 1 else GL.GL_TEXTURE_2D
-    for unit, (name, tex) in enumerate(zip(("u_J", "u_R", "u_D"), surf.textures)):
+    for unit, (name, tex) in enumerate(zip(("u_J", "u_D"), surf.textures)):
         GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
         GL.glBindTexture(tex_target, tex)
         if name in locs:
             GL.glUniform1i(locs[name], unit)
+    if with_range:
+        depth.range_uniforms(GL, locs, view, positions)
     if water is not None:
         GL.glUniform3fv(locs["u_betaD"], 1, np.asarray(water.beta_D, np.float32))
         GL.glUniform3fv(locs["u_betaB"], 1, np.asarray(water.beta_B, np.float32))

@@ -109,17 +109,16 @@ class Targets:
         t.renderbuffers.append(rb)
 
     def surface(self, w: int, h: int, msaa: int, with_range: bool) -> Target:
-        """The surface pass's: colour (RGBA16F, slot 0) and range (R32F, slot 1, when asked for) textures of msaa
-        samples a pixel, and depth: a texture after them with range (the resolve reads where anything was drawn from
-        it), else a renderbuffer."""
+        """The surface pass's: colour (RGBA16F, slot 0) of msaa samples a pixel, and depth (32-bit float): a texture
+        with range (the resolve derives each sample's range, and where anything was drawn, from it), else a
+        renderbuffer."""
 
         def build() -> Target:
             GL = self._gl
             t = self.new_fbo()
             self._attach_texture(t, 0, GL.GL_RGBA16F, w, h, msaa)
             if with_range:
-                self._attach_texture(t, 1, GL.GL_R32F, w, h, msaa)
-                self._attach_texture(t, 2, GL.GL_DEPTH_COMPONENT32F, w, h, msaa, attachment=GL.GL_DEPTH_ATTACHMENT)
+                self._attach_texture(t, 1, GL.GL_DEPTH_COMPONENT32F, w, h, msaa, attachment=GL.GL_DEPTH_ATTACHMENT)
             else:
                 self._attach_renderbuffer(t, GL.GL_DEPTH_ATTACHMENT, GL.GL_DEPTH_COMPONENT32F, w, h, msaa)
             return t
