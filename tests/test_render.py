@@ -273,11 +273,12 @@ def test_range_is_the_centre_where_it_hits_else_the_nearest_sample_and_inf_only_
     _, samples = renderer.samples(view, items, LIGHT, sampling)  # (k, h, w): every sample of every pixel
     water = np.isinf(samples).all(axis=0)
     if sampling.per_pixel == 1:
-        # The one sample is the centre: the frame's range is its own (from its depth), the centres' pass's to a
-        # few float32 ulps (measured under 4.5e-7 relative on llvmpipe).
+        # The one sample is the centre: the frame's range is its own (from its depth), the centres' pass's to the
+        # rasteriser's depth interpolation (measured: 4.5e-7 relative on llvmpipe, 4.2e-5 on an H100, both on the
+        # sheet seen edge-on 0.4 m away).
         expected = samples[0]
         np.testing.assert_array_equal(np.isinf(centre), water)
-        np.testing.assert_allclose(centre[~water], expected[~water], rtol=1e-6)
+        np.testing.assert_allclose(centre[~water], expected[~water], rtol=1e-4)
     else:
         expected = np.where(np.isfinite(centre) & ~water, centre, samples.min(axis=0))
     np.testing.assert_array_equal(result.range_m, expected)
