@@ -4,7 +4,7 @@ examples/urchins.yaml in a loop for 8 s; prints the frames/s of all of them toge
     python -m bench.gpu_ceiling WIDTHxHEIGHT VARIANT@PROCS[@DEPTH] ...
 
 DEPTH (default 1): frames each process keeps in flight; above 1, frame k+1's passes are queued before frame k's
-reads are fetched (the renderer's own steps, as bench.gpu_timeline takes them), so the GPU never waits for it.
+reads are fetched (GLRenderer.queue and fetch, as bench.gpu_timeline uses them), so the GPU never waits for it.
 VARIANT: default (the default preset, ids pass, 8-bit codes), fragment (the same with the fragment resolve),
 no-ids, draft, no-sun-shadow, no-scatter (sun and sky scattering off). Results: bench/results/gpu/passes.md.
 """
@@ -12,22 +12,6 @@ import collections, dataclasses, multiprocessing as mp, sys, time
 
 
 VARIANTS = ("default", "fragment", "no-ids", "draft", "no-sun-shadow", "no-scatter")
-
-
-def queue_frame(r, view, items, light, water, preset, passes):
-    """A frame's passes and reads queued, nothing fetched: (surface reads, ids read)."""
-    from worker.render.surface import surface_pass
-
-    r._platform.make_current()
-    reads = surface_pass(r, view, items, light, water, preset, False, -1, srgb8=passes.srgb8)
-    return reads, r._queue_ids(view, items, passes.ids, False)[0] if passes.ids else None
-
-
-def fetch_frame(r, queued):
-    reads, ids = queued
-    reads.fetch(r.readback)
-    if ids is not None:
-        r.readback.fetch(ids)
 
 
 def worker(variant, seconds, barrier, q, res, depth=1):
@@ -60,12 +44,12 @@ def worker(variant, seconds, barrier, q, res, depth=1):
             if depth == 1:
                 s.renderer.render(v, it, lt, wt, preset, passes)
             else:
-                inflight.append(queue_frame(s.renderer, v, it, lt, wt, preset, passes))
+                inflight.append(s.renderer.queue(v, it, lt, wt, preset, passes))
                 if len(inflight) == depth:
-                    fetch_frame(s.renderer, inflight.popleft())
+                    s.renderer.fetch(inflight.popleft())
             n += 1
         while inflight:
-            fetch_frame(s.renderer, inflight.popleft())
+            s.renderer.fetch(inflight.popleft())
         q.put(n)
 
 

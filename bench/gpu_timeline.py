@@ -96,7 +96,6 @@ def main(w: int, h: int, preset_name: str, variants: list[str], seconds: float =
     from service.spec import load_spec
     from worker.pipeline import PRESETS, RenderSession, scene_light
     from worker.render import Passes, gl_light
-    from worker.render.surface import surface_pass
 
     apply_variants(variants)
     spec = load_spec("examples/urchins.yaml", {"camera.width": w, "camera.height": h})
@@ -117,23 +116,20 @@ def main(w: int, h: int, preset_name: str, variants: list[str], seconds: float =
                 current[-1]("clear")
 
         gl_light.shadow_maps, r._bind_and_clear = maps, bind_and_clear
-        stage_name = {"render": "surface", "formation": "resolve"}
+        stage_name = {"render": "surface", "formation": "resolve", "ids": "ids"}
 
         def submit(view, items, light, water):
             r._platform.make_current()
             st = Stamps(GL)
             current.append(st)
             st("begin")
-            reads = surface_pass(r, view, items, light, water, PRESETS[preset_name], False, -1, done=lambda x: st(
-                stage_name[x]), srgb8=True)
-            ids = r._queue_ids(view, items, True, False)
-            st("ids")
-            return reads, ids, st
+            queued = r.queue(view, items, light, water, PRESETS[preset_name], Passes(ids=True, srgb8=True),
+                             stage=lambda x: st(stage_name[x]))
+            return queued, st
 
         def fetch(handle):
-            reads, ids, st = handle
-            reads.fetch(r.readback)
-            [r.readback.fetch(q) for q in ids if q is not None]
+            queued, st = handle
+            r.fetch(queued)
             return st.stages()
 
         frames = []

@@ -103,3 +103,24 @@ def test_a_frame_that_fails_after_queueing_its_reads_gives_their_buffers_back(re
     again = frame()
     for name in ("image", "instance", "range_m"):
         np.testing.assert_array_equal(getattr(again, name), getattr(good, name), err_msg=name)
+
+
+def test_two_frames_in_flight_give_what_each_frame_gives_alone(renderer):
+    """GLRenderer.queue draws a frame and queues its reads; a second frame can be queued before the first is
+    fetched (the GPU then never waits for the process), and each fetch gives exactly what render() gives."""
+    args = []
+    quads = (("test/readback/inflight-a", 3, (4.5, 20.5)), ("test/readback/inflight-b", 9, (2.5, 9.5)))
+    for key, instance_id, x in quads:
+        K = pinhole(32, 24, 60.0)
+        args.append((camera_view(K, 32, 24), [draw(key, fronto_quad(K, x, (3.5, 15.5), 5.0), instance_id)], LIGHT,
+                     None, PRESETS["default"], Passes(ids=True, range=True, srgb8=True)))
+    alone = [renderer.render(*a) for a in args]
+    first, second = (renderer.queue(*a) for a in args)
+    assert renderer.readback.queued == 2 * 5  # each frame: 8-bit image, NaN flags, nearest range, ids, centre range
+    got = [renderer.fetch(first), renderer.fetch(second)]
+    assert renderer.readback.queued == 0
+    for want, have in zip(alone, got):
+        assert have.passes == want.passes
+        for name in ("image", "instance", "range_m"):
+            np.testing.assert_array_equal(getattr(have, name), getattr(want, name), err_msg=name)
+    assert not np.array_equal(got[0].instance, got[1].instance)  # two different frames, not one fetched twice

@@ -9,7 +9,8 @@ from service.errors import RenderError
 from service.spec import load_spec
 from worker.pipeline import PRESETS
 from worker.render import Passes, Sampling, View
-from worker.render.gl import GLRenderer, sphere_in_view
+from worker.render.frustum import sphere_in_view
+from worker.render.gl import GLRenderer
 
 W, H = 9, 7
 K = pinhole(W, H, 60.0)

@@ -10,7 +10,6 @@ frame's outputs need are drawn and read back.
 from __future__ import annotations
 
 import ctypes
-import math
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,8 +22,9 @@ from worker.render import shaders
 from worker.render.coverage import pixels_alone
 from worker.render.depth import ClipControl, projection
 from worker.render.devices import egl_platform, parse_platform, prepare_environment
-from worker.render.readback import Readback
-from worker.render.surface import surface_pass
+from worker.render.frustum import sphere_in_view
+from worker.render.readback import Pending, Readback
+from worker.render.surface import SurfaceReads, surface_pass
 from worker.render.targets import Target, Targets
 
 # Cache bounds of a long-lived renderer. Uploaded meshes: least recently drawn first out once their vertex and index
@@ -34,22 +34,14 @@ MESH_BUDGET_BYTES = 512 * 2**20
 TARGETS_PER_KIND = 4
 
 
-def sphere_in_view(view: View, centre_cam: np.ndarray, radius: float) -> bool:
-    """Conservative frustum test of a bounding sphere (camera frame); False only if surely invisible."""
-    x, y, z = centre_cam
-    if z + radius < view.near or z - radius > view.far:
-        return False
-    fx, fy, cx, cy = view.K[0, 0], view.K[1, 1], view.K[0, 2], view.K[1, 2]
-    planes = (
-        (fx, 0.0, cx + 0.5),  # u >= -0.5
-        (-fx, 0.0, view.width - 0.5 - cx),  # u <= w - 0.5
-        (0.0, fy, cy + 0.5),
-        (0.0, -fy, view.height - 0.5 - cy),
-    )
-    for a, b, c in planes:
-        if (a * x + b * y + c * z) / math.sqrt(a * a + b * b + c * c) < -radius:
-            return False
-    return True
+@dataclass(frozen=True)
+class QueuedFrame:
+    """A frame whose passes are drawn and reads queued (GLRenderer.queue), for GLRenderer.fetch."""
+
+    reads: SurfaceReads
+    ids: Pending | None  # instance ids at pixel centres
+    centres: Pending | None  # range at pixel centres
+    passes: tuple[str, ...]  # the passes drawn and attachments read, in order
 
 
 @dataclass
@@ -290,7 +282,7 @@ class GLRenderer:
         passes: Passes,
         mark: Callable[[str], None] | None = None,
     ) -> RenderResult:
-        """Render one frame: linear hazed image, and the optional clean image, ids and range.
+        """Render one frame: linear hazed image, and the optional clean image, ids and range (queue, then fetch).
 
         Range (passes.range) is +inf exactly where none of the pixel's samples hits a surface (the pixel's colour
         is pure water); elsewhere the range at the pixel centre where the centre hits a surface, else the nearest
@@ -299,9 +291,27 @@ class GLRenderer:
 
         mark: called with a stage name when each stage's GL work has finished (benchmarks only: it waits).
         """
+        stage = (lambda name: (self._gl.glFinish(), mark(name))) if mark is not None else None
+        return self.fetch(self.queue(view, items, lighting, water, sampling, passes, stage=stage))
+
+    def queue(
+        self,
+        view: View,
+        items: list[DrawItem],
+        lighting: Lighting,
+        water: WaterParams | None,
+        sampling: Sampling,
+        passes: Passes,
+        stage: Callable[[str], None] | None = None,
+    ) -> QueuedFrame:
+        """Draw every pass of a frame and queue its reads, without waiting for the GPU; `fetch` waits once and gives
+        the RenderResult. Another frame may be queued before this one is fetched (benchmarks keep two in flight).
+
+        stage: called with each stage's name ("render", "formation", "ids") once its GL commands are issued.
+        """
         self._platform.make_current()
         self._call += 1
-        done = (lambda stage: (self._gl.glFinish(), mark(stage))) if mark is not None else (lambda stage: None)
+        done = stage if stage is not None else (lambda name: None)
         log: list[str] = []
         try:
             reads = surface_pass(
@@ -311,15 +321,24 @@ class GLRenderer:
             centres = passes.range and sampling.per_pixel > 1
             ids = self._queue_ids(view, items, passes.ids, centres, log=log) if passes.ids or centres else (None, None)
             done("ids")
-            # One wait for the GPU, after every pass of the frame is queued (worker.render.readback).
-            image, clean, nearest = reads.fetch(self.readback)
-            instance, centre = (None if q is None else self.readback.fetch(q) for q in ids)
+        except BaseException:
+            self.readback.abandon()
+            raise
+        return QueuedFrame(reads, ids[0], ids[1], tuple(log))
+
+    def fetch(self, queued: QueuedFrame) -> RenderResult:
+        """Wait for a queued frame's reads (one wait for the GPU: worker.render.readback) and give its result. A
+        failure gives back the buffers of every read still queued, this frame's and any other's."""
+        self._platform.make_current()
+        try:
+            image, clean, nearest = queued.reads.fetch(self.readback)
+            instance, centre = (None if q is None else self.readback.fetch(q) for q in (queued.ids, queued.centres))
         except BaseException:
             self.readback.abandon()
             raise
         # A sliver can cover a pixel centre and none of its samples: the image shows water there, so must range.
         range_m = nearest if centre is None else np.where(np.isfinite(centre) & np.isfinite(nearest), centre, nearest)
-        return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m, passes=tuple(log))
+        return RenderResult(image=image, clean=clean, instance=instance, range_m=range_m, passes=queued.passes)
 
     def samples(
         self, view: View, items: list[DrawItem], lighting: Lighting, sampling: Sampling
