@@ -14,6 +14,7 @@ stack), so nothing is cached between rows except what a new process would also f
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import statistics
@@ -27,6 +28,7 @@ from service.gpus import GpuChoice
 from service.spec import load_spec
 
 STEADY_AFTER = 0.25  # steady_fps counts frames finished after this share of the run's frames
+DONE_AT_PERCENT = (10, 25, 50, 75, 90, 100)  # done_at_s: seconds until this share (%) of the frames was done
 
 
 def cpu_times() -> tuple[float, float]:
@@ -81,14 +83,18 @@ class CpuMeter:
 
 
 def rates(stamps: list[float], t0: float, wall: float) -> dict:
-    """first_frame_s, wall_s, wall_fps and steady_fps of a run that started at t0, took `wall` seconds and finished
-    a frame at each of `stamps` (several frames may share one stamp)."""
+    """first_frame_s, wall_s, wall_fps, steady_fps and done_at_s (seconds until each DONE_AT_PERCENT share of the
+    frames) of a run that started at t0, took `wall` seconds and finished a frame at each of `stamps` (several frames
+    may share one stamp)."""
     # With no time between the quarter mark and the end, the steady rate is the whole run's.
     k = int(len(stamps) * STEADY_AFTER)
     span = stamps[-1] - stamps[k - 1] if 0 < k < len(stamps) else 0.0
     steady = (len(stamps) - k) / span if span > 0 else len(stamps) / wall
+    # When each share of the frames was done: where a run's wall time goes (its start, its middle, its tail).
+    done_at = {str(q): round(stamps[max(math.ceil(len(stamps) * q / 100) - 1, 0)] - t0, 2)
+               for q in DONE_AT_PERCENT} if stamps else {}
     return {"wall_s": round(wall, 2), "first_frame_s": round(stamps[0] - t0, 2) if stamps else None,
-            "wall_fps": round(len(stamps) / wall, 2), "steady_fps": round(steady, 2)}
+            "wall_fps": round(len(stamps) / wall, 2), "steady_fps": round(steady, 2), "done_at_s": done_at}
 
 
 def run_cli(spec, workers: int, platform: str, gpus: GpuChoice | None = None) -> dict:
