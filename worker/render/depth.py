@@ -52,13 +52,12 @@ class ClipControl:
     ctypes). Raises RenderError where the context has neither GL 4.5 nor ARB_clip_control."""
 
     def __init__(self, GL, renderer_name: str) -> None:
-        version = (int(GL.glGetIntegerv(GL.GL_MAJOR_VERSION)), int(GL.glGetIntegerv(GL.GL_MINOR_VERSION)))
-        have = {GL.glGetStringi(GL.GL_EXTENSIONS, k).decode()
-                for k in range(int(GL.glGetIntegerv(GL.GL_NUM_EXTENSIONS)))}
         from OpenGL import platform
 
+        from worker.render.shaders import context_has, context_version
+
         address = platform.PLATFORM.getExtensionProcedure(b"glClipControl")
-        if not (version >= (4, 5) or "GL_ARB_clip_control" in have) or not address:
+        if not (context_version(GL) >= (4, 5) or context_has(GL, ("GL_ARB_clip_control",))) or not address:
             raise RenderError(f"{renderer_name} lacks glClipControl (GL 4.5 or ARB_clip_control), which the "
                               "renderer's reversed float depth needs")
         self._gl = GL

@@ -258,13 +258,23 @@ void main() {
 COMPUTE_EXTENSIONS = ("GL_ARB_compute_shader", "GL_ARB_shader_image_load_store", "GL_ARB_shading_language_420pack")
 
 
+def context_version(GL) -> tuple[int, int]:
+    """(major, minor) GL version of the current context."""
+    return int(GL.glGetIntegerv(GL.GL_MAJOR_VERSION)), int(GL.glGetIntegerv(GL.GL_MINOR_VERSION))
+
+
+def context_has(GL, extensions: tuple[str, ...]) -> bool:
+    """Whether the current context exposes every one of `extensions`."""
+    have = {GL.glGetStringi(GL.GL_EXTENSIONS, k).decode() for k in range(int(GL.glGetIntegerv(GL.GL_NUM_EXTENSIONS)))}
+    return all(e in have for e in extensions)
+
+
 def compute_header(GL) -> str | None:
     """The first lines of a compute shader in the current context: `#version 430 core` on GL >= 4.3, else #version
     410 with the extensions that bring compute shaders and image stores; None where the context has neither."""
-    if (int(GL.glGetIntegerv(GL.GL_MAJOR_VERSION)), int(GL.glGetIntegerv(GL.GL_MINOR_VERSION))) >= (4, 3):
+    if context_version(GL) >= (4, 3):
         return "#version 430 core"
-    have = {GL.glGetStringi(GL.GL_EXTENSIONS, k).decode() for k in range(int(GL.glGetIntegerv(GL.GL_NUM_EXTENSIONS)))}
-    if not all(e in have for e in COMPUTE_EXTENSIONS):
+    if not context_has(GL, COMPUTE_EXTENSIONS):
         return None
     return "\n".join(["#version 410 core", *(f"#extension {e} : require" for e in COMPUTE_EXTENSIONS)])
 
