@@ -262,59 +262,7 @@ def test_shard_dataclass_frames():
     assert list(Shard(3, 6, 2).frames) == [6, 7]
 
 
-# --- every failure is counted; renderers are pinned; the reconciler's view of pending shards
-
-
-class FlakyRecords(Records):
-    """Records whose first `is_committed` fails as if Redis dropped the connection."""
-
-    def __init__(self, r, prefix):
-        super().__init__(r, prefix)
-        self.failures = 1
-
-    def is_committed(self, dataset_id, index):
-        if self.failures:
-            self.failures -= 1
-            import redis
-
-            raise redis.ConnectionError("Connection reset by peer")
-        return super().is_committed(dataset_id, index)
-
-
-class UnreachableStore(LocalStore):
-    """A bucket that answers no read (an S3 outage)."""
-
-    def get_bytes(self, key):
-        from service.errors import Unavailable
-
-        raise Unavailable(f"storage unreachable reading {key}")
-
-
-def test_failures_before_the_render_are_counted_and_bounded(infra, records, tmp_path):
-    """A failure anywhere in the task uses an attempt and ends in a retry or a failed shard, never a lost one."""
-    session = FakeSession()
-    ctx = make_ctx(infra, records, tmp_path, session)
-    ctx.store = UnreachableStore(tmp_path / "store")
-    ds = new_dataset(records, frames=2, shard_size=2)
-    for attempt in (1, 2):
-        with pytest.raises(RetryShard) as retry:
-            run_shard(ctx, ds, 0)  # reading the commit marker fails
-        assert retry.value.countdown == 2 ** (attempt - 1) and "Unavailable" in str(retry.value)
-    assert run_shard(ctx, ds, 0) is Outcome.FAILED
-    rec = records.get(ds)
-    assert (rec.attempts, rec.shards_failed, rec.state) == (3, 1, "failed") and session.calls == []
-    assert "gave up after 3 attempts" in rec.errors[0] and "storage unreachable" in rec.errors[0]
-    assert records.running(ds) == {}
-
-    # Redis failing before the attempt started: counted as well, then the shard renders.
-    flaky = FlakyRecords(records.r, records.p)
-    ctx = make_ctx(infra, flaky, tmp_path, FakeSession())
-    ds = new_dataset(flaky, frames=2, shard_size=2, dataset_id="c" * 32)
-    with pytest.raises(RetryShard) as retry:
-        run_shard(ctx, ds, 0)
-    assert "ConnectionError" in str(retry.value) and flaky.get(ds).attempts == 1
-    assert run_shard(ctx, ds, 0) is Outcome.COMMITTED
-    assert (flaky.get(ds).attempts, flaky.get(ds).state) == (2, "succeeded")
+# --- renderers are pinned; the reconciler's view of pending shards (attempts: test_shard_attempts.py)
 
 
 class NamedSession(FakeSession):

@@ -1,0 +1,128 @@
+"""A shard's attempts: every failure is counted and bounded, and the commit marker a shard looks for before it
+uploads (one Redis may have missed) is read while its frames render, never after an upload."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
+
+from service import __version__
+from service.record_types import ShardCommit
+from service.records import Records
+from service.shards import commit_key, manifest_key, shard_key
+from service.storage import LocalStore
+from worker.shard import run_shard
+from worker.shard_context import Outcome, RetryShard
+
+
+def stored(tmp_path) -> list[str]:
+    return sorted(str(p.relative_to(tmp_path)) for p in (tmp_path / "store").rglob("*") if p.is_file())
+
+
+class FlakyRecords(Records):
+    """Records whose first `is_committed` fails as if Redis dropped the connection."""
+
+    def __init__(self, r, prefix):
+        super().__init__(r, prefix)
+        self.failures = 1
+
+    def is_committed(self, dataset_id, index):
+        if self.failures:
+            self.failures -= 1
+            import redis
+
+            raise redis.ConnectionError("Connection reset by peer")
+        return super().is_committed(dataset_id, index)
+
+
+class UnreachableStore(LocalStore):
+    """A bucket that answers no read (an S3 outage)."""
+
+    def get_bytes(self, key):
+        from service.errors import Unavailable
+
+        raise Unavailable(f"storage unreachable reading {key}")
+
+
+def test_failures_before_the_render_are_counted_and_bounded(infra, records, tmp_path):
+    """A failure anywhere in the task uses an attempt and ends in a retry or a failed shard, never a lost one."""
+    session = FakeSession()
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ctx.store = UnreachableStore(tmp_path / "store")
+    ds = new_dataset(records, frames=2, shard_size=2)
+    for attempt in (1, 2):
+        with pytest.raises(RetryShard) as retry:
+            run_shard(ctx, ds, 0)  # reading the commit marker fails
+        assert retry.value.countdown == 2 ** (attempt - 1) and "Unavailable" in str(retry.value)
+    assert run_shard(ctx, ds, 0) is Outcome.FAILED
+    rec = records.get(ds)
+    assert (rec.attempts, rec.shards_failed, rec.state) == (3, 1, "failed")
+    # Frames may have rendered meanwhile, but no tar and no marker are uploaded without the read: only the failed
+    # dataset's manifest.
+    assert stored(tmp_path) == [f"store/{manifest_key(ds)}"]
+    assert "gave up after 3 attempts" in rec.errors[0] and "storage unreachable" in rec.errors[0]
+    assert records.running(ds) == {}
+
+    # Redis failing before the attempt started: counted as well, then the shard renders.
+    flaky = FlakyRecords(records.r, records.p)
+    ctx = make_ctx(infra, flaky, tmp_path, FakeSession())
+    ds = new_dataset(flaky, frames=2, shard_size=2, dataset_id="c" * 32)
+    with pytest.raises(RetryShard) as retry:
+        run_shard(ctx, ds, 0)
+    assert "ConnectionError" in str(retry.value) and flaky.get(ds).attempts == 1
+    assert run_shard(ctx, ds, 0) is Outcome.COMMITTED
+    assert (flaky.get(ds).attempts, flaky.get(ds).state) == (2, "succeeded")
+
+
+class FrameSignal(FakeSession):
+    """A frame source that says when its first frame has begun."""
+
+    def __init__(self, fail: Exception | None = None):
+        super().__init__(fail)
+        self.begun = threading.Event()
+
+    def frame_files(self, spec, index):
+        self.begun.set()
+        return super().frame_files(spec, index)
+
+
+class MarkerAfterFrame(LocalStore):
+    """A bucket whose reads answer only once a frame has begun, or after 10 s (a read the shard waited for)."""
+
+    def __init__(self, root, begun: threading.Event):
+        super().__init__(root)
+        self.begun = begun
+        self.overlapped: bool | None = None
+
+    def get_bytes(self, key):
+        self.overlapped = self.begun.wait(10)
+        return super().get_bytes(key)
+
+
+def test_the_marker_is_read_while_the_frames_render(infra, records, tmp_path):
+    session = FrameSignal()
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ctx.store = MarkerAfterFrame(tmp_path / "store", session.begun)
+    ds = new_dataset(records, frames=2, shard_size=2)
+    assert run_shard(ctx, ds, 0) is Outcome.COMMITTED
+    assert ctx.store.overlapped is True and session.calls == [0, 1]
+    rec = records.get(ds)
+    assert (rec.state, rec.frames_done, rec.attempts, rec.errors) == ("succeeded", 2, 1, {})
+    assert stored(tmp_path) == sorted(f"store/{k}" for k in (commit_key(ds, 0), shard_key(ds, 0), manifest_key(ds)))
+
+
+@pytest.mark.parametrize("fail", [None, RuntimeError("a frame failed")], ids=["frames-render", "a-frame-fails"])
+def test_a_marker_redis_missed_is_adopted_and_nothing_uploaded_over_it(infra, records, tmp_path, fail):
+    """Found before, during or after the frames (or while a frame fails), a marker commits the shard: the tar it
+    names is not written again and the attempt records no error."""
+    session = FakeSession(fail)
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ds = new_dataset(records, frames=4, shard_size=2)
+    marker = ShardCommit(1, shard_key(ds, 1), 2, 2, "0" * 64, 10, __version__, session.renderer_name)
+    ctx.store.put_bytes(commit_key(ds, 1), marker.to_json().encode())
+    assert run_shard(ctx, ds, 1) is Outcome.ALREADY_COMMITTED
+    rec = records.get(ds)
+    assert (rec.state, rec.frames_done, rec.shards_done, rec.attempts, rec.errors) == ("running", 2, 1, 1, {})
+    assert stored(tmp_path) == [f"store/{commit_key(ds, 1)}"] and records.running(ds) == {}
