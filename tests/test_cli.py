@@ -178,15 +178,6 @@ def test_resume_of_a_record_without_renderer_or_files_completes_identically(made
     assert tree(out) == tree(made[1])
 
 
-def test_workers_auto_fills_the_cores_it_may_use_and_no_more_than_the_frames(monkeypatch):
-    import os
-
-    from worker.generate import auto_workers
-
-    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 5})
-    assert [auto_workers(n) for n in (0, 1, 3, 4, 100)] == [1, 1, 3, 4, 4]
-
-
 def test_generate_with_workers_auto_writes_the_same_files_as_one_worker(tmp_path):
     spec = spec_file(tmp_path, lambda data: data.update(frames=3))
     one, auto = tmp_path / "one", tmp_path / "auto"

@@ -125,8 +125,18 @@ def test_compose_workers_scale_and_stop_gracefully(compose, name):
     assert grace >= _min_stop_grace_s(), f"{name}: stop_grace_period {grace}s < soft shutdown + {SHUTDOWN_MARGIN_S}s"
     assert "SEASYNTH_WORKER_SOFT_SHUTDOWN_S" not in svc["environment"], "the grace period assumes the default"
     assert svc["healthcheck"]["test"][-1] == "worker"
-    assert svc["command"][2] == "--concurrency" and int(svc["command"][3]) >= 1
+    concurrency = svc["command"][3]
+    assert svc["command"][2] == "--concurrency" and (concurrency == "auto" or int(concurrency) >= 1)
     assert _queues(svc["command"]) == WORKERS[name]["queues"]
+
+
+def test_compose_gpu_worker_fills_its_host_unless_told(compose):
+    """The GPU worker takes every GPU of its host, so by default it starts what fills the host (worker.capacity:
+    1.5 render processes a core on GPUs, a multiple of the GPU count); SEASYNTH_GPU_WORKER_CONCURRENCY sets a count."""
+    assert compose["services"]["worker-gpu"]["command"][3] == "auto"
+    told = _compose("--profile", "gpu", "config", env={"SEASYNTH_GPU_WORKER_CONCURRENCY": "12"})
+    assert told.returncode == 0, told.stderr
+    assert yaml.safe_load(told.stdout)["services"]["worker-gpu"]["command"][3] == "12"
 
 
 def test_compose_frames_have_a_worker_of_their_own(compose):

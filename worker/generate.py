@@ -15,6 +15,7 @@ import service
 from service.errors import OutputError
 from service.gpus import GpuChoice
 from service.spec import DatasetSpec, spec_digest
+from worker.capacity import render_processes
 from worker.export import GENERATED_EXPORTS
 from worker.pipeline import RenderSession, frame_paths
 
@@ -189,15 +190,10 @@ def generate(
     return render_frames(spec, out, todo, workers=workers, on_frames=on_frames, platform=platform, gpus=gpus)
 
 
-def auto_workers(frames_to_render: int) -> int:
-    """Render processes that fill this machine: one per CPU core this process may use (the frame's CPU stages,
-    encoding and labels, bound a GPU host; on a software renderer a second process still overlaps them with
-    rendering), at most one per frame to render, at least one."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, frames_to_render))
+def auto_workers(frames_to_render: int, gpus: int = 0) -> int:
+    """Render processes that fill this machine (worker.capacity: one a core on a software renderer, 1.5 a core on
+    `gpus` GPUs), at most one per frame to render, at least one."""
+    return max(1, min(render_processes(gpus), frames_to_render))
 
 
 def open_dataset(spec: DatasetSpec, out: Path, mode: Mode = "new") -> list[int]:

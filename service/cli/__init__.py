@@ -69,6 +69,19 @@ def progress(total: int, description: str):
     )
 
 
+def count_or_auto(text: str, option: str) -> int | None:
+    """A process count option (--workers, --concurrency): None for auto, else a count >= 1."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise typer.BadParameter(f"{text!r}: give a count >= 1 or auto", param_hint=f"'{option}'")
+    return n
+
+
 def bad_option(ctx: typer.Context, name: str, message: str) -> typer.BadParameter:
     """A usage error naming the option of parameter `name` as click names it ("Invalid value for '--split'")."""
     param = next(p for p in ctx.command.params if p.name == name)

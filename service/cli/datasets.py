@@ -17,6 +17,7 @@ from service.cli import (
     WidthOpt,
     app,
     bad_option,
+    count_or_auto,
     load_overridden,
     progress,
 )
@@ -47,7 +48,7 @@ def generate(
     outputs.instance renders each frame again for its masks)."""
     if resume and overwrite:
         raise SpecError("--resume and --overwrite exclude each other")
-    count = _worker_count(workers)
+    count = count_or_auto(workers, "--workers")
     choice = _gpu_choice(gpus)
     s = load_overridden(spec, frames, seed, width, height, quality)  # before the renderer's imports: fail fast
     if count is None or count > 1:
@@ -57,7 +58,13 @@ def generate(
     from worker.generate import auto_workers, open_dataset, render_frames
 
     todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")
-    workers = auto_workers(len(todo)) if count is None else count
+    if count is None:
+        from worker.capacity import gpus_found
+
+        # EGL's devices are listed in this process: render processes start from the fork server, not from here.
+        workers = auto_workers(len(todo), gpus_found(gl, choice))
+    else:
+        workers = count
     try:
         with progress(len(todo), "frames") as bar:
             task = bar.add_task("render", total=len(todo))
@@ -185,19 +192,6 @@ def waterfall(
     w, path = write_waterfall(dataset, out, row_height, labels)
     typer.echo(f"{path}: {w.rows.shape[0]} pings x {w.rows.shape[1]} bins, {len(w.boxes)} target boxes"
                + ("" if labels else " (not drawn: --labels draws them)"))
-
-
-def _worker_count(text: str) -> int | None:
-    """--workers: None for auto, else a count >= 1."""
-    if text.strip().lower() == "auto":
-        return None
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise typer.BadParameter(f"{text!r}: give a count >= 1 or auto", param_hint="'--workers'")
-    return n
 
 
 def _gpu_choice(text: str | None):

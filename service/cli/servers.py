@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from service.cli import PlatformOpt, app
+from service.cli import PlatformOpt, app, count_or_auto
 
 
 @app.command()
@@ -25,7 +25,8 @@ def serve(
 
 @app.command()
 def worker(
-    concurrency: Annotated[int, typer.Option("--concurrency", "-c", min=1, help="Render processes.")] = 1,
+    concurrency: Annotated[str, typer.Option("--concurrency", "-c", help="Render processes: a count, or auto (one "
+                                             "a core; 1.5 a core where it renders on GPUs).")] = "1",
     queues: Annotated[str, typer.Option("--queues", "-Q", help="shards, frames, or both (comma-separated).")]
     = "shards,frames",
     loglevel: Annotated[str, typer.Option("--loglevel", help="Celery log level.")] = "INFO",
@@ -34,7 +35,15 @@ def worker(
     from service.settings import Settings
     from worker.celery_app import run_worker
 
-    run_worker(Settings(), concurrency, [q.strip() for q in queues.split(",") if q.strip()], loglevel)
+    settings = Settings()
+    count = count_or_auto(concurrency, "--concurrency")
+    if count is None:
+        from worker.capacity import gpus_found_in_child, render_processes
+
+        # Listed in a child: this process forks the pool and must not load a GL driver first.
+        count = render_processes(gpus_found_in_child(settings.gl_platform, settings.gpu_choice))
+        typer.echo(f"--concurrency auto: {count} render processes", err=True)
+    run_worker(settings, count, [q.strip() for q in queues.split(",") if q.strip()], loglevel)
 
 
 @app.command()
