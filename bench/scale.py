@@ -164,9 +164,11 @@ def run(spec_path: Path, *, resolutions: list[tuple[int, int]], workers: list[in
         for choice in choices:
             for n in workers:
                 for mode in modes:
-                    shard_size = frames_per_worker if mode == "cli" else service_shard_size(frames_per_worker)
-                    spec = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": preset,
-                                                 "frames": n * frames_per_worker, "shard_size": shard_size})
+                    over = {"camera.width": width, "camera.height": height, "quality": preset,
+                            "frames": n * frames_per_worker}
+                    if mode == "service":  # the local generate has no shards: the spec's own stands there
+                        over["shard_size"] = service_shard_size(frames_per_worker, width * height)
+                    spec = load_spec(spec_path, over)
                     measured = (run_cli(spec, n, platform, choice) if mode == "cli"
                                 else run_service(spec, n, platform, choice, storage))
                     row = {"mode": mode, "width": width, "height": height, "preset": preset, "workers": n,

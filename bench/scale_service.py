@@ -20,15 +20,20 @@ from typing import Any
 import httpx
 
 from service.gpus import GpuChoice
-from service.spec import DatasetSpec
+from service.spec import MAX_SHARD_MEGAPIXELS, DatasetSpec
 
 POLL_S = 0.1
 SHARDS_PER_WORKER = 5  # several shards per process, so shard completions spread over the run
 TASK_TIME_LIMIT_S = 3600  # room for large shards at 1080p on a slow worker (admission estimates a shard's time)
 
 
-def service_shard_size(frames_per_worker: int) -> int:
-    return max(1, math.ceil(frames_per_worker / SHARDS_PER_WORKER))
+def service_shard_size(frames_per_worker: int, pixels_per_frame: int = 0) -> int:
+    """A fifth of a worker's frames a shard, within the spec's shard limit (MAX_SHARD_MEGAPIXELS) at
+    `pixels_per_frame`."""
+    size = max(1, math.ceil(frames_per_worker / SHARDS_PER_WORKER))
+    if pixels_per_frame > 0:
+        size = min(size, max(1, int(MAX_SHARD_MEGAPIXELS * 1e6 // pixels_per_frame)))
+    return size
 
 
 def run_service(spec: DatasetSpec, workers: int, platform: str, gpus: GpuChoice | None,

@@ -56,3 +56,12 @@ def test_more_gpus_than_found_stop_before_any_row(monkeypatch):
 
     assert [scale.gpus_used("egl", GpuChoice(count=2), n) for n in (1, 2, 16)] == [1, 2, 2]
     assert scale.gpus_used("osmesa", None, 4) == 0
+
+
+def test_service_shards_are_a_fifth_of_a_worker_within_the_spec_limit():
+    from service.spec import MAX_SHARD_MEGAPIXELS
+
+    assert [service_shard_size(n) for n in (1, 4, 5, 6, 125, 400)] == [1, 1, 1, 2, 25, 80]
+    assert service_shard_size(400, 1920 * 1080) == 80  # 166 megapixels: within the limit
+    assert service_shard_size(400, 3840 * 2160) == 72 == int(MAX_SHARD_MEGAPIXELS * 1e6 // (3840 * 2160))
+    assert service_shard_size(400, 10**9) == 1  # a frame over the limit alone still makes a shard (the spec says)
