@@ -2,8 +2,10 @@
 
 A render process alternates CPU stages (sampling the scene, labels, encoding) with waits for its GPU (the frame's
 passes and reads), so on a GPU more processes than cores keep both busy: on a 16-core H100 host, 24 processes
-rendered more frames a second than 16 in every side-by-side run (bench/results/gpu/workers.md), and 32 were no
-better than 24. On a software renderer the rendering is CPU work itself: one process a core.
+rendered more frames a second than 16 in every side-by-side bench row, and 32 were no better than 24
+(bench/results/gpu/workers.md). More processes take longer to start, so a short run may not earn them back: as
+whole 3000-frame commands, 24 against 16 gave 1.04x at 1080p and 0.95x at 720p there. On a software renderer the
+rendering is CPU work itself: one process a core.
 
 Cores are the ones this process may run on (its affinity), fewer where a cgroup's CPU quota allows less (a
 container with `--cpus`, a Kubernetes CPU limit).
