@@ -64,6 +64,13 @@ def test_gpus_found_counts_what_the_choice_names_without_listing_devices(monkeyp
     assert gpus_found("egl", GpuChoice(indices=(0, 1, 3))) == 3
     assert gpus_found("egl", GpuChoice(count=1)) == 1
     assert gpus_found("egl", None) == 2 and gpus_found("egl", GpuChoice()) == 2
+    assert gpus_found("egl", GpuChoice(count=3)) == 0  # more than found: the render processes refuse it
+
+    def no_egl():
+        raise OSError("libEGL.so.1: cannot open shared object file")
+
+    monkeypatch.setattr(devices, "gpu_indices", no_egl)
+    assert gpus_found("egl", None) == 0  # the render processes say why EGL fails, not the count
 
 
 def test_gpus_found_here_and_in_a_child_agree():

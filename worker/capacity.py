@@ -65,15 +65,19 @@ def render_processes(gpus: int, cores: int | None = None) -> int:
 
 def gpus_found(platform: str, choice: GpuChoice | None) -> int:
     """How many GPUs render processes with this platform and GPU choice render on: the devices `choice` names, or
-    (None or auto) the GPUs EGL lists here; 0 on a CPU platform or where EGL lists none. Lists EGL's devices in this
-    process: call it where no GL context is to be forked (the local generate's fork server is another process)."""
-    from worker.render.devices import resolve_gpus
-
+    (None or auto) the GPUs EGL lists here; 0 on a CPU platform, where EGL lists none, or where listing fails (the
+    render processes then say why). Lists EGL's devices in this process: call it where no GL context is to be forked
+    (the local generate's fork server is another process)."""
     if not platform.startswith("egl"):
         return 0
     if ":" in platform:  # egl:N, one device named
         return 1
-    return len(resolve_gpus(choice or GpuChoice(), "egl"))
+    try:
+        from worker.render.devices import resolve_gpus
+
+        return len(resolve_gpus(choice or GpuChoice(), "egl"))
+    except Exception:  # no EGL library, no device, more GPUs asked for than found
+        return 0
 
 
 def gpus_found_in_child(platform: str, choice: GpuChoice | None, timeout_s: float = 60.0) -> int:
