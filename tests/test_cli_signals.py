@@ -157,3 +157,20 @@ def test_a_sigint_while_workers_start_is_not_lost_to_another_thread():
         stop.set()
         other.join()
         signal.signal(signal.SIGINT, previous)
+
+
+def test_the_render_pools_resource_tracker_cleans_up_without_a_warning():
+    """After some Ctrl-Cs multiprocessing's resource tracker finds a named semaphore it tracks already unlinked and
+    warns about it (python/cpython#98268), though nothing is left behind; that broke the one-line promise above now
+    and then. The render pool's tracker does the same cleanup silently; a tracker started before it still warns,
+    which shows the check reproduces the warning."""
+    code = ("import sys, multiprocessing.resource_tracker as rt\n"
+            "if sys.argv[1] == 'pool':\n"
+            "    from worker.pool_start import pool_context\n"
+            "    pool_context()\n"
+            "rt.register('/mp-seasynth-unlinked', 'semaphore')\n")  # tracked, never created: as if unlinked behind it
+    runs = {how: subprocess.run([sys.executable, "-c", code, how], capture_output=True, text=True, timeout=60)
+            for how in ("plain", "pool")}
+    assert all(r.returncode == 0 and r.stdout == "" for r in runs.values())
+    assert "leaked semaphore objects" in runs["plain"].stderr and "/mp-seasynth-unlinked" in runs["plain"].stderr
+    assert runs["pool"].stderr == ""

@@ -12,14 +12,23 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 
 PRELOAD = "worker.local_pool"
 
 
+# multiprocessing's resource tracker (a process of its own, started with this interpreter's -W options) warns at exit
+# of a named semaphore it still tracks but finds already unlinked: with the fork server this happens now and then
+# after a Ctrl-C (python/cpython#98268), although nothing is left behind. Its cleanup stays; its warning goes.
+QUIET_TRACKER = "ignore::UserWarning:multiprocessing.resource_tracker"
+
+
 def pool_context():
     """The multiprocessing context of the render processes."""
+    if QUIET_TRACKER not in sys.warnoptions:
+        sys.warnoptions.append(QUIET_TRACKER)  # read when the tracker starts, which is after this
     if "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
         ctx.set_forkserver_preload([PRELOAD])
