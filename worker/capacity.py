@@ -2,7 +2,7 @@
 
 A render process alternates CPU stages (sampling the scene, labels, encoding) with waits for its GPU (the frame's
 passes and reads), so on a GPU more processes than cores keep both busy: on a 16-core H100 host, 24 processes
-rendered more frames a second than 16 in every side-by-side bench row, and 32 were no better than 24
+rendered more frames a second than 16 in every side-by-side bench row, and 32 beat 24 in one row of four
 (bench/results/gpu/workers.md). More processes take longer to start, so a short run may not earn them back: as
 whole 3000-frame commands, 24 against 16 gave 1.04x at 1080p and 0.95x at 720p there. On a software renderer the
 rendering is CPU work itself: one process a core.
