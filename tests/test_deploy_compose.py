@@ -159,6 +159,20 @@ def test_compose_gpu_workers_are_an_opt_in_profile_with_an_nvidia_device(compose
     assert "profiles" not in compose["services"]["worker"]
 
 
+@pytest.mark.parametrize("name", ["worker-gpu", "worker-frames-gpu"])
+def test_compose_gpu_workers_keep_the_drivers_shader_cache(compose, name):
+    """The image points the NVIDIA driver's shader cache at a folder its user owns; compose mounts a named volume
+    there, so a restarted worker's first frames do not compile every shader again."""
+    stage = parse_dockerfile(ROOT / IMAGES["worker-gpu"]["dockerfile"])[-1]
+    path = _env(stage)["__GL_SHADER_DISK_CACHE_PATH"]
+    assert _env(stage)["__GL_SHADER_DISK_CACHE_SKIP_CLEANUP"] == "1"
+    assert any(instr == "RUN" and f"mkdir -p {path}" in args and f"chown 10001:10001 {path}" in args
+               for instr, args in stage), "the image's user must own the cache folder (a new volume copies it)"
+    # docker-compose 1.x's `config` keeps the short form SOURCE:TARGET[:MODE]
+    (source,) = [v.split(":")[0] for v in compose["services"][name]["volumes"] if v.split(":")[1] == path]
+    assert source in compose["volumes"], "a named volume, not a folder of the host"
+
+
 def test_compose_gpu_profile_replaces_every_cpu_worker():
     """A dataset keeps the renderer of the first worker that takes it: the documented GPU command line must leave
     no CPU worker on the queues, and must start a GPU worker for each queue kind the CPU ones served."""

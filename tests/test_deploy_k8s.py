@@ -243,6 +243,11 @@ def test_k8s_workers(rendered, compose, name, kustomization):
         assert lim["nvidia.com/gpu"] == 1
         assert "graphics" in env["NVIDIA_DRIVER_CAPABILITIES"].split(",")
         assert env["__EGL_VENDOR_LIBRARY_FILENAMES"] == NVIDIA_VENDOR_FILE
+        # the driver's shader cache is on a volume of the pod, not in the container's own layer
+        (mount,) = c["volumeMounts"]
+        assert mount["mountPath"] == dockerfile_env["__GL_SHADER_DISK_CACHE_PATH"]
+        (volume,) = [v for v in pod["volumes"] if v["name"] == mount["name"]]
+        assert "emptyDir" in volume
     else:
         assert "nvidia.com/gpu" not in lim
 
