@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.calibration_floor import apparent_attenuation, floor_summary, format_floor
 from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
@@ -153,13 +154,17 @@ def run(out: Path | None, *, scenes=None, waters=None, frames: int = FRAMES, wid
     for name in scenes:
         if name not in SCENES:
             raise SystemExit(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
-    rows, seconds = [], {None: [], "jerlov": [], "none": []}
+    rows, seconds, clean_frames = [], {None: [], "jerlov": [], "none": []}, []
     with RenderSession(platform=platform) as session:
         renderer = session.renderer_name
         for scene in scenes:
             spec = scene_spec(scene, width, height)
             for index in range(frames):
                 J, range_m = clean_and_range(session, spec, index)
+                finite = range_m[np.isfinite(range_m)]
+                clean_frames.append({"scene": scene, "frame": index,
+                                     "range_m": [round(float(finite.min()), 3), round(float(finite.max()), 3)],
+                                     "apparent_beta": apparent_attenuation(J, range_m).round(5).tolist()})
                 for water in photos:
                     for sigma in NOISE:
                         photo, truth = hazed_photo(J, range_m, water, sigma, seed=noise_seed(scene, index, water))
@@ -191,7 +196,10 @@ def run(out: Path | None, *, scenes=None, waters=None, frames: int = FRAMES, wid
         "seconds_per_estimate": {{None: "with_range", "jerlov": "with_range_jerlov_prior", "none": "without_range"}[k]:
                                  round(float(np.median(v)), 3) for k, v in seconds.items() if v},
         "targets": {"B_inf_abs_median": TARGET_B_INF_ABS, "beta_rel_median": TARGET_BETA_REL},
-        "summary": summary, "rows": rows,
+        "summary": summary, "clean_frames": clean_frames,
+        "floor_beta_D": {w: water_beta(w).round(4).tolist() for w in photos},
+        "floor": floor_summary(clean_frames, {w: water_beta(w).tolist() for w in photos}),
+        "rows": rows,
     }
     result["targets_met"] = targets_met(result)
     result["targets_met_other"] = {f"{'jerlov prior' if p else 'default'}, {'off-family' if o else 'Jerlov'} waters":
@@ -267,4 +275,5 @@ def format_table(result: dict) -> str:
     for label, other in result.get("targets_met_other", {}).items():
         lines += ["", f"The same targets, {label}: "
                   + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in other.items())]
+    lines += format_floor(result)
     return "\n".join(lines)

@@ -3,7 +3,10 @@
 import json
 from pathlib import Path
 
+import numpy as np
+
 from bench import calibration
+from bench.calibration_floor import apparent_attenuation
 from service.spec import spec_digest
 from service.water import jerlov_beta
 
@@ -39,6 +42,20 @@ def test_bench_rows_summary_and_files_on_a_tiny_run(tmp_path):
     assert all(result["targets_met"][f"B_inf {c}"] for c in "RGB")
     assert set(result["targets_met_other"]) == {"default, off-family waters", "jerlov prior, Jerlov waters",
                                                 "jerlov prior, off-family waters"}
+    (clean,) = result["clean_frames"]
+    assert (clean["scene"], clean["frame"]) == ("seabed-forward", 0) and np.isfinite(clean["apparent_beta"]).all()
+    assert set(result["floor"]) == {"3C", "3C~"} and "## The scenes against the estimator's prior" in table
+
+
+def test_apparent_attenuation_is_the_slope_of_the_mean_colour_with_range():
+    rng = np.random.default_rng(5)
+    z = np.repeat(np.geomspace(1.0, 20.0, 300)[:, None], 80, axis=1)  # a seabed: range grows row by row
+    z[:20] = np.inf  # open water (and the row beside it, a range edge) take no part
+    texture = rng.uniform(0.5, 1.5, (300, 80, 1))  # range-independent statistics: only the trend is measured
+    trend = np.exp(-np.array([0.07, 0.0, -0.02]) * np.where(np.isinf(z), 0.0, z)[..., None])
+    got = apparent_attenuation(texture * np.array([0.4, 0.3, 0.2]) * trend, z)
+    assert np.allclose(got, [0.07, 0.0, -0.02], atol=0.003), got
+    assert np.abs(apparent_attenuation(np.full((300, 80, 3), 0.3), z)).max() < 1e-12
 
 
 def test_off_family_waters_are_seeded_and_15_to_25_percent_off_their_type():
@@ -72,5 +89,6 @@ def test_committed_table_is_this_bench_on_every_scene_and_water():
     # Per frame: each water and its off-family copy, each noise level, three estimates (range, range + prior, none).
     n = len(calibration.SCENES) * result["frames_per_scene"] * len(calibration.WATERS) * 2 * len(calibration.NOISE) * 3
     assert len(result["rows"]) == n
+    assert len(result["clean_frames"]) == len(calibration.SCENES) * result["frames_per_scene"]
     table = (RESULTS / "calibration.md").read_text()
     assert table == calibration.format_table(result) + "\n"
