@@ -25,6 +25,7 @@ from service.shards import (
     shard_count,
 )
 from service.spec import DatasetSpec
+from service.spec_outputs import IMAGE_SUFFIXES
 
 log = logging.getLogger(__name__)
 
@@ -338,7 +339,8 @@ def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[s
     header, body = got
     if not header.get("ok"):
         raise worker_error(header, f"frame {index} of dataset {dataset_id}")
-    return header.get("name", frame_file(part, index)), body
+    image_format = (rec.spec.get("outputs") or {}).get("image_format", "png")
+    return header.get("name", frame_file(part, index, IMAGE_SUFFIXES[image_format])), body
 
 
 def worker_error(header: dict[str, Any], what: str) -> Exception:

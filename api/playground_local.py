@@ -68,7 +68,8 @@ class LocalRuns:
             raise NotFound(f"no local run {run_id}")
         proc, total, out = got
         code = proc.poll()
-        done = len(list((out / "image_2").glob("*.png"))) if (out / "image_2").is_dir() else 0
+        images = out / "image_2"
+        done = sum(1 for p in images.iterdir() if p.suffix in (".png", ".jpg")) if images.is_dir() else 0
         state = "running" if code is None else ("succeeded" if code == 0 else "failed")
         error = None
         if state == "failed":

@@ -72,6 +72,17 @@ SCENES: dict[str, dict] = {
     "urchins": {"seed": 7},
 }
 PRESET_NAMES = ("draft", "fast", "default", "high")
+JPEG_PRESET = "default"  # rows for outputs.image_format jpeg (--jpeg Q) render with this preset
+
+
+def variant_specs(spec: DatasetSpec, presets: list[str], jpeg: tuple[int, ...] = ()) -> dict[tuple[str, str], DatasetSpec]:
+    """(preset, image) -> the spec rendered for that row: every preset as PNG, then JPEG_PRESET as JPEG at each
+    quality in `jpeg` (image "jpeg q95", ...)."""
+    out = {(p, "png"): spec.model_copy(update={"quality": p}) for p in presets}
+    for q in jpeg:
+        o = spec.outputs.model_copy(update={"image_format": "jpeg", "jpeg_quality": q})
+        out[(JPEG_PRESET, f"jpeg q{q}")] = spec.model_copy(update={"quality": JPEG_PRESET, "outputs": o})
+    return out
 
 
 def scene_spec(name: str) -> DatasetSpec:
@@ -152,12 +163,12 @@ def reference(session, spec: DatasetSpec) -> Reference:
     return Reference(image=image, boxes=boxes_of(session, view, scene, items, majority_ids(ids_hi, s)))
 
 
-def time_presets(session, spec: DatasetSpec, presets: list[str], repeats: int) -> dict[str, float]:
-    """Median seconds of `frame_files` per preset; presets take turns in every round so drift hits all alike."""
-    specs = {p: spec.model_copy(update={"quality": p}) for p in presets}
+def time_presets(session, specs: dict, repeats: int) -> dict:
+    """Median seconds of `frame_files` per row's spec (variant_specs); rows take turns in every round so drift hits
+    all alike."""
     for s in specs.values():
         session.frame_files(s, 0)  # warm: shader variants, uploads
-    times: dict[str, list[float]] = {p: [] for p in presets}
+    times: dict = {p: [] for p in specs}
     for _ in range(repeats):
         for p, s in specs.items():
             t = time.perf_counter()
@@ -166,8 +177,10 @@ def time_presets(session, spec: DatasetSpec, presets: list[str], repeats: int) -
     return {p: statistics.median(v) for p, v in times.items()}
 
 
-def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
-    """The preset's image and labels against the reference, and its water against float64 on its own samples."""
+def errors(session, s: DatasetSpec, ref: Reference) -> dict:
+    """The row's image (spec `s`: its preset and image format) and labels against the reference, and its water
+    against float64 on its own samples. A JPEG row's formation_error is None: its image is the PNG row's through
+    the codec, whose largest difference from it is codec_max_err."""
     import io
 
     from PIL import Image
@@ -175,9 +188,9 @@ def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
     from worker.srgb import encode_srgb8
     from worker.pipeline import PRESETS, Passes, scene_light
 
-    s = spec.model_copy(update={"quality": preset})
+    preset = s.quality
     files = session.frame_files(s, 0)
-    image = np.asarray(Image.open(io.BytesIO(files["image_2/000000.png"])))
+    image = np.asarray(Image.open(io.BytesIO(files[f"image_2/000000{s.outputs.image_suffix}"])).convert("RGB"))
     scene = session.scene(s, 0)
     view = session.view(s, scene)
     items = session.draw_items(scene)
@@ -191,17 +204,26 @@ def errors(session, spec: DatasetSpec, preset: str, ref: Reference) -> dict:
     common = boxes.keys() & ref.boxes.keys()
     label_err = max((max(abs(a - b) for a, b in zip(boxes[i], ref.boxes[i])) for i in common), default=0)
     diff = np.abs(image.astype(np.int64) - ref.image.astype(np.int64))
+    formation = int(np.abs(image.astype(np.int64) - exact.astype(np.int64)).max())
+    codec = {}
+    if s.outputs.image_format != "png":
+        png = s.model_copy(update={"outputs": s.outputs.model_copy(update={"image_format": "png"})})
+        lossless = np.asarray(Image.open(io.BytesIO(session.frame_files(png, 0)["image_2/000000.png"])))
+        codec = {"codec_max_err": int(np.abs(image.astype(np.int64) - lossless.astype(np.int64)).max())}
+        formation = None
     return {
         "psnr_db": round(psnr_db(image, ref.image), 2),
         "max_abs_err": int(diff.max()),
-        "formation_error": int(np.abs(image.astype(np.int64) - exact.astype(np.int64)).max()),
+        "formation_error": formation,
+        **codec,
         "label_error_px": int(label_err),
         "label_mismatches": len(boxes.keys() ^ ref.boxes.keys()),
         "labelled_targets": len(boxes),
     }
 
 
-def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platform: str) -> dict:
+def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platform: str,
+        jpeg: tuple[int, ...] = ()) -> dict:
     from bench.throughput import machine_description
     from worker.pipeline import RenderSession
 
@@ -219,10 +241,11 @@ def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platfo
         for name in scenes:
             spec = scene_spec(name)
             ref = reference(session, spec)
-            ms = time_presets(session, spec, presets, repeats)
-            for preset in presets:
-                row = {"scene": name, "preset": preset, "ms_per_frame": round(ms[preset] * 1e3, 2),
-                       **errors(session, spec, preset, ref)}
+            specs = variant_specs(spec, presets, tuple(jpeg))
+            ms = time_presets(session, specs, repeats)
+            for (preset, image), s in specs.items():
+                row = {"scene": name, "preset": preset, **({"image": image} if jpeg else {}),
+                       "ms_per_frame": round(ms[preset, image] * 1e3, 2), **errors(session, s, ref)}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     result = {"machine": machine or machine_description(), "gl_renderer": renderer_name, "resolution": [WIDTH, HEIGHT],
@@ -244,6 +267,9 @@ def write_results(out: Path, stem: str, result: dict, table: str, draw) -> None:
 
 def format_table(result: dict) -> str:
     keys = ("ms_per_frame", "psnr_db", "max_abs_err", "formation_error", "label_error_px", "label_mismatches")
+    images = any("image" in r for r in result["rows"])  # a run with JPEG rows (--jpeg) has an image column
+    if images:
+        keys = (*keys, "codec_max_err")
     lines = [
         f"# Accuracy against time ({result['resolution'][0]}x{result['resolution'][1]})",
         "",
@@ -252,11 +278,13 @@ def format_table(result: dict) -> str:
         f"reference: {result['reference']}  ",
         f"ms_per_frame: median of {result['repeats']} repeats",
         "",
-        "| scene | preset | " + " | ".join(keys) + " |",
-        "|---|---|" + "---|" * len(keys),
+        "| scene | preset | " + "image | " * images + " | ".join(keys) + " |",
+        "|---|---|" + "---|" * images + "---|" * len(keys),
     ]
     for r in result["rows"]:
-        lines.append(f"| {r['scene']} | {r['preset']} | " + " | ".join(str(r[k]) for k in keys) + " |")
+        cells = [str(r.get(k, "")) if r.get(k) is not None else "-" for k in keys]
+        image = f"{r['image']} | " if images else ""
+        lines.append(f"| {r['scene']} | {r['preset']} | {image}" + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -271,12 +299,17 @@ def plot(result: dict, path: Path) -> None:
     scenes = sorted({r["scene"] for r in result["rows"]})
     colours = dict(zip(scenes, plt.cm.tab10.colors))
     for r in result["rows"]:
-        ax.scatter(r["ms_per_frame"], r["psnr_db"], marker=markers.get(r["preset"], "x"), color=colours[r["scene"]])
-    for s in scenes:
-        pts = sorted((r["ms_per_frame"], r["psnr_db"]) for r in result["rows"] if r["scene"] == s)
+        jpeg = r.get("image", "png") != "png"
+        ax.scatter(r["ms_per_frame"], r["psnr_db"], marker="x" if jpeg else markers.get(r["preset"], "x"),
+                   color=colours[r["scene"]])
+    for s in scenes:  # the presets' line (JPEG rows are crosses off it)
+        pts = sorted((r["ms_per_frame"], r["psnr_db"]) for r in result["rows"]
+                     if r["scene"] == s and r.get("image", "png") == "png")
         ax.plot(*zip(*pts), color=colours[s], lw=0.8, label=s)
     for p, m in markers.items():
         ax.scatter([], [], marker=m, color="grey", label=p)
+    if any(r.get("image", "png") != "png" for r in result["rows"]):
+        ax.scatter([], [], marker="x", color="grey", label="default, JPEG")
     ax.axhline(40, color="grey", ls=":", lw=0.8)
     ax.set_xscale("log")
     ax.set_xlabel("ms per frame (median)")

@@ -128,13 +128,15 @@ def frames_of_tar(path: Path, key: str) -> Iterator[tuple[str, dict[str, bytes]]
 
 
 def _tile(spec: DatasetSpec, name: str, files: dict[str, bytes], boxes: tuple, where: str) -> Tile:
-    def png(folder: str):
-        data = files.get(f"{folder}/{name}.png")
+    o = spec.outputs
+
+    def png(folder: str):  # image_2 may be a JPEG (outputs.image_format): Pillow decodes either
+        rel = f"{folder}/{name}{o.image_suffix if folder == 'image_2' else '.png'}"
+        data = files.get(rel)
         if data is None:
-            raise ExportError(f"{where}: no {folder}/{name}.png in the shard")
+            raise ExportError(f"{where}: no {rel} in the shard")
         return decode_png(data, f"{where} {folder}")
 
-    o = spec.outputs
     return Tile(name=name, image=png("image_2")[..., :3], boxes=boxes, depth=png("depth") if o.depth else None,
                 instance=png("instance") if o.instance else None)
 

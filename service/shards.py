@@ -232,7 +232,8 @@ def frame_name(index: int) -> str:
     return f"{index:06d}"
 
 
-def frame_file(part: str, index: int) -> str:
-    """The relative path of one of a frame's files, as a local generate writes it: image_2/000123.png."""
+def frame_file(part: str, index: int, image_suffix: str = ".png") -> str:
+    """The relative path of one of a frame's files, as a local generate writes it: image_2/000123.png.
+    image_suffix: the image's (the spec's outputs.image_suffix: .png or .jpg)."""
     folder, suffix = FRAME_PARTS[part]
-    return f"{folder}/{frame_name(index)}{suffix}"
+    return f"{folder}/{frame_name(index)}{image_suffix if part == 'image' else suffix}"

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+from typing import Literal
 
-from pydantic import StrictBool, StrictFloat, field_validator
+from pydantic import Field, StrictBool, StrictFloat, StrictInt, field_validator
 
 from service.spec_types import SpecModel
 
 EXPORT_FORMATS = ("coco", "yolo", "mcap")  # detector formats written beside the KITTI files (worker.export)
+IMAGE_SUFFIXES = {"png": ".png", "jpeg": ".jpg"}  # image_2's file suffix per outputs.image_format
 SPLITS = ("train", "val", "test")
 SPLIT_SUM_TOLERANCE = 1e-9
 
@@ -44,6 +46,12 @@ class Outputs(SpecModel):
     yolo: StrictBool = False
     mcap: StrictBool = False
     split: tuple[StrictFloat, StrictFloat, StrictFloat] = (0.8, 0.1, 0.1)
+    # image_2's encoding: png (lossless, the default) or jpeg at jpeg_quality (libjpeg-turbo through imagecodecs,
+    # 4:2:0 chroma, baseline), for training on JPEG as most detector datasets are. depth, instance and clean stay
+    # PNG: they are targets, not inputs. jpeg_quality is read with jpeg only (a stored spec holds every field). The
+    # accuracy bench reports what JPEG costs in PSNR.
+    image_format: Literal["png", "jpeg"] = "png"
+    jpeg_quality: StrictInt = Field(95, ge=1, le=100)
 
     @field_validator("coco", "yolo", "mcap")
     @classmethod
@@ -60,6 +68,11 @@ class Outputs(SpecModel):
         if problem is not None:
             raise ValueError(problem)
         return v
+
+    @property
+    def image_suffix(self) -> str:
+        """image_2's file suffix: .png or .jpg."""
+        return IMAGE_SUFFIXES[self.image_format]
 
     @property
     def exports(self) -> tuple[str, ...]:

@@ -36,6 +36,25 @@ def test_every_preset_forms_the_image_within_one_code_of_float64_on_its_own_samp
     assert (tmp_path / "accuracy.png").stat().st_size > 0
 
 
+def test_jpeg_rows_show_what_the_codec_costs_beside_the_png_rows(tmp_path, monkeypatch):
+    monkeypatch.setattr(accuracy, "WIDTH", WIDTH)
+    monkeypatch.setattr(accuracy, "HEIGHT", HEIGHT)
+    result = accuracy.run(tmp_path, scenes=[SCENE], presets=["default"], repeats=1, machine="test", platform="egl",
+                          jpeg=(95, 60))
+    rows = {r["image"]: r for r in result["rows"]}
+    assert list(rows) == ["png", "jpeg q95", "jpeg q60"] and all(r["preset"] == "default" for r in rows.values())
+    assert rows["png"]["formation_error"] <= 1 and "codec_max_err" not in rows["png"]
+    for name in ("jpeg q95", "jpeg q60"):
+        # The same render through the codec: its error is the codec's, not the water's.
+        assert rows[name]["formation_error"] is None and rows[name]["codec_max_err"] > 0
+        assert rows[name]["psnr_db"] < rows["png"]["psnr_db"]
+        assert rows[name]["labelled_targets"] == rows["png"]["labelled_targets"]
+    assert rows["jpeg q60"]["psnr_db"] < rows["jpeg q95"]["psnr_db"]
+    assert rows["jpeg q60"]["codec_max_err"] >= rows["jpeg q95"]["codec_max_err"]
+    table = (tmp_path / "accuracy.md").read_text()
+    assert f"| {SCENE} | default | jpeg q95 | {rows['jpeg q95']['ms_per_frame']} |" in table
+
+
 def test_majority_ids_takes_the_most_common_sample_id_and_the_smallest_on_ties():
     ids_hi = np.array(
         [

@@ -37,6 +37,8 @@ def test_contract_keys_and_defaults():
         "yolo": False,
         "mcap": False,
         "split": (0.8, 0.1, 0.1),
+        "image_format": "png",
+        "jpeg_quality": 95,
     }
     # The contract names are the keys a spec file uses: each is accepted and read back as written.
     written = {
@@ -45,7 +47,8 @@ def test_contract_keys_and_defaults():
         "shard_size": 3,
         "camera": {"width": 96, "height": 64},
         "outputs": {"labels": False, "meta": False, "depth": True, "instance": True, "clean": True, "range": True,
-                    "coco": False, "yolo": False, "mcap": False, "split": (0.5, 0.25, 0.25)},
+                    "coco": False, "yolo": False, "mcap": False, "split": (0.5, 0.25, 0.25),
+                    "image_format": "jpeg", "jpeg_quality": 80},
     }
     dumped = parse_spec(written).model_dump()
     for key in ("seed", "frames", "shard_size"):

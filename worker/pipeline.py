@@ -19,6 +19,7 @@ from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
 from worker.assets.terrain import Terrain, apply_texture
 from worker.frame_meta import frame_meta
+from worker.image_files import PNG_SETTINGS, encode_image, png_bytes  # noqa: F401 (PNG_SETTINGS: the benches)
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from worker.scene import Placed, Scene, on_trajectory, sample_scene
 from worker.sensors.outputs import SensorFrame, sensor_frame, sensor_paths, sensors_on
@@ -37,10 +38,6 @@ PRESETS: dict[str, Sampling] = {
     "high": Sampling(msaa=4, supersample=2, per_sample_shading=True),
 }
 
-# PNG as libpng writes it (through imagecodecs): zlib level 1, run-length strategy, every row SUB-filtered. At
-# 1920x1080 this is 3.3x faster than Pillow's level 1 for RGB (2.6x for 16-bit depth) and 24% smaller, and it
-# releases the GIL (bench/results/cpu/encoders-1920x1080). Any settings decode to the same pixels.
-PNG_SETTINGS = {"level": 1, "strategy": 3, "filter": 16}  # Z_RLE, PNG_FILTER_SUB
 DEPTH_SCALE = 256.0  # KITTI depth PNG: metres * 256 in uint16, 0 = no measurement
 VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow", "imagecodecs")
 
@@ -48,7 +45,7 @@ VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow", "ima
 def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
     """Relative paths of every file frame `index` produces under `spec.outputs`."""
     n, o = frame_name(index), spec.outputs
-    paths = [f"image_2/{n}.png", f"calib/{n}.txt"]
+    paths = [f"image_2/{n}{o.image_suffix}", f"calib/{n}.txt"]
     optional = (
         (o.labels, f"label_2/{n}.txt"),
         (o.meta, f"meta/{n}.json"),
@@ -75,16 +72,6 @@ def to_render_mesh(key: str, mesh) -> Mesh:
         radius=float(np.linalg.norm(v - centre, axis=1).max()),
         centre=centre,
     )
-
-
-def png_bytes(array: np.ndarray) -> bytes:
-    """PNG of an (h, w, 3) uint8 RGB or (h, w) uint16 image."""
-    import imagecodecs
-
-    if not ((array.dtype == np.uint8 and array.ndim == 3 and array.shape[2] == 3) or
-            (array.dtype == np.uint16 and array.ndim == 2)):
-        raise ValueError(f"png_bytes takes (h, w, 3) uint8 or (h, w) uint16, got {array.shape} {array.dtype}")
-    return bytes(imagecodecs.png_encode(np.ascontiguousarray(array), **PNG_SETTINGS))
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -251,7 +238,7 @@ class RenderSession:
     def frame_files(
         self, spec: DatasetSpec, index: int, mark: Callable[[str], None] | None = None
     ) -> dict[str, bytes]:
-        """Every file of frame `index`, keyed by its relative path (`image_2/000123.png`, ...).
+        """Every file of frame `index`, keyed by its relative path (`image_2/000123.png` or `.jpg`, ...).
 
         mark: benchmarks pass a stopwatch, called with each finished stage's name.
         """
@@ -283,7 +270,8 @@ class RenderSession:
             mark("sensors")
 
         n = frame_name(index)
-        files: dict[str, bytes] = {f"image_2/{n}.png": png_bytes(encode_srgb8(image) if noisy else image)}
+        files: dict[str, bytes] = {f"image_2/{n}{o.image_suffix}": encode_image(encode_srgb8(image) if noisy else image,
+                                                                             o)}
         if o.labels:
             files[f"label_2/{n}.txt"] = kitti.format_label_file(frame_labels.objects).encode()
         files[f"calib/{n}.txt"] = kitti.format_calib(view.K).encode()

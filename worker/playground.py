@@ -19,6 +19,7 @@ from PIL import Image
 from service.kitti import parse_label_file
 from service.shards import frame_name
 from service.spec import DatasetSpec
+from worker.image_files import media_type
 from worker.pipeline import RenderSession
 
 log = logging.getLogger(__name__)
@@ -48,8 +49,14 @@ def preview_spec(spec: DatasetSpec, views: Iterable[str], width: int | None = No
     return spec.model_copy(update={"quality": "draft", "outputs": outputs, "camera": camera})
 
 
-def png_data_url(png: bytes) -> str:
-    return "data:image/png;base64," + base64.b64encode(png).decode()
+def png_data_url(png: bytes, media_type: str = "image/png") -> str:
+    return f"data:{media_type};base64," + base64.b64encode(png).decode()
+
+
+def image_data_url(files: dict[str, bytes], spec: DatasetSpec, index: int) -> str:
+    """The frame's image_2 file (PNG or JPEG, as the spec writes it) as a data URL."""
+    rel = f"image_2/{frame_name(index)}{spec.outputs.image_suffix}"
+    return png_data_url(files[rel], media_type(rel))
 
 
 def _png(array: np.ndarray) -> bytes:
@@ -88,7 +95,7 @@ def render_preview(session: RenderSession, spec: DatasetSpec, frame: int, views:
     spec = preview_spec(spec, views)
     files = session.frame_files(spec, frame)
     n = frame_name(frame)
-    images = {"image": png_data_url(files[f"image_2/{n}.png"])}
+    images = {"image": image_data_url(files, spec, frame)}
     if "depth" in views:
         images["depth"] = png_data_url(depth_view(files[f"depth/{n}.png"]))
     if "instance" in views:
@@ -97,7 +104,7 @@ def render_preview(session: RenderSession, spec: DatasetSpec, frame: int, views:
         images["clean"] = png_data_url(files[f"clean/{n}.png"])
     if "air" in views:
         air = spec.model_copy(update={"water": spec.water.model_copy(update={"enabled": False})})
-        images["air"] = png_data_url(session.frame_files(air, frame)[f"image_2/{n}.png"])
+        images["air"] = image_data_url(session.frame_files(air, frame), air, frame)
     boxes = [{"class": o["type"], "box": o["bbox"],
               "truncated": o["truncated"], "occluded": o["occluded"]}
              for o in parse_label_file(files[f"label_2/{n}.txt"].decode())]
@@ -111,7 +118,7 @@ def render_strip(session: RenderSession, spec: DatasetSpec, first: int, count: i
     out = []
     for i in range(first, first + count):
         files = session.frame_files(small, i)
-        out.append({"frame": i, "image": png_data_url(files[f"image_2/{frame_name(i)}.png"])})
+        out.append({"frame": i, "image": image_data_url(files, small, i)})
     return {"frames": out}
 
 

@@ -329,8 +329,9 @@ def render_frame(ctx: ShardContext, dataset_id: str, index: int, part: str) -> t
         raise WrongRenderer(dataset_id, rec.renderer, ours)
     if not 0 <= index < rec.frames_total or part not in FRAME_PARTS:
         raise NotFound(f"dataset {dataset_id} has no frame {index} part {part}")
-    files = ctx.session.frame_files(ctx.spec(dataset_id, rec.spec), index)
-    name = frame_file(part, index)
+    spec = ctx.spec(dataset_id, rec.spec)
+    files = ctx.session.frame_files(spec, index)
+    name = frame_file(part, index, spec.outputs.image_suffix)
     if name not in files:
         raise NotFound(f"frame {index} of dataset {dataset_id} has no {name} (is that output switched on?)")
     return {"ok": True, "name": name, "renderer": ctx.session.renderer_name}, files[name]

@@ -16,8 +16,8 @@ from service.spec import DatasetSpec
 # Any route: no key (401), a bad parameter (422), Redis down (503).
 router = APIRouter(prefix="/datasets", tags=["datasets"], responses=error_responses(401, 422, 503))
 
-MEDIA = {".png": "image/png", ".txt": "text/plain; charset=utf-8", ".json": "application/json",
-         ".npy": "application/octet-stream"}
+MEDIA = {".png": "image/png", ".jpg": "image/jpeg", ".txt": "text/plain; charset=utf-8",
+         ".json": "application/json", ".npy": "application/octet-stream"}
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=DatasetCreated,

@@ -106,11 +106,14 @@ def bench_accuracy(
     repeats: Annotated[int, typer.Option("--repeats", min=5)] = 5,
     machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
     gl: PlatformOpt = "egl",
+    jpeg: Annotated[Optional[list[int]], typer.Option(
+        "--jpeg", min=1, max=100, help="Also `default` with outputs.image_format jpeg at this quality "
+        "(repeatable): what JPEG costs against the reference, timed in turns with the presets.")] = None,
 ) -> None:
     """Each preset against a 16-sample float64 reference on pinned scenes: time, PSNR, errors."""
     from bench.accuracy import run
 
-    run(out, scenes=scene, presets=preset, repeats=repeats, machine=machine, platform=gl)
+    run(out, scenes=scene, presets=preset, repeats=repeats, machine=machine, platform=gl, jpeg=tuple(jpeg or ()))
 
 
 @bench_app.command("fidelity")

@@ -100,6 +100,7 @@ class ExportInfo:
     code_version: str | None  # the dataset's
     fractions: tuple[float, float, float]  # train, val, test
     sensors: Sensors = Sensors()  # the spec's sonar and navigation sensors (their files are in Frame.sensor_files)
+    image_suffix: str = ".png"  # the frames' image_2 files (the spec's outputs.image_suffix: .png or .jpg)
 
 
 class Exporter(Protocol):
@@ -218,7 +219,8 @@ def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] 
     open_export_folder(out, plan.format)
     info = ExportInfo(out=out, categories=plan.categories, width=ds.spec.camera.width,
                       height=ds.spec.camera.height, dataset_seed=ds.spec.seed, spec_sha256=ds.spec_sha256,
-                      code_version=ds.code_version, fractions=plan.fractions, sensors=ds.spec.sensors)
+                      code_version=ds.code_version, fractions=plan.fractions, sensors=ds.spec.sensors,
+                      image_suffix=ds.spec.outputs.image_suffix)
     counts = dict.fromkeys(SPLITS, 0)
     with FrameReader(ds, masks=exporter.needs_masks, distractors=plan.distractors, platform=platform) as reader:
         exporter.begin(info)

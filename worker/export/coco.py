@@ -111,7 +111,7 @@ class CocoExporter:
         self._written: dict[tuple[str, str], int] = {}
 
     def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
-        return (f"images/{split}/{name}.png",)
+        return (f"images/{split}/{name}{self._info.image_suffix}",)
 
     def index_path(self, split: str) -> Path:
         return self._info.out / "annotations" / f"instances_{split}.json"
@@ -146,7 +146,7 @@ class CocoExporter:
     def add(self, frame: Frame, split: str) -> None:
         info = self._info
         place_file(frame.image, info.out / self.frame_outputs(split, frame.name)[0])
-        self._append(split, "images", {"id": frame.index, "file_name": f"{frame.name}.png",
+        self._append(split, "images", {"id": frame.index, "file_name": f"{frame.name}{info.image_suffix}",
                                        "width": frame.width, "height": frame.height})
         runs = instance_runs(frame.instance)
         size = frame.width * frame.height

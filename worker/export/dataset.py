@@ -142,7 +142,7 @@ class Frame:
 
     index: int
     name: str  # KITTI's six-digit stem, "000123"
-    image: Path  # the dataset's image_2 PNG (8-bit sRGB RGB)
+    image: Path  # the dataset's image_2 file (8-bit sRGB RGB; PNG, or JPEG with outputs.image_format jpeg)
     width: int  # px
     height: int  # px
     objects: tuple[FrameObject, ...]
@@ -220,8 +220,9 @@ class FrameReader:
             files = self._session.frame_files(self._render_spec, index)
         except OSError as err:  # an asset file the session cannot read
             raise ExportError(f"{self.ds.root}: cannot re-render frame {index}: {err}") from None
-        image = _read_bytes(self.ds.root / f"image_2/{n}.png")
-        for rel, theirs in ((f"image_2/{n}.png", image), (f"label_2/{n}.txt", label_bytes)):
+        rel_image = f"image_2/{n}{self.ds.spec.outputs.image_suffix}"
+        image = _read_bytes(self.ds.root / rel_image)
+        for rel, theirs in ((rel_image, image), (f"label_2/{n}.txt", label_bytes)):
             if files[rel] != theirs:
                 raise ExportError(
                     f"{self.ds.root / rel}: the frame re-rendered to obtain its instance masks differs from the "
@@ -263,7 +264,7 @@ def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
                               f"{spec.camera.height}x{spec.camera.width} (height x width)")
         objects = _with_masks(objects, instance, meta, where, label_path, distractors)
     o = spec.outputs
-    return Frame(index=index, name=n, image=root / f"image_2/{n}.png", width=spec.camera.width,
+    return Frame(index=index, name=n, image=root / f"image_2/{n}{spec.outputs.image_suffix}", width=spec.camera.width,
                  height=spec.camera.height, objects=tuple(objects), instance=instance,
                  calib=root / f"calib/{n}.txt", meta=root / f"meta/{n}.json" if o.meta else None,
                  depth=root / f"depth/{n}.png" if o.depth else None,

@@ -5,7 +5,8 @@ schemas as ros2msg text (the type's .msg, then each type it uses after a line of
 as rosbag2 writes them), zstd chunks. Frames come in ascending index; frame i is stamped i / FRAME_RATE_HZ s
 (from 0, the epoch), in every message's header.stamp and as the record's log and publish time. Topics:
 
-  /camera/image/compressed  sensor_msgs/msg/CompressedImage  format "png": the image_2 PNG's bytes as they are
+  /camera/image/compressed  sensor_msgs/msg/CompressedImage  format "png" (or "jpeg" with outputs.image_format
+                            jpeg): the image_2 file's bytes as they are
   /camera/camera_info       sensor_msgs/msg/CameraInfo       K and P (= [K | 0]) from calib's P2, R = I, no
                                                              distortion (d empty, "plumb_bob")
   /detections               vision_msgs/msg/Detection2DArray one Detection2D per label line (then distractors):
@@ -208,7 +209,8 @@ class McapExporter:
             image = frame.image.read_bytes()
         except OSError as err:
             raise ExportError(f"{frame.image}: unreadable ({err.strerror or err})") from None
-        self._write(split, IMAGE_TOPIC, {"header": _header(ns), "format": "png", "data": image}, ns, seq)
+        fmt = "jpeg" if self._info.image_suffix == ".jpg" else "png"  # CompressedImage's format names the codec
+        self._write(split, IMAGE_TOPIC, {"header": _header(ns), "format": fmt, "data": image}, ns, seq)
 
         p = camera_projection(frame.calib)
         self._write(split, INFO_TOPIC, {

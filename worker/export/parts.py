@@ -48,7 +48,8 @@ def part_info(spec: DatasetSpec, out: Path, code_version: str | None) -> ExportI
     """The ExportInfo `seasynth export` uses for a dataset of `spec` (no --distractors, outputs.split)."""
     return ExportInfo(out=Path(out).absolute(), categories=(spec.targets.class_name,), width=spec.camera.width,
                       height=spec.camera.height, dataset_seed=spec.seed, spec_sha256=spec_digest(spec),
-                      code_version=code_version, fractions=spec.outputs.split, sensors=spec.sensors)
+                      code_version=code_version, fractions=spec.outputs.split, sensors=spec.sensors,
+                      image_suffix=spec.outputs.image_suffix)
 
 
 def write_part(spec: DatasetSpec, fmt: str, frames: range, root: Path, out: Path,

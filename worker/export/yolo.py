@@ -49,7 +49,7 @@ class YoloExporter:
         self._info: ExportInfo | None = None
 
     def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
-        return (f"images/{split}/{name}.png", f"labels/{split}/{name}.txt")
+        return (f"images/{split}/{name}{self._info.image_suffix}", f"labels/{split}/{name}.txt")
 
     def begin(self, info: ExportInfo) -> None:
         self._info = info

@@ -1,0 +1,106 @@
+"""outputs.image_format jpeg: image_2 as JPEG at jpeg_quality and every other file as a PNG dataset's; reproduced
+byte for byte, exported (COCO, YOLO, MCAP) and previewed as PNG datasets are. The service side is in
+tests/service/test_service_e2e.py (a frame served alone, and the fetched dataset against a local generate)."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from local_datasets import EXAMPLE, seasynth, tree
+from PIL import Image
+from spec_helpers import refusal
+
+from service.spec import load_spec
+from worker.export import export_generated
+from worker.generate import generate
+from worker.pipeline import frame_paths
+
+BASE = {"frames": 4, "camera.width": 64, "camera.height": 48, "quality": "default", "outputs.instance": True,
+        "terrain.variants": 1}
+JPEG = {"outputs.image_format": "jpeg", "outputs.jpeg_quality": 90}
+
+
+@pytest.fixture(scope="module")
+def datasets(tmp_path_factory):
+    root = tmp_path_factory.mktemp("image-format")
+    made = {}
+    for name, extra, workers in (("png", {}, 1), ("jpeg", JPEG, 2)):
+        made[name] = root / name
+        generate(load_spec(EXAMPLE, {**BASE, **extra, "outputs.coco": True, "outputs.yolo": True,
+                                     "outputs.mcap": True}), made[name], workers=workers)
+        export_generated(made[name])  # as `seasynth generate` does after the frames
+    return made
+
+
+def _pixels(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB")).astype(np.int64)
+
+
+def test_only_the_image_changes_and_it_is_a_jpeg_near_the_png(datasets):
+    png, jpeg = tree(datasets["png"]), tree(datasets["jpeg"])
+    for i in range(4):
+        n = f"{i:06d}"
+        a, b = png.pop(f"image_2/{n}.png"), jpeg.pop(f"image_2/{n}.jpg")
+        assert b[:3] == b"\xff\xd8\xff" and b"JFIF" in b[:16]
+        diff = np.abs(_pixels(a) - _pixels(b))
+        assert 0 < diff.mean() < 4 and diff.max() < 96, (diff.mean(), diff.max())
+        assert len(b) < len(a)
+    for ds in (png, jpeg):  # what differs besides: the dataset's record (its spec) and the exports (their images)
+        for rel in [r for r in ds if r == "seasynth.json" or r.startswith("export/")]:
+            ds.pop(rel)
+    assert png == jpeg, "labels, calib, meta and instance masks do not depend on the image's format"
+
+
+def test_frame_paths_name_the_jpeg():
+    spec = load_spec(EXAMPLE, {**BASE, **JPEG})
+    assert frame_paths(spec, 3)[0] == "image_2/000003.jpg"
+    assert frame_paths(load_spec(EXAMPLE, BASE), 3)[0] == "image_2/000003.png"
+
+
+def test_reproduce_gives_the_same_jpeg_bytes(datasets, tmp_path):
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(json.dumps(json.loads((datasets["jpeg"] / "seasynth.json").read_text())["spec"]))
+    r = seasynth("reproduce", spec_file, "--frame", 2, "--out", tmp_path / "again")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "again/image_2/000002.jpg").read_bytes() == (datasets["jpeg"] / "image_2/000002.jpg").read_bytes()
+
+
+def test_exports_carry_the_jpeg_files(datasets):
+    root = datasets["jpeg"] / "export"
+    coco = [json.loads(p.read_text()) for p in sorted((root / "coco/annotations").glob("instances_*.json"))]
+    names = sorted(im["file_name"] for c in coco for im in c["images"])
+    assert names == [f"{i:06d}.jpg" for i in range(4)]
+    for exported in [*(root / "coco/images").rglob("*.*"), *(root / "yolo/images").rglob("*.*")]:
+        assert exported.suffix == ".jpg"
+        assert exported.read_bytes() == (datasets["jpeg"] / "image_2" / exported.name).read_bytes()
+    assert len(list((root / "yolo/images").rglob("*.jpg"))) == 4
+
+    from mcap_ros2.reader import read_ros2_messages
+
+    formats, frames = set(), 0
+    for bag in sorted((root / "mcap").glob("*.mcap")):
+        for m in read_ros2_messages(str(bag), topics=["/camera/image/compressed"]):
+            formats.add(m.ros_msg.format)
+            frames += 1
+            assert bytes(m.ros_msg.data) in {(datasets["jpeg"] / f"image_2/{i:06d}.jpg").read_bytes()
+                                             for i in range(4)}
+    assert formats == {"jpeg"} and frames == 4
+
+
+def test_preview_sheet_reads_jpeg_images(datasets, tmp_path):
+    r = seasynth("preview", datasets["jpeg"], "--out", tmp_path / "sheet.png")
+    assert r.returncode == 0, r.stderr
+    assert Image.open(tmp_path / "sheet.png").size[0] > 64
+
+
+@pytest.mark.parametrize(("outputs", "field"), [
+    ({"image_format": "jpeg", "jpeg_quality": 0}, "outputs.jpeg_quality"),
+    ({"image_format": "jpeg", "jpeg_quality": 101}, "outputs.jpeg_quality"),
+    ({"image_format": "webp"}, "outputs.image_format"),
+])
+def test_bad_image_format_settings_are_refused_naming_the_field(outputs, field):
+    got = refusal({"outputs": outputs})
+    assert any(line.startswith(field) for line in got), got
