@@ -173,6 +173,16 @@ def test_single_frame_equals_the_file_in_its_shard(stack: Stack, client, service
         fetched = tmp_path / "fetched"
         fetch_dataset(stack.api_url, dataset_id, fetched, progress=False)
         assert tree(fetched) == local_generate(spec, tmp_path / "local")
+        # The service's preview sheet reads the JPEG images from the shards: the sheet `seasynth preview` draws
+        import numpy as np
+        from PIL import Image
+
+        from worker.preview import make_preview
+
+        r = client.get(f"/datasets/{dataset_id}/preview.png", params={"frames": 12})
+        assert r.status_code == 200, r.text
+        local = make_preview(fetched, tmp_path / "sheet.png", frames=12)
+        assert np.array_equal(np.asarray(Image.open(io.BytesIO(r.content))), np.asarray(Image.open(local.sheet)))
     assert client.get(f"/datasets/{dataset_id}/frames/5").status_code == 404
     assert client.get(f"/datasets/{dataset_id}/frames/0", params={"part": "depth"}).status_code == 404
 
