@@ -160,7 +160,7 @@ class FrameReader:
     """Reads frames of a dataset; with masks, instance ids come from instance/ + meta/, else by re-rendering.
 
     Re-rendering (a dataset without instance/ or meta/) renders each frame again with outputs.instance and
-    outputs.meta on, in one GL session of this process, and refuses a frame whose re-rendered image_2 PNG or
+    outputs.meta on, in one GL session of this process, and refuses a frame whose re-rendered image_2 file or
     label_2 text differs by one byte from the dataset's (another code version, renderer or user file).
     """
 
