@@ -174,3 +174,27 @@ def test_the_render_pools_resource_tracker_cleans_up_without_a_warning():
     assert all(r.returncode == 0 and r.stdout == "" for r in runs.values())
     assert "leaked semaphore objects" in runs["plain"].stderr and "/mp-seasynth-unlinked" in runs["plain"].stderr
     assert runs["pool"].stderr == ""
+
+
+def test_a_render_process_killed_mid_run_stops_the_run_with_its_exit_code_and_resume_completes(tmp_path,
+                                                                                              reference):
+    """A render process that dies (SIGKILL, as the OOM killer sends) is seen by its pipe's end: the run stops at
+    once naming its exit code, leaves no temporary file and no process, and --resume completes it identically."""
+    out = tmp_path / "ds"
+    proc = start(out, 2)
+    wait_for(lambda: len(list((out / "image_2").glob("*.png"))) >= 3, proc, "three frames")
+    # The workers are the fork server's children: descendants that are not the command's own children.
+    workers = [pid for pid in descendants(proc.pid) if pid not in children(proc.pid)]
+    assert len(workers) == 2, workers
+    os.kill(workers[0], signal.SIGKILL)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 1, (stdout, stderr)
+    assert "a local worker stopped before finishing its frames (exit code -9)" in stderr, stderr
+    assert group_gone(proc.pid), "a process of the stopped run is still alive"
+    assert sorted(p.name for p in out.rglob(".*")) == []  # the killed worker's temporary file is removed
+    assert json.loads((out / RECORD).read_text())["state"] == "incomplete"
+    resumed = subprocess.run([sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out),
+                              "--frames", str(FRAMES), *SIZE, "--resume", "--workers", "2"], capture_output=True,
+                             text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert {k: v for k, v in tree(out).items() if k != RECORD} == {k: v for k, v in reference.items() if k != RECORD}

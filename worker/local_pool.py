@@ -1,12 +1,13 @@
-"""The local generate's render processes: frames handed out in chunks over a queue, progress, errors and Ctrl-C
-reported back to the parent, which alone decides (worker.generate)."""
+"""The local generate's render processes: frames handed out in chunks over a pipe to each, progress, errors and
+Ctrl-C reported back to the parent, which alone decides (worker.generate)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
-import queue
 import signal
 import tempfile
+from multiprocessing import connection
 from pathlib import Path
 
 from service.errors import OutputError, SeasynthError
@@ -29,59 +30,80 @@ def run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -
 
 
 def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants: str | None) -> str:
+    """Each render process has a pipe of its own: the parent hands it a chunk, and the next when it reports the
+    chunk's frames. Pipes hold no named semaphore (a multiprocessing queue does, and with the fork server the
+    resource tracker could find one already unlinked after a Ctrl-C), and no feeder thread; and a process that
+    ends is seen at once by its sentinel."""
     ctx = pool_context()
-    tasks, results = ctx.Queue(), ctx.Queue()
     chunks = [todo[k : k + CHUNK] for k in range(0, len(todo), CHUNK)]
-    for c in chunks:
-        tasks.put(c)
     workers = min(workers, len(chunks))
-    for _ in range(workers):
-        tasks.put(None)
     payload = spec.model_dump_json()
-    # Daemonic: should this process exit on an unforeseen path, its workers are stopped, not waited for.
     env = dict(os.environ)  # as this process has it now, not as the fork server had it when it started
-    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), tasks, results, platform, gpus, k, pinned,
-                                                  env, variants), daemon=True) for k in range(workers)]
-    renderer, done, finished = "", 0, 0
+    pipes = [ctx.Pipe() for _ in range(workers)]
+    # Daemonic: should this process exit on an unforeseen path, its workers are stopped, not waited for.
+    procs = [ctx.Process(target=_pool_main, args=(payload, str(out), child, platform, gpus, k, pinned, env,
+                                                  variants), daemon=True)
+             for k, (_, child) in enumerate(pipes)]
+    conns = [parent for parent, _ in pipes]
+    renderer, finished, given = "", 0, 0
+
+    def give(k: int) -> None:  # the next chunk to process k, or None: no more
+        nonlocal given
+        try:
+            conns[k].send(chunks[given] if given < len(chunks) else None)
+        except OSError:  # its end is closed: the process has gone
+            raise _lost(procs[k]) from None
+        given += 1
+
     try:
         with sigint_blocked_for_children():
             for p in procs:
                 p.start()
+        for _, child in pipes:
+            child.close()  # the processes hold their ends: EOF here means one has gone
+        for k in range(workers):
+            give(k)
+        by_conn = {conn: k for k, conn in enumerate(conns)}
+        open_conns = set(conns)
         while finished < workers:
-            try:
-                kind, value = results.get(timeout=1.0)
-            except queue.Empty:
-                # Every worker says "done" before it exits, so any exited process (finished is counted only
-                # after the queue drains) whose "done" never came was lost, whatever its exit code.
-                exited = sum(p.exitcode is not None for p in procs)
-                if exited > finished and results.empty():
-                    code = next(p.exitcode for p in procs if p.exitcode is not None)
-                    raise SeasynthError(f"a local worker stopped before finishing its frames (exit code {code})")
-                continue
-            if kind == "frames":
-                done += value
-                on_frames(value)
-            elif kind == "renderer":
-                pin(value)
-                renderer = value
-            elif kind == "done":
-                finished += 1
-            elif kind == "error":
-                raise _rebuild_error(value)
+            for conn in connection.wait(list(open_conns)):
+                k = by_conn[conn]
+                try:
+                    kind, value = conn.recv()
+                except (EOFError, OSError):  # its process has ended without saying "done"
+                    raise _lost(procs[k]) from None
+                if kind == "frames":
+                    on_frames(value)
+                    give(k)
+                elif kind == "renderer":
+                    pin(value)
+                    renderer = value
+                elif kind == "done":
+                    finished += 1
+                    open_conns.discard(conn)
+                elif kind == "error":
+                    raise _rebuild_error(value)
     finally:
         started = [p for p in procs if p.pid is not None]
         if finished < workers:  # stopped early: an error, a lost worker, or Ctrl-C
-            tasks.cancel_join_thread()  # chunks nobody will read must not hold up this process's exit
             for p in started:
                 if p.is_alive():
                     p.terminate()
         for p in started:
             p.join()
+        for parent, child in pipes:
+            parent.close()
+            child.close()
         if finished < workers:
             for p in started:  # a worker stopped mid-write leaves its temporary file
                 for tmp in Path(out).glob(f"*/.*.tmp-{p.pid}"):
                     tmp.unlink(missing_ok=True)
     return renderer
+
+
+def _lost(proc) -> SeasynthError:
+    proc.join(timeout=5.0)
+    return SeasynthError(f"a local worker stopped before finishing its frames (exit code {proc.exitcode})")
 
 
 def _ignore_sigint() -> None:
@@ -90,8 +112,8 @@ def _ignore_sigint() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-def _pool_main(payload: str, out: str, tasks, results, platform: str, gpus: GpuChoice | None, k: int,
-               pinned: str | None, env: dict[str, str], variants: str | None) -> None:
+def _pool_main(payload: str, out: str, conn, platform: str, gpus: GpuChoice | None, k: int, pinned: str | None,
+               env: dict[str, str], variants: str | None) -> None:
     _ignore_sigint()
     os.environ.clear()
     os.environ.update(env)  # before OpenGL is imported: it reads PYOPENGL_PLATFORM once
@@ -102,15 +124,16 @@ def _pool_main(payload: str, out: str, tasks, results, platform: str, gpus: GpuC
         with RenderSession(platform=platform_for_worker(platform, gpus, k), variant_folder=variants) as session:
             if pinned is not None and session.renderer_name != pinned:  # checked here: workers write frames
                 raise OutputError(wrong_renderer(out, pinned, session.renderer_name))
-            results.put(("renderer", session.renderer_name))
-            while (chunk := tasks.get()) is not None:
+            conn.send(("renderer", session.renderer_name))
+            while (chunk := conn.recv()) is not None:
                 for i in chunk:
                     write_frame(Path(out), session.frame_files(spec, i))
-                results.put(("frames", len(chunk)))
+                conn.send(("frames", len(chunk)))
     except BaseException as err:  # report every failure to the parent, which decides
-        results.put(("error", (type(err).__module__, type(err).__qualname__, str(err))))
+        with contextlib.suppress(OSError):  # the parent may be gone (it stops its workers on its way out)
+            conn.send(("error", (type(err).__module__, type(err).__qualname__, str(err))))
         return
-    results.put(("done", None))
+    conn.send(("done", None))
 
 
 def _rebuild_error(value: tuple[str, str, str]) -> Exception:

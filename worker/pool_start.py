@@ -20,8 +20,10 @@ PRELOAD = "worker.local_pool"
 
 
 # multiprocessing's resource tracker (a process of its own, started with this interpreter's -W options) warns at exit
-# of a named semaphore it still tracks but finds already unlinked: with the fork server this happens now and then
-# after a Ctrl-C (python/cpython#98268), although nothing is left behind. Its cleanup stays; its warning goes.
+# of a named semaphore it still tracks but finds already unlinked: with the fork server this happened now and then
+# after a Ctrl-C (python/cpython#98268) while the pool's IPC was multiprocessing queues, although nothing was left
+# behind. The pool now talks over pipes, which hold no named semaphore; the filter stays for any other
+# multiprocessing object a caller makes. The tracker's cleanup stays; only that warning goes.
 QUIET_TRACKER = "ignore::UserWarning:multiprocessing.resource_tracker"
 
 
