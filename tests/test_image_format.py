@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -104,3 +107,21 @@ def test_preview_sheet_reads_jpeg_images(datasets, tmp_path):
 def test_bad_image_format_settings_are_refused_naming_the_field(outputs, field):
     got = refusal({"outputs": outputs})
     assert any(line.startswith(field) for line in got), got
+
+
+def test_jpeg_bytes_do_not_depend_on_the_cpus_simd(datasets):
+    """libjpeg-turbo picks SIMD code by CPU (AVX2, AVX-512, SSE2 or none): every path must give the same bytes, or
+    workers on different hosts would write different files. Its JSIMD_FORCE* switches choose the path here."""
+    code = ("import sys, imagecodecs, numpy as np\n"
+            "from worker.image_files import encode_image\n"
+            "from service.spec import load_spec\n"
+            "from PIL import Image\n"
+            "spec = load_spec(sys.argv[1], {'outputs.image_format': 'jpeg', 'outputs.jpeg_quality': 90})\n"
+            "image = np.asarray(Image.open(sys.argv[2]).convert('RGB'))\n"
+            "sys.stdout.buffer.write(encode_image(image, spec.outputs))\n")
+    source = datasets["png"] / "image_2/000001.png"  # a rendered frame's pixels
+    runs = {force: subprocess.run([sys.executable, "-c", code, str(EXAMPLE), str(source)], capture_output=True,
+                                  env={**os.environ, **({force: "1"} if force else {})}, timeout=60)
+            for force in ("", "JSIMD_FORCENONE", "JSIMD_FORCESSE2")}
+    assert all(r.returncode == 0 and r.stdout[:3] == b"\xff\xd8\xff" for r in runs.values()), runs
+    assert len({r.stdout for r in runs.values()}) == 1
