@@ -339,8 +339,10 @@ def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[s
     header, body = got
     if not header.get("ok"):
         raise worker_error(header, f"frame {index} of dataset {dataset_id}")
+    if "name" in header:  # the worker names the file; the record's spec (parsed on use) only where it did not
+        return header["name"], body
     image_format = (rec.spec.get("outputs") or {}).get("image_format", "png")
-    return header.get("name", frame_file(part, index, IMAGE_SUFFIXES[image_format])), body
+    return frame_file(part, index, IMAGE_SUFFIXES[image_format]), body
 
 
 def worker_error(header: dict[str, Any], what: str) -> Exception:

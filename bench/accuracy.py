@@ -75,7 +75,8 @@ PRESET_NAMES = ("draft", "fast", "default", "high")
 JPEG_PRESET = "default"  # rows for outputs.image_format jpeg (--jpeg Q) render with this preset
 
 
-def variant_specs(spec: DatasetSpec, presets: list[str], jpeg: tuple[int, ...] = ()) -> dict[tuple[str, str], DatasetSpec]:
+def variant_specs(spec: DatasetSpec, presets: list[str],
+                  jpeg: tuple[int, ...] = ()) -> dict[tuple[str, str], DatasetSpec]:
     """(preset, image) -> the spec rendered for that row: every preset as PNG, then JPEG_PRESET as JPEG at each
     quality in `jpeg` (image "jpeg q95", ...)."""
     out = {(p, "png"): spec.model_copy(update={"quality": p}) for p in presets}

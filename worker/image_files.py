@@ -1,9 +1,9 @@
 """The frame image's file (image_2/NNNNNN.png or .jpg, by the spec's outputs.image_format). Readers of a dataset
 decode either through Pillow (service.sheet.decode_png) or copy its bytes (the exports).
 
-PNG is libpng through imagecodecs (png_bytes, lossless; also depth, instance and clean). JPEG is libjpeg-turbo through imagecodecs,
-baseline, 4:2:0 chroma, not optimised: the same pixels and settings give the same bytes for the same imagecodecs
-(and with it libjpeg-turbo) version, which the frame's meta records.
+PNG is libpng through imagecodecs (png_bytes, lossless; also depth, instance and clean). JPEG is libjpeg-turbo
+through imagecodecs, baseline, 4:2:0 chroma, not optimised: the same pixels and settings give the same bytes for the
+same imagecodecs (and with it libjpeg-turbo) version, which the frame's meta records, whatever the CPU's SIMD.
 """
 
 from __future__ import annotations

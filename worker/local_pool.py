@@ -33,7 +33,7 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
     """Each render process has a pipe of its own: the parent hands it a chunk, and the next when it reports the
     chunk's frames. Pipes hold no named semaphore (a multiprocessing queue does, and with the fork server the
     resource tracker could find one already unlinked after a Ctrl-C), and no feeder thread; and a process that
-    ends is seen at once by its sentinel."""
+    ends is seen at once, by the end of its pipe."""
     ctx = pool_context()
     chunks = [todo[k : k + CHUNK] for k in range(0, len(todo), CHUNK)]
     workers = min(workers, len(chunks))

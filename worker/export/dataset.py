@@ -264,7 +264,7 @@ def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
                               f"{spec.camera.height}x{spec.camera.width} (height x width)")
         objects = _with_masks(objects, instance, meta, where, label_path, distractors)
     o = spec.outputs
-    return Frame(index=index, name=n, image=root / f"image_2/{n}{spec.outputs.image_suffix}", width=spec.camera.width,
+    return Frame(index=index, name=n, image=root / f"image_2/{n}{o.image_suffix}", width=spec.camera.width,
                  height=spec.camera.height, objects=tuple(objects), instance=instance,
                  calib=root / f"calib/{n}.txt", meta=root / f"meta/{n}.json" if o.meta else None,
                  depth=root / f"depth/{n}.png" if o.depth else None,
