@@ -32,6 +32,23 @@ def test_committed_accuracy_tables_are_of_the_current_scenes_and_meet_the_target
     assert all(f"| {s} | {p} | {rows[(s, p)]['ms_per_frame']} | {rows[(s, p)]['psnr_db']} |" in table for s, p in rows)
 
 
+def test_committed_jpeg_table_is_of_the_current_scenes_with_each_jpeg_row_beside_its_png_row():
+    result = json.loads((RESULTS / "cpu" / "accuracy-jpeg" / "accuracy.json").read_text())
+    assert result["scene_spec_sha256"] == {name: spec_digest(accuracy.scene_spec(name)) for name in accuracy.SCENES}
+    rows = {(r["scene"], r["preset"], r["image"]): r for r in result["rows"]}
+    assert sorted(rows) == sorted((s, p, i) for s in accuracy.SCENES for p, i in (
+        ("draft", "png"), ("default", "png"), ("default", "jpeg q95"), ("default", "jpeg q90")))
+    for scene in accuracy.SCENES:
+        png = rows[(scene, "default", "png")]
+        assert png["formation_error"] <= 1
+        for q in ("jpeg q95", "jpeg q90"):
+            jpeg = rows[(scene, "default", q)]
+            assert jpeg["formation_error"] is None and jpeg["codec_max_err"] > 0
+            assert jpeg["psnr_db"] < png["psnr_db"] and jpeg["labelled_targets"] == png["labelled_targets"]
+    table = (RESULTS / "cpu" / "accuracy-jpeg" / "accuracy.md").read_text()
+    assert table == accuracy.format_table(result) + "\n"
+
+
 def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stored_references():
     from bench import fidelity
     from bench.accuracy import psnr_db
