@@ -21,11 +21,9 @@ from service.recovery import cancelled_key, check_redis, forget, restore, save_r
 from service.shards import (
     FRAME_PARTS,
     dataset_prefix,
-    frame_file,
     shard_count,
 )
 from service.spec import DatasetSpec
-from service.spec_outputs import IMAGE_SUFFIXES
 
 log = logging.getLogger(__name__)
 
@@ -339,10 +337,7 @@ def frame(services: Services, dataset_id: str, index: int, part: str) -> tuple[s
     header, body = got
     if not header.get("ok"):
         raise worker_error(header, f"frame {index} of dataset {dataset_id}")
-    if "name" in header:  # the worker names the file; the record's spec (parsed on use) only where it did not
-        return header["name"], body
-    image_format = (rec.spec.get("outputs") or {}).get("image_format", "png")
-    return frame_file(part, index, IMAGE_SUFFIXES[image_format]), body
+    return header["name"], body  # the worker names the file (its spec's image format decides .png or .jpg)
 
 
 def worker_error(header: dict[str, Any], what: str) -> Exception:

@@ -74,7 +74,7 @@ class PreviewPublic(BaseModel):
     seed: int
     width: int
     height: int
-    images: dict[str, str] = Field(description="View name -> PNG data URL")
+    images: dict[str, str] = Field(description="View name -> image data URL (PNG; the image view as the spec encodes it)")
     boxes: list[dict[str, Any]] = Field(description="KITTI boxes: class, box [left, top, right, bottom] px, "
                                                     "truncated, occluded")
     render_ms: float

@@ -83,14 +83,14 @@ def _call(module: str, func: str, **kw) -> Callable[[np.ndarray], bytes]:
 
 
 def _png_bytes(a: np.ndarray) -> bytes:
-    from worker.pipeline import png_bytes
+    from worker.image_files import png_bytes
 
     return png_bytes(a)
 
 
 def candidates() -> list[Candidate]:
     """Every encoder we compare, installed or not (built on call: nothing is imported here)."""
-    from worker.pipeline import PNG_SETTINGS
+    from worker.image_files import PNG_SETTINGS
 
     both, rgb = KINDS, ("rgb8",)
     settings = ", ".join(f"{k}={v}" for k, v in PNG_SETTINGS.items())

@@ -40,10 +40,12 @@ ENV PATH=/opt/venv/bin:$PATH \
     NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics \
     SEASYNTH_GPUS=auto \
     __GL_SHADER_DISK_CACHE_PATH=/var/cache/seasynth/gl \
-    __GL_SHADER_DISK_CACHE_SKIP_CLEANUP=1
+    __GL_SHADER_DISK_CACHE_SIZE=134217728
 # The driver's compiled shaders live in __GL_SHADER_DISK_CACHE_PATH: mount a volume there (compose and the
 # Kubernetes manifests do) so a restarted worker finds them. On an H100 host a fresh cache made each render
-# process's first frame 0.4 s slower (median 830-930 ms against 470-520; bench/results/gpu/shader-cache.md).
+# process's first frame about 0.4 s slower (median 817-930 ms against 473-524; bench/results/gpu/shader-cache.md).
+# The driver keeps the cache under __GL_SHADER_DISK_CACHE_SIZE (128 MiB; the example's shaders took 3.6 MB),
+# below the Kubernetes volume's 256 MiB limit.
 RUN groupadd --system --gid 10001 seasynth \
  && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth \
  && mkdir -p /var/cache/seasynth/gl && chown 10001:10001 /var/cache/seasynth/gl

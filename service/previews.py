@@ -130,15 +130,15 @@ def frames_of_tar(path: Path, key: str) -> Iterator[tuple[str, dict[str, bytes]]
 def _tile(spec: DatasetSpec, name: str, files: dict[str, bytes], boxes: tuple, where: str) -> Tile:
     o = spec.outputs
 
-    def png(folder: str):  # image_2 may be a JPEG (outputs.image_format): Pillow decodes either
+    def read(folder: str):  # image_2 may be a JPEG (outputs.image_format): Pillow decodes either
         rel = f"{folder}/{name}{o.image_suffix if folder == 'image_2' else '.png'}"
         data = files.get(rel)
         if data is None:
             raise ExportError(f"{where}: no {rel} in the shard")
         return decode_png(data, f"{where} {folder}")
 
-    return Tile(name=name, image=png("image_2")[..., :3], boxes=boxes, depth=png("depth") if o.depth else None,
-                instance=png("instance") if o.instance else None)
+    return Tile(name=name, image=read("image_2")[..., :3], boxes=boxes, depth=read("depth") if o.depth else None,
+                instance=read("instance") if o.instance else None)
 
 
 def _label_lines(data: bytes | None, where: str) -> list[tuple[str, tuple[int, int, int, int], float, int]]:

@@ -283,7 +283,8 @@ def png_bytes(image) -> bytes:
 
 
 def decode_png(data: bytes, where: str) -> np.ndarray:
-    """The pixels of PNG bytes, as Pillow reads them; ExportError naming `where` if they are no image."""
+    """The pixels of PNG (or JPEG: a JPEG dataset's image_2) bytes, as Pillow reads them; ExportError naming
+    `where` if they are no image."""
     from PIL import Image, UnidentifiedImageError
 
     try:

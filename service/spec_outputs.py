@@ -48,8 +48,8 @@ class Outputs(SpecModel):
     split: tuple[StrictFloat, StrictFloat, StrictFloat] = (0.8, 0.1, 0.1)
     # image_2's encoding: png (lossless, the default) or jpeg at jpeg_quality (libjpeg-turbo through imagecodecs,
     # 4:2:0 chroma, baseline), for training on JPEG as most detector datasets are. depth, instance and clean stay
-    # PNG: they are targets, not inputs. jpeg_quality is read with jpeg only (a stored spec holds every field). The
-    # accuracy bench reports what JPEG costs in PSNR.
+    # PNG: they are targets, not inputs. jpeg_quality other than its default needs jpeg (so that two specs of the same
+    # files have one digest; a stored spec holds the default). The accuracy bench reports what JPEG costs in PSNR.
     image_format: Literal["png", "jpeg"] = "png"
     jpeg_quality: StrictInt = Field(95, ge=1, le=100)
 
@@ -60,6 +60,13 @@ class Outputs(SpecModel):
             raise ValueError(f"needs outputs.labels: true (the {info.field_name} export's boxes are the label_2 "
                              "lines)")
         return on
+
+    @field_validator("jpeg_quality")
+    @classmethod
+    def _quality_needs_jpeg(cls, q: int, info) -> int:
+        if q != cls.model_fields["jpeg_quality"].default and info.data.get("image_format") != "jpeg":
+            raise ValueError("is for image_format jpeg; with png (lossless) leave it out")
+        return q
 
     @field_validator("split")
     @classmethod

@@ -50,7 +50,6 @@ def test_jpeg_rows_show_what_the_codec_costs_beside_the_png_rows(tmp_path, monke
         assert rows[name]["psnr_db"] < rows["png"]["psnr_db"]
         assert rows[name]["labelled_targets"] == rows["png"]["labelled_targets"]
     assert rows["jpeg q60"]["psnr_db"] < rows["jpeg q95"]["psnr_db"]
-    assert rows["jpeg q60"]["codec_max_err"] >= rows["jpeg q95"]["codec_max_err"]
     table = (tmp_path / "accuracy.md").read_text()
     assert f"| {SCENE} | default | jpeg q95 | {rows['jpeg q95']['ms_per_frame']} |" in table
 

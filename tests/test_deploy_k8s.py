@@ -247,7 +247,9 @@ def test_k8s_workers(rendered, compose, name, kustomization):
         (mount,) = c["volumeMounts"]
         assert mount["mountPath"] == dockerfile_env["__GL_SHADER_DISK_CACHE_PATH"]
         (volume,) = [v for v in pod["volumes"] if v["name"] == mount["name"]]
-        assert "emptyDir" in volume
+        limit = volume["emptyDir"]["sizeLimit"]
+        size = {"Mi": 2**20, "Gi": 2**30}[limit[-2:]] * int(limit[:-2])
+        assert int(dockerfile_env["__GL_SHADER_DISK_CACHE_SIZE"]) < size, "the driver's cache fits its volume"
     else:
         assert "nvidia.com/gpu" not in lim
 

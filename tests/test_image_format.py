@@ -16,7 +16,7 @@ from local_datasets import EXAMPLE, seasynth, tree
 from PIL import Image
 from spec_helpers import refusal
 
-from service.spec import load_spec
+from service.spec import DatasetSpec, load_spec, parse_spec, spec_digest
 from worker.export import export_generated
 from worker.generate import generate
 from worker.pipeline import frame_paths
@@ -101,6 +101,7 @@ def test_preview_sheet_reads_jpeg_images(datasets, tmp_path):
 
 
 @pytest.mark.parametrize(("outputs", "field"), [
+    ({"jpeg_quality": 80}, "outputs.jpeg_quality"),  # a quality with the lossless format: same files, other digest
     ({"image_format": "jpeg", "jpeg_quality": 0}, "outputs.jpeg_quality"),
     ({"image_format": "jpeg", "jpeg_quality": 101}, "outputs.jpeg_quality"),
     ({"image_format": "webp"}, "outputs.image_format"),
@@ -110,9 +111,17 @@ def test_bad_image_format_settings_are_refused_naming_the_field(outputs, field):
     assert any(line.startswith(field) for line in got), got
 
 
+def test_a_stored_png_spec_with_every_field_validates_again():
+    spec = load_spec(EXAMPLE, BASE)
+    again = parse_spec(json.loads(spec.model_dump_json()))
+    assert again == spec and spec_digest(again) == spec_digest(spec)
+    assert parse_spec({"outputs": {"image_format": "png", "jpeg_quality": 95}}) == DatasetSpec()
+
+
 def test_jpeg_bytes_do_not_depend_on_the_cpus_simd(datasets):
-    """libjpeg-turbo picks SIMD code by CPU (AVX2, AVX-512, SSE2 or none): every path must give the same bytes, or
-    workers on different hosts would write different files. Its JSIMD_FORCE* switches choose the path here."""
+    """libjpeg-turbo picks SIMD code by CPU (AVX2, SSE2, or plain C): every path must give the same bytes, or
+    workers on different hosts would write different files. Its JSIMD_FORCE* switches choose the path here (on a
+    CPU without AVX2 the default is one of the others)."""
     code = ("import sys, imagecodecs, numpy as np\n"
             "from worker.image_files import encode_image\n"
             "from service.spec import load_spec\n"

@@ -30,8 +30,9 @@ def run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -
 
 
 def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants: str | None) -> str:
-    """Each render process has a pipe of its own: the parent hands it a chunk, and the next when it reports the
-    chunk's frames. Pipes hold no named semaphore (a multiprocessing queue does, and with the fork server the
+    """Each render process has a pipe of its own: the parent hands it a chunk once it has named its renderer (and the
+    dataset's pin accepted it: no frame of another renderer is written), and the next when it reports the chunk's
+    frames. Pipes hold no named semaphore (a multiprocessing queue does, and with the fork server the
     resource tracker could find one already unlinked after a Ctrl-C), and no feeder thread; and a process that
     ends is seen at once, by the end of its pipe."""
     ctx = pool_context()
@@ -51,8 +52,8 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
         nonlocal given
         try:
             conns[k].send(chunks[given] if given < len(chunks) else None)
-        except OSError:  # its end is closed: the process has gone
-            raise _lost(procs[k]) from None
+        except OSError:  # its end is closed: the process has gone, perhaps saying why first
+            raise _last_word(conns[k]) or _lost(procs[k]) from None
         given += 1
 
     try:
@@ -61,8 +62,6 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
                 p.start()
         for _, child in pipes:
             child.close()  # the processes hold their ends: EOF here means one has gone
-        for k in range(workers):
-            give(k)
         by_conn = {conn: k for k, conn in enumerate(conns)}
         open_conns = set(conns)
         while finished < workers:
@@ -75,9 +74,10 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
                 if kind == "frames":
                     on_frames(value)
                     give(k)
-                elif kind == "renderer":
+                elif kind == "renderer":  # its first chunk only once its renderer is the dataset's
                     pin(value)
                     renderer = value
+                    give(k)
                 elif kind == "done":
                     finished += 1
                     open_conns.discard(conn)
@@ -99,6 +99,18 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
                 for tmp in Path(out).glob(f"*/.*.tmp-{p.pid}"):
                     tmp.unlink(missing_ok=True)
     return renderer
+
+
+def _last_word(conn) -> Exception | None:
+    """The error a process that has gone sent before it went, if any (read from what is left in its pipe)."""
+    try:
+        while conn.poll():
+            kind, value = conn.recv()
+            if kind == "error":
+                return _rebuild_error(value)
+    except (EOFError, OSError):
+        pass
+    return None
 
 
 def _lost(proc) -> SeasynthError:

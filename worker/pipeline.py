@@ -19,7 +19,7 @@ from worker.assets import Asset
 from worker.assets.procedural import procedural_asset
 from worker.assets.terrain import Terrain, apply_texture
 from worker.frame_meta import frame_meta
-from worker.image_files import PNG_SETTINGS, encode_image, png_bytes  # noqa: F401 (PNG_SETTINGS: the benches)
+from worker.image_files import encode_image, png_bytes
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from worker.scene import Placed, Scene, on_trajectory, sample_scene
 from worker.sensors.outputs import SensorFrame, sensor_frame, sensor_paths, sensors_on
@@ -270,8 +270,8 @@ class RenderSession:
             mark("sensors")
 
         n = frame_name(index)
-        files: dict[str, bytes] = {f"image_2/{n}{o.image_suffix}": encode_image(encode_srgb8(image) if noisy else image,
-                                                                             o)}
+        image8 = encode_srgb8(image) if noisy else image
+        files: dict[str, bytes] = {f"image_2/{n}{o.image_suffix}": encode_image(image8, o)}
         if o.labels:
             files[f"label_2/{n}.txt"] = kitti.format_label_file(frame_labels.objects).encode()
         files[f"calib/{n}.txt"] = kitti.format_calib(view.K).encode()

@@ -49,8 +49,8 @@ def preview_spec(spec: DatasetSpec, views: Iterable[str], width: int | None = No
     return spec.model_copy(update={"quality": "draft", "outputs": outputs, "camera": camera})
 
 
-def png_data_url(png: bytes, media_type: str = "image/png") -> str:
-    return f"data:{media_type};base64," + base64.b64encode(png).decode()
+def png_data_url(png: bytes, mime: str = "image/png") -> str:
+    return f"data:{mime};base64," + base64.b64encode(png).decode()
 
 
 def image_data_url(files: dict[str, bytes], spec: DatasetSpec, index: int) -> str:

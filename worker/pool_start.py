@@ -57,7 +57,7 @@ def sigint_blocked_for_children() -> Iterator[None]:
     inherit its mask), and ignores SIGINT itself.
 
     Only this thread's mask changes. Setting SIGINT's disposition to SIG_IGN here instead would lose a Ctrl-C that
-    came meanwhile: another thread of this process (a queue's feeder, the progress bar) would take it and discard
+    came meanwhile: another thread of this process (the progress bar's) would take it and discard
     it. Blocked, it waits for this thread or is handled by another, and Python raises it in the main thread.
     """
     if threading.current_thread() is not threading.main_thread():  # signals are the main thread's business

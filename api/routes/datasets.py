@@ -64,7 +64,7 @@ def get_manifest(
 @router.get(
     "/{id}/frames/{index}",
     response_class=Response,
-    responses={200: {"content": {"image/png": {}, "text/plain": {}, "application/json": {},
+    responses={200: {"content": {"image/png": {}, "image/jpeg": {}, "text/plain": {}, "application/json": {},
                                  "application/octet-stream": {}}},
                **error_responses(404, 502)},
 )
@@ -75,7 +75,8 @@ def get_frame(
     part: Annotated[
         Literal["image", "label", "calib", "meta", "depth", "instance", "clean", "range", "fls", "fls_fan",
                 "fls_label", "sss", "sss_label", "nav"],
-        Query(description="Which of the frame's files: the PNG by default"),
+        Query(description="Which of the frame's files: the image by default (PNG, or JPEG where the spec's "
+                          "outputs.image_format is jpeg)"),
     ] = "image",
 ) -> Response:
     """Re-render frame `index` from (spec, seed, index) on a worker: byte-identical to the file in its shard."""

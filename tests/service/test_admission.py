@@ -9,11 +9,11 @@ from collections.abc import Iterator
 
 import httpx
 
+from isolated_stacks import api_on
 from service.shards import shard_seconds, spec_shard_seconds
 from service.spec import parse_spec
 from service_stack import Stack, tiny_spec
 from test_service_plumbing import HEAVY
-from test_worker_robustness import api_on
 
 REFUSAL = re.compile(
     r"shard_size: (\d+) frames of 640x480 at quality 'draft' \(up to 128 objects, 1024 terrain cells a side, "

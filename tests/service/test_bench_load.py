@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from bench import load as bench
+from isolated_stacks import isolated
 from service_stack import Stack, free_port, wait_worker_ready
-from test_worker_robustness import isolated
 
 RESULTS = Path(__file__).resolve().parents[2] / "bench" / "results" / "cpu"
 

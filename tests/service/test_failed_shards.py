@@ -9,13 +9,13 @@ import uuid
 import pytest
 from celery import Celery
 
+from isolated_stacks import api_on, isolated, queued_tasks
 from service import __version__
 from service.queues import TASK_PLAN, TASK_SHARD, shard_queue
 from service.record_types import FAILED
 from service.records import ERRORS_SHOWN
 from service_stack import Stack
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
-from test_worker_robustness import api_on, isolated, queued_tasks
 
 
 def test_a_record_carries_the_errors_of_the_first_failed_shards_and_counts_them_all(infra: Stack):

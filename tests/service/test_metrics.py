@@ -9,10 +9,10 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from api.metrics import queue_lists
+from isolated_stacks import isolated
 from service import __version__
 from service.queues import frame_queue, shard_queue
 from service_stack import Stack, free_port, tiny_spec, wait_for, wait_state, wait_worker_ready
-from test_worker_robustness import isolated
 
 KEY = "k-metrics"
 IDLE_VERSION = "0.0.0-metrics"  # no worker consumes its queues: what the API publishes stays there

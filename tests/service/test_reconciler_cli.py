@@ -9,10 +9,10 @@ from pathlib import Path
 
 import yaml
 
+from isolated_stacks import isolated, queued_tasks, record_only
 from service import __version__
 from service.queues import TASK_RECONCILE, shard_queue
 from service_stack import Stack, tiny_spec, wait_for
-from test_worker_robustness import isolated, queued_tasks, record_only
 
 ROOT = Path(__file__).resolve().parents[2]
 

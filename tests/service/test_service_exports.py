@@ -18,6 +18,7 @@ import pytest
 import yaml
 from PIL import Image
 
+from isolated_stacks import api_on
 from service import __version__
 from service.fetch import STATE_DIR, fetch_dataset
 from service.queues import TASK_SHARD, shard_queue
@@ -26,7 +27,6 @@ from service.shards import commit_key, export_part_key, shard_key
 from service.spec import parse_spec
 from service_stack import Stack, tiny_spec, wait_for, wait_state
 from test_admission import unserved_api
-from test_worker_robustness import api_on
 from worker.export import SPLITS, plan_export, run_export
 from worker.export.files import EXPORT_RECORD
 from worker.export.merge import PartMerger, mcap_name

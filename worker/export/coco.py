@@ -4,7 +4,7 @@ Per split, the `images` and `annotations` arrays are appended to two temporary f
 object per line), and `finish` assembles the final file by copying them between the fixed head and tail, so memory
 stays flat in the number of frames.
 
-- image: `id` = frame index, `file_name` = "000123.png" (under images/{split}/), `width`, `height` (px).
+- image: `id` = frame index, `file_name` = "000123.png" (or .jpg; under images/{split}/), `width`, `height` (px).
 - annotation: `id` = frame index * 65536 + instance id (unique, >= 1, the same whatever the split), `image_id`,
   `category_id` (1 = the spec's target class, 2 = "distractor" with --distractors), `bbox` (coco_bbox), `area`
   = the instance's pixel count, `iscrowd` = 0, `segmentation` = compressed COCO RLE of the instance id's pixels

@@ -1,4 +1,4 @@
-"""YOLO detection export in Ultralytics' layout: images/{split}/*.png, labels/{split}/*.txt and data.yaml.
+"""YOLO detection export in Ultralytics' layout: images/{split}/*.png (or .jpg), labels/{split}/*.txt, data.yaml.
 
 A label file has one line per object, `class cx cy w h`: the 0-based class (0 = the spec's target class,
 1 = "distractor" with --distractors) and the box's centre and size normalised by the image's width and height,
