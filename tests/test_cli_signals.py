@@ -193,6 +193,7 @@ def test_a_render_process_killed_mid_run_stops_the_run_with_its_exit_code_and_re
     assert group_gone(proc.pid), "a process of the stopped run is still alive"
     assert sorted(p.name for p in out.rglob(".*")) == []  # the killed worker's temporary file is removed
     assert json.loads((out / RECORD).read_text())["state"] == "incomplete"
+    assert len(list((out / "image_2").glob("*.png"))) < FRAMES, "the other process went on to the end"
     resumed = subprocess.run([sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out),
                               "--frames", str(FRAMES), *SIZE, "--resume", "--workers", "2"], capture_output=True,
                              text=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -95,9 +96,22 @@ def test_exports_carry_the_jpeg_files(datasets):
 
 
 def test_preview_sheet_reads_jpeg_images(datasets, tmp_path):
-    r = seasynth("preview", datasets["jpeg"], "--out", tmp_path / "sheet.png")
-    assert r.returncode == 0, r.stderr
-    assert Image.open(tmp_path / "sheet.png").size[0] > 64
+    """The sheet of the JPEG dataset is pixel for pixel the sheet of the same dataset with each JPEG's decoded pixels
+    stored as PNG: it shows exactly what the JPEG files hold."""
+    as_png = tmp_path / "as-png"
+    shutil.copytree(datasets["jpeg"], as_png, ignore=shutil.ignore_patterns("export"))
+    for jpg in sorted((as_png / "image_2").glob("*.jpg")):
+        Image.open(jpg).convert("RGB").save(jpg.with_suffix(".png"))
+        jpg.unlink()
+    record = json.loads((as_png / "seasynth.json").read_text())
+    record["spec"]["outputs"].update(image_format="png", jpeg_quality=95)
+    (as_png / "seasynth.json").write_text(json.dumps(record))
+    sheets = {}
+    for name, root in (("jpeg", datasets["jpeg"]), ("as-png", as_png)):
+        r = seasynth("preview", root, "--out", tmp_path / f"{name}.png")
+        assert r.returncode == 0, r.stderr
+        sheets[name] = np.asarray(Image.open(tmp_path / f"{name}.png"))
+    assert sheets["jpeg"].shape == sheets["as-png"].shape and np.array_equal(sheets["jpeg"], sheets["as-png"])
 
 
 @pytest.mark.parametrize(("outputs", "field"), [
