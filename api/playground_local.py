@@ -21,6 +21,7 @@ from api.playground import Previewer, playground_router
 from api.routes import calibrate
 from service.errors import Conflict, NotFound
 from service.spec import parse_spec
+from service.spec_outputs import IMAGE_SUFFIXES
 
 ERROR_TAIL = 2000  # characters of a failed run's stderr shown on the page
 
@@ -69,7 +70,8 @@ class LocalRuns:
         proc, total, out = got
         code = proc.poll()
         images = out / "image_2"
-        done = sum(1 for p in images.iterdir() if p.suffix in (".png", ".jpg")) if images.is_dir() else 0
+        suffixes = set(IMAGE_SUFFIXES.values())
+        done = sum(1 for p in images.iterdir() if p.suffix in suffixes) if images.is_dir() else 0
         state = "running" if code is None else ("succeeded" if code == 0 else "failed")
         error = None
         if state == "failed":

@@ -20,7 +20,7 @@ import numpy as np
 from service.errors import ExportError
 from service.sensors import Sensors
 from service.seeds import frame_rng
-from service.spec_outputs import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
+from service.spec_outputs import EXPORT_FORMATS, IMAGE_SUFFIXES, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
 from worker.export.dataset import (
     DISTRACTOR,
     DISTRACTOR_NAME,
@@ -100,7 +100,11 @@ class ExportInfo:
     code_version: str | None  # the dataset's
     fractions: tuple[float, float, float]  # train, val, test
     sensors: Sensors = Sensors()  # the spec's sonar and navigation sensors (their files are in Frame.sensor_files)
-    image_suffix: str = ".png"  # the frames' image_2 files (the spec's outputs.image_suffix: .png or .jpg)
+    image_format: str = "png"  # the frames' image_2 files (the spec's outputs.image_format: png or jpeg)
+
+    @property
+    def image_suffix(self) -> str:
+        return IMAGE_SUFFIXES[self.image_format]
 
 
 class Exporter(Protocol):
@@ -220,7 +224,7 @@ def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] 
     info = ExportInfo(out=out, categories=plan.categories, width=ds.spec.camera.width,
                       height=ds.spec.camera.height, dataset_seed=ds.spec.seed, spec_sha256=ds.spec_sha256,
                       code_version=ds.code_version, fractions=plan.fractions, sensors=ds.spec.sensors,
-                      image_suffix=ds.spec.outputs.image_suffix)
+                      image_format=ds.spec.outputs.image_format)
     counts = dict.fromkeys(SPLITS, 0)
     with FrameReader(ds, masks=exporter.needs_masks, distractors=plan.distractors, platform=platform) as reader:
         exporter.begin(info)

@@ -209,8 +209,9 @@ class McapExporter:
             image = frame.image.read_bytes()
         except OSError as err:
             raise ExportError(f"{frame.image}: unreadable ({err.strerror or err})") from None
-        fmt = "jpeg" if self._info.image_suffix == ".jpg" else "png"  # CompressedImage's format names the codec
-        self._write(split, IMAGE_TOPIC, {"header": _header(ns), "format": fmt, "data": image}, ns, seq)
+        # CompressedImage's format names the codec: png or jpeg, as outputs.image_format does
+        self._write(split, IMAGE_TOPIC, {"header": _header(ns), "format": self._info.image_format, "data": image}, ns,
+                    seq)
 
         p = camera_projection(frame.calib)
         self._write(split, INFO_TOPIC, {
