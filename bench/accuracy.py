@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.shards import frame_file
 from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
@@ -191,7 +192,7 @@ def errors(session, s: DatasetSpec, ref: Reference) -> dict:
 
     preset = s.quality
     files = session.frame_files(s, 0)
-    image = np.asarray(Image.open(io.BytesIO(files[f"image_2/000000{s.outputs.image_suffix}"])).convert("RGB"))
+    image = np.asarray(Image.open(io.BytesIO(files[frame_file("image", 0, s.outputs.image_suffix)])).convert("RGB"))
     scene = session.scene(s, 0)
     view = session.view(s, scene)
     items = session.draw_items(scene)
@@ -209,7 +210,7 @@ def errors(session, s: DatasetSpec, ref: Reference) -> dict:
     codec = {}
     if s.outputs.image_format != "png":
         png = s.model_copy(update={"outputs": s.outputs.model_copy(update={"image_format": "png"})})
-        lossless = np.asarray(Image.open(io.BytesIO(session.frame_files(png, 0)["image_2/000000.png"])))
+        lossless = np.asarray(Image.open(io.BytesIO(session.frame_files(png, 0)[frame_file("image", 0)])))
         codec = {"codec_max_err": int(np.abs(image.astype(np.int64) - lossless.astype(np.int64)).max())}
         formation = None
     return {

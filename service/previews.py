@@ -16,7 +16,7 @@ from service.errors import ExportError, NotFound
 from service.kitti import parse_label_file
 from service.record_types import DatasetRecord, ShardCommit
 from service.records import Records
-from service.shards import preview_key
+from service.shards import FRAME_PARTS, named_file, preview_key
 from service.sheet import (
     TILE_WIDTH,
     SummaryCounter,
@@ -35,7 +35,7 @@ SHEET_FRAMES = 12  # tiles on a sheet by default
 MAX_SHEET_FRAMES = 48
 COMMITS_PER_READ = 1000  # shard indices per Redis read while looking for the first committed shards
 # The folders of a frame the sheet reads (calib/, clean/ and range/ are skipped unread).
-READ = ("image_2", "label_2", "meta", "depth", "instance")
+READ = tuple(FRAME_PARTS[part][0] for part in ("image", "label", "meta", "depth", "instance"))
 
 
 def preview_sources(records: Records, rec: DatasetRecord, frames: int) -> list[ShardCommit]:
@@ -98,8 +98,9 @@ def draw_preview(store: ObjectStore, spec: DatasetSpec, sources: list[ShardCommi
             store.download(commit.key, path)
             for name, files in frames_of_tar(path, commit.key):
                 where = f"{commit.key}: frame {name}"
-                objects = _label_lines(files.get(f"label_2/{name}.txt"), where)
-                meta = _json(files[f"meta/{name}.json"], where) if f"meta/{name}.json" in files else None
+                objects = _label_lines(files.get(named_file("label", name)), where)
+                rel_meta = named_file("meta", name)
+                meta = _json(files[rel_meta], where) if rel_meta in files else None
                 counter.add(objects, jerlov_of(meta))
                 boxes = tuple((cls, box, class_colour(colours, cls)) for cls, box, _, _ in objects)
                 if len(tiles) < frames:
@@ -130,14 +131,14 @@ def frames_of_tar(path: Path, key: str) -> Iterator[tuple[str, dict[str, bytes]]
 def _tile(spec: DatasetSpec, name: str, files: dict[str, bytes], boxes: tuple, where: str) -> Tile:
     o = spec.outputs
 
-    def read(folder: str):  # image_2 may be a JPEG (outputs.image_format): Pillow decodes either
-        rel = f"{folder}/{name}{o.image_suffix if folder == 'image_2' else '.png'}"
+    def read(part: str):  # image_2 may be a JPEG (outputs.image_format): Pillow decodes either
+        rel = named_file(part, name, o.image_suffix)
         data = files.get(rel)
         if data is None:
             raise ExportError(f"{where}: no {rel} in the shard")
-        return decode_png(data, f"{where} {folder}")
+        return decode_png(data, f"{where} {FRAME_PARTS[part][0]}")
 
-    return Tile(name=name, image=read("image_2")[..., :3], boxes=boxes, depth=read("depth") if o.depth else None,
+    return Tile(name=name, image=read("image")[..., :3], boxes=boxes, depth=read("depth") if o.depth else None,
                 instance=read("instance") if o.instance else None)
 
 

@@ -221,6 +221,15 @@ FRAME_PARTS: dict[str, tuple[str, str]] = {
     "sss_label": ("sss_label", ".json"),
     "nav": ("nav", ".json"),
 }
+SENSOR_PARTS = ("fls", "fls_fan", "fls_label", "sss", "sss_label", "nav")
+# Media types of a frame's files by suffix (GET /datasets/{id}/frames/{i}, the playground's data URLs).
+MEDIA_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".txt": "text/plain; charset=utf-8",
+               ".json": "application/json", ".npy": "application/octet-stream"}
+
+
+def media_type(path: str) -> str:
+    """The media type of a frame file (a relative path from frame_file) by its suffix."""
+    return MEDIA_TYPES.get("." + path.rsplit(".", 1)[-1].lower(), "application/octet-stream")
 
 
 def frame_name(index: int) -> str:
@@ -235,5 +244,20 @@ def frame_name(index: int) -> str:
 def frame_file(part: str, index: int, image_suffix: str = ".png") -> str:
     """The relative path of one of a frame's files, as a local generate writes it: image_2/000123.png.
     image_suffix: the image's (the spec's outputs.image_suffix: .png or .jpg)."""
+    return named_file(part, frame_name(index), image_suffix)
+
+
+def named_file(part: str, name: str, image_suffix: str = ".png") -> str:
+    """frame_file of the frame whose file stem is `name` ("000123"), for readers that walk a dataset's names."""
     folder, suffix = FRAME_PARTS[part]
-    return f"{folder}/{frame_name(index)}{image_suffix if part == 'image' else suffix}"
+    return f"{folder}/{name}{image_suffix if part == 'image' else suffix}"
+
+
+def frame_parts(spec) -> list[str]:
+    """The parts (FRAME_PARTS keys) every frame of `spec` (a service.spec.DatasetSpec) has."""
+    o, s = spec.outputs, spec.sensors
+    wanted = (("image", True), ("calib", True), ("label", o.labels), ("meta", o.meta), ("depth", o.depth),
+              ("instance", o.instance), ("clean", o.clean), ("range", o.range),
+              ("fls", s.fls.enabled), ("fls_fan", s.fls.enabled), ("fls_label", s.fls.enabled),
+              ("sss", s.sss.enabled), ("sss_label", s.sss.enabled), ("nav", s.any_nav))
+    return [part for part, want in wanted if want]

@@ -20,6 +20,7 @@ from service.spec import load_spec
 from worker import kitti
 from worker.formation import haze
 from worker.generate import RECORD, generate, reproduce
+from worker.pipeline import frame_paths
 from worker.labels import tight_boxes
 from worker.srgb import decode_srgb8, encode_srgb8
 
@@ -66,6 +67,7 @@ def test_layout_and_record(full):
             f"depth/{n}.png", f"instance/{n}.png", f"clean/{n}.png", f"range/{n}.npy",
         }
     assert names == expected
+    assert {p for i in range(spec.frames) for p in frame_paths(spec, i)} == expected - {RECORD}  # what --resume checks
     record = json.loads((out / RECORD).read_text())
     assert record["state"] == "complete" and record["frames"] == spec.frames
     img = Image.open(out / "image_2/000000.png")

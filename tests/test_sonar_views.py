@@ -27,7 +27,8 @@ from service.sheet import (
     tile_origin,
 )
 from service.spec import load_spec
-from worker.generate import generate
+from worker.generate import RECORD, generate
+from worker.pipeline import frame_paths
 from worker.preview import make_preview
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey-sonar.yaml"
@@ -45,6 +46,15 @@ def survey(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("sonar-views") / "ds"
     generate(load_spec(EXAMPLE, SMALL), out, workers=1)
     return out
+
+
+def test_sensor_files_are_the_frame_paths_resume_checks(survey):
+    spec = load_spec(EXAMPLE, SMALL)
+    written = {p.relative_to(survey).as_posix() for p in survey.rglob("*") if p.is_file()} - {RECORD}
+    folders = ("image_2", "label_2", "calib", "meta", "fls", "fls_fan", "fls_label", "sss", "sss_label")
+    suffix = {"image_2": ".png", "fls": ".png", "fls_fan": ".png", "sss": ".png", "calib": ".txt", "label_2": ".txt"}
+    assert written == {f"{d}/{i:06d}{suffix.get(d, '.json')}" for i in range(FRAMES) for d in folders}
+    assert {p for i in range(FRAMES) for p in frame_paths(spec, i)} == written
 
 
 def outline_mask(shape: tuple[int, int], boxes) -> np.ndarray:

@@ -17,7 +17,6 @@ from service.spec_outputs import Outputs
 # releases the GIL (bench/results/cpu/encoders-1920x1080). Any settings decode to the same pixels.
 PNG_SETTINGS = {"level": 1, "strategy": 3, "filter": 16}  # Z_RLE, PNG_FILTER_SUB
 JPEG_SETTINGS = {"subsampling": "420", "optimize": False}
-MEDIA_TYPES = {".png": "image/png", ".jpg": "image/jpeg"}
 
 
 def encode_image(rgb8: np.ndarray, outputs: Outputs) -> bytes:
@@ -40,8 +39,3 @@ def png_bytes(array: np.ndarray) -> bytes:
             (array.dtype == np.uint16 and array.ndim == 2)):
         raise ValueError(f"png_bytes takes (h, w, 3) uint8 or (h, w) uint16, got {array.shape} {array.dtype}")
     return bytes(imagecodecs.png_encode(np.ascontiguousarray(array), **PNG_SETTINGS))
-
-
-def media_type(path: str) -> str:
-    """The MIME type of an image_2 file by its suffix."""
-    return MEDIA_TYPES["." + path.rsplit(".", 1)[-1].lower()]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from service.seeds import STREAM_NOISE, frame_rng
-from service.shards import frame_name
+from service.shards import frame_file, frame_parts
 from service.spec import DatasetSpec
 from service.spec_scene import AssetRef, FileRef
 from worker import kitti, labels
@@ -22,7 +22,7 @@ from worker.frame_meta import frame_meta
 from worker.image_files import encode_image, png_bytes
 from worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from worker.scene import Placed, Scene, on_trajectory, sample_scene
-from worker.sensors.outputs import SensorFrame, sensor_frame, sensor_paths, sensors_on
+from worker.sensors.outputs import SensorFrame, sensor_frame, sensors_on
 from worker.srgb import decode_srgb8, encode_srgb8
 from worker.variant_cache import VariantCache
 
@@ -43,18 +43,8 @@ VERSIONED_PACKAGES = ("numpy", "trimesh", "pyrender", "PyOpenGL", "Pillow", "ima
 
 
 def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
-    """Relative paths of every file frame `index` produces under `spec.outputs`."""
-    n, o = frame_name(index), spec.outputs
-    paths = [f"image_2/{n}{o.image_suffix}", f"calib/{n}.txt"]
-    optional = (
-        (o.labels, f"label_2/{n}.txt"),
-        (o.meta, f"meta/{n}.json"),
-        (o.depth, f"depth/{n}.png"),
-        (o.instance, f"instance/{n}.png"),
-        (o.clean, f"clean/{n}.png"),
-        (o.range, f"range/{n}.npy"),
-    )
-    return paths + [p for want, p in optional if want] + sensor_paths(spec.sensors, index)
+    """Relative paths of every file frame `index` produces under `spec.outputs` and `spec.sensors`."""
+    return [frame_file(part, index, spec.outputs.image_suffix) for part in frame_parts(spec)]
 
 
 def to_render_mesh(key: str, mesh) -> Mesh:
@@ -269,22 +259,24 @@ class RenderSession:
             sensors = sensor_frame(spec, index, scene, items, self.renderer)
             mark("sensors")
 
-        n = frame_name(index)
+        def path(part: str) -> str:
+            return frame_file(part, index, o.image_suffix)
+
         image8 = encode_srgb8(image) if noisy else image
-        files: dict[str, bytes] = {f"image_2/{n}{o.image_suffix}": encode_image(image8, o)}
+        files: dict[str, bytes] = {path("image"): encode_image(image8, o)}
         if o.labels:
-            files[f"label_2/{n}.txt"] = kitti.format_label_file(frame_labels.objects).encode()
-        files[f"calib/{n}.txt"] = kitti.format_calib(view.K).encode()
+            files[path("label")] = kitti.format_label_file(frame_labels.objects).encode()
+        files[path("calib")] = kitti.format_calib(view.K).encode()
         if o.meta:
-            files[f"meta/{n}.json"] = self.meta(spec, index, scene, view, frame_labels, noise, sensors).encode()
+            files[path("meta")] = self.meta(spec, index, scene, view, frame_labels, noise, sensors).encode()
         if o.depth:
-            files[f"depth/{n}.png"] = png_bytes(depth_png16(result.range_m, self._ray_norms(view)))
+            files[path("depth")] = png_bytes(depth_png16(result.range_m, self._ray_norms(view)))
         if o.instance:
-            files[f"instance/{n}.png"] = png_bytes(result.instance.astype(np.uint16))
+            files[path("instance")] = png_bytes(result.instance.astype(np.uint16))
         if o.clean:
-            files[f"clean/{n}.png"] = png_bytes(encode_srgb8(result.clean))
+            files[path("clean")] = png_bytes(encode_srgb8(result.clean))
         if o.range:
-            files[f"range/{n}.npy"] = npy_bytes(result.range_m)
+            files[path("range")] = npy_bytes(result.range_m)
         if sensors is not None:
             for rel, data in sensors.outputs.items():
                 files[rel] = png_bytes(data) if isinstance(data, np.ndarray) else data.encode()

@@ -17,9 +17,8 @@ import numpy as np
 from PIL import Image
 
 from service.kitti import parse_label_file
-from service.shards import frame_name
+from service.shards import frame_file, media_type
 from service.spec import DatasetSpec
-from worker.image_files import media_type
 from worker.pipeline import RenderSession
 
 log = logging.getLogger(__name__)
@@ -55,7 +54,7 @@ def png_data_url(png: bytes, mime: str = "image/png") -> str:
 
 def image_data_url(files: dict[str, bytes], spec: DatasetSpec, index: int) -> str:
     """The frame's image_2 file (PNG or JPEG, as the spec writes it) as a data URL."""
-    rel = f"image_2/{frame_name(index)}{spec.outputs.image_suffix}"
+    rel = frame_file("image", index, spec.outputs.image_suffix)
     return png_data_url(files[rel], media_type(rel))
 
 
@@ -94,20 +93,19 @@ def render_preview(session: RenderSession, spec: DatasetSpec, frame: int, views:
     t0 = time.perf_counter()
     spec = preview_spec(spec, views)
     files = session.frame_files(spec, frame)
-    n = frame_name(frame)
     images = {"image": image_data_url(files, spec, frame)}
     if "depth" in views:
-        images["depth"] = png_data_url(depth_view(files[f"depth/{n}.png"]))
+        images["depth"] = png_data_url(depth_view(files[frame_file("depth", frame)]))
     if "instance" in views:
-        images["instance"] = png_data_url(instance_view(files[f"instance/{n}.png"]))
+        images["instance"] = png_data_url(instance_view(files[frame_file("instance", frame)]))
     if "clean" in views:
-        images["clean"] = png_data_url(files[f"clean/{n}.png"])
+        images["clean"] = png_data_url(files[frame_file("clean", frame)])
     if "air" in views:
         air = spec.model_copy(update={"water": spec.water.model_copy(update={"enabled": False})})
         images["air"] = image_data_url(session.frame_files(air, frame), air, frame)
     boxes = [{"class": o["type"], "box": o["bbox"],
               "truncated": o["truncated"], "occluded": o["occluded"]}
-             for o in parse_label_file(files[f"label_2/{n}.txt"].decode())]
+             for o in parse_label_file(files[frame_file("label", frame)].decode())]
     return {"frame": frame, "seed": spec.seed, "width": spec.camera.width, "height": spec.camera.height,
             "images": images, "boxes": boxes, "render_ms": round((time.perf_counter() - t0) * 1000, 1)}
 

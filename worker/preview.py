@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import ExportError
+from service.shards import frame_file
 from service.sheet import (
     TILE_WIDTH,
     Summary,
@@ -108,7 +109,7 @@ def make_preview(dataset: Path, out: Path, frames: int = 12,
                 tiles.append(Tile(
                     name=frame.name, image=_read_png(frame.image)[..., :3].astype(np.uint8), boxes=boxes,
                     depth=None if frame.depth is None else _read_png(frame.depth),
-                    instance=_read_png(ds.root / f"instance/{frame.name}.png") if o.instance else None,
+                    instance=_read_png(ds.root / frame_file("instance", int(index))) if o.instance else None,
                     sonar=fan, sonar_boxes=fan_boxes,
                 ))
             if on_frames is not None:

@@ -10,15 +10,12 @@ from api import operations
 from api.deps import DatasetId, FrameIndex, ServicesDep
 from api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic, error_responses
 from service.previews import MAX_SHEET_FRAMES, SHEET_FRAMES, dataset_preview
+from service.shards import media_type
 from service.sheet import TILE_WIDTH
 from service.spec import DatasetSpec
 
 # Any route: no key (401), a bad parameter (422), Redis down (503).
 router = APIRouter(prefix="/datasets", tags=["datasets"], responses=error_responses(401, 422, 503))
-
-MEDIA = {".png": "image/png", ".jpg": "image/jpeg", ".txt": "text/plain; charset=utf-8",
-         ".json": "application/json", ".npy": "application/octet-stream"}
-
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=DatasetCreated,
              responses=error_responses(400, 413))
@@ -81,8 +78,7 @@ def get_frame(
 ) -> Response:
     """Re-render frame `index` from (spec, seed, index) on a worker: byte-identical to the file in its shard."""
     name, body = operations.frame(services, id, index, part)
-    suffix = name[name.rfind("."):]
-    return Response(body, media_type=MEDIA.get(suffix, "application/octet-stream"),
+    return Response(body, media_type=media_type(name),
                     headers={"Content-Disposition": f'inline; filename="{name.replace("/", "_")}"'})
 
 

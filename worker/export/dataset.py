@@ -11,9 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import AssetError, ExportError, SpecError
-from service.shards import frame_name
+from service.shards import FRAME_PARTS, SENSOR_PARTS, frame_file, frame_name, frame_parts
 from service.spec import DatasetSpec, parse_spec, spec_digest
-from worker.sensors.outputs import sensor_paths
 
 LOCAL_RECORD = "seasynth.json"  # written by `seasynth generate` (worker.generate.RECORD)
 FETCHED_RECORD = "manifest.json"  # written by `seasynth fetch`
@@ -201,28 +200,27 @@ class FrameReader:
 
     def read(self, index: int) -> Frame:
         """Frame `index` (which must be complete); ExportError naming the file at fault if it is inconsistent."""
-        root, n = self.ds.root, frame_name(index)
-        label_bytes = _read_bytes(root / f"label_2/{n}.txt")
+        root = self.ds.root
+        label_bytes = _read_bytes(root / frame_file("label", index))
         masks = None
         if self.masks:
             if self.renders:
-                masks = (*self._render(index, label_bytes), f"re-rendered instance/{n}.png")
+                masks = (*self._render(index, label_bytes), f"re-rendered {frame_file('instance', index)}")
             else:
-                where = str(root / f"instance/{n}.png")
-                masks = (_read_instance(Path(where)), _read_json(root / f"meta/{n}.json"), where)
+                where = str(root / frame_file("instance", index))
+                masks = (_read_instance(Path(where)), _read_json(root / frame_file("meta", index)), where)
         return frame_of(self.ds.spec, root, index, label_bytes, masks, self.distractors)
 
     def _render(self, index: int, label_bytes: bytes) -> tuple[np.ndarray, dict]:
         """(instance ids (h, w) uint16, meta) of frame `index` rendered again, once its image and labels are
         checked to be the dataset's bytes."""
-        n = frame_name(index)
         try:
             files = self._session.frame_files(self._render_spec, index)
         except OSError as err:  # an asset file the session cannot read
             raise ExportError(f"{self.ds.root}: cannot re-render frame {index}: {err}") from None
-        rel_image = f"image_2/{n}{self.ds.spec.outputs.image_suffix}"
+        rel_image = frame_file("image", index, self.ds.spec.outputs.image_suffix)
         image = _read_bytes(self.ds.root / rel_image)
-        for rel, theirs in ((rel_image, image), (f"label_2/{n}.txt", label_bytes)):
+        for rel, theirs in ((rel_image, image), (frame_file("label", index), label_bytes)):
             if files[rel] != theirs:
                 raise ExportError(
                     f"{self.ds.root / rel}: the frame re-rendered to obtain its instance masks differs from the "
@@ -231,8 +229,9 @@ class FrameReader:
                     f"{_code_version()}, renderer {self._session.renderer_name!r}); export it where it was made, "
                     "or generate it with outputs.instance on"
                 )
-        instance = decode_instance(files[f"instance/{n}.png"], f"re-rendered instance/{n}.png")
-        return instance, json.loads(files[f"meta/{n}.json"])
+        rel_instance = frame_file("instance", index)
+        instance = decode_instance(files[rel_instance], f"re-rendered {rel_instance}")
+        return instance, json.loads(files[frame_file("meta", index)])
 
 
 def mask_spec(spec: DatasetSpec) -> DatasetSpec:
@@ -249,8 +248,10 @@ def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
     label_bytes: its label_2 file's bytes; masks: (instance ids (h, w) uint16, its meta record, where they came
     from, for errors), or None to read no masks. The frame's meta and depth paths follow spec.outputs.
     """
-    n = frame_name(index)
-    label_path = root / f"label_2/{n}.txt"
+    def path(part: str) -> Path:
+        return root / frame_file(part, index, spec.outputs.image_suffix)
+
+    label_path = path("label")
     try:
         label_text = label_bytes.decode("utf-8")
     except UnicodeDecodeError as err:
@@ -264,11 +265,11 @@ def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
                               f"{spec.camera.height}x{spec.camera.width} (height x width)")
         objects = _with_masks(objects, instance, meta, where, label_path, distractors)
     o = spec.outputs
-    return Frame(index=index, name=n, image=root / f"image_2/{n}{o.image_suffix}", width=spec.camera.width,
+    return Frame(index=index, name=frame_name(index), image=path("image"), width=spec.camera.width,
                  height=spec.camera.height, objects=tuple(objects), instance=instance,
-                 calib=root / f"calib/{n}.txt", meta=root / f"meta/{n}.json" if o.meta else None,
-                 depth=root / f"depth/{n}.png" if o.depth else None,
-                 sensor_files={p.split("/")[0]: root / p for p in sensor_paths(spec.sensors, index)})
+                 calib=path("calib"), meta=path("meta") if o.meta else None,
+                 depth=path("depth") if o.depth else None,
+                 sensor_files={FRAME_PARTS[p][0]: path(p) for p in frame_parts(spec) if p in SENSOR_PARTS})
 
 
 def camera_projection(path: Path) -> np.ndarray:

@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 
 from service.errors import ExportError
-from service.shards import frame_name
+from service.shards import frame_file
 from service.spec import DatasetSpec, spec_digest
 from worker.export import SPLITS, ExportInfo, exporter_class, exporter_for, split_of
 from worker.export.dataset import decode_instance, frame_of, mask_spec
@@ -35,12 +35,12 @@ def parts_render_spec(spec: DatasetSpec) -> DatasetSpec:
 
 def kitti_names(spec: DatasetSpec, render: DatasetSpec, index: int, names: list[str]) -> list[str]:
     """Of the files frame `index` rendered with `render` has, those `spec` asks for, sorted."""
-    n, o, r = frame_name(index), spec.outputs, render.outputs
+    o, r = spec.outputs, render.outputs
     extra = set()
     if r.instance and not o.instance:
-        extra.add(f"instance/{n}.png")
+        extra.add(frame_file("instance", index))
     if r.meta and not o.meta:
-        extra.add(f"meta/{n}.json")
+        extra.add(frame_file("meta", index))
     return sorted(name for name in names if name not in extra)
 
 
@@ -64,13 +64,12 @@ def write_part(spec: DatasetSpec, fmt: str, frames: range, root: Path, out: Path
     exporter.begin(part_info(spec, out, code_version))
     try:
         for index in frames:
-            n = frame_name(index)
-            label = _read(root / f"label_2/{n}.txt")
+            label = _read(root / frame_file("label", index))
             masks = None
             if exporter.needs_masks:
-                where = f"rendered instance/{n}.png"
-                masks = (decode_instance(_read(root / f"instance/{n}.png"), where),
-                         json.loads(_read(root / f"meta/{n}.json")), where)
+                rel_instance = frame_file("instance", index)
+                masks = (decode_instance(_read(root / rel_instance), f"rendered {rel_instance}"),
+                         json.loads(_read(root / frame_file("meta", index))), f"rendered {rel_instance}")
             split = SPLITS[split_of(spec.seed, index, spec.outputs.split)]
             exporter.add(frame_of(spec, root, index, label, masks, distractors=False), split)
         exporter.finish()

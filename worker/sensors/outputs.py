@@ -9,7 +9,7 @@ import numpy as np
 
 from service.seeds import STREAM_FLS, STREAM_NAV, STREAM_SSS, frame_rng
 from service.sensors import Sensors
-from service.shards import frame_name
+from service.shards import frame_file
 from service.spec import DatasetSpec
 from worker.scene import Scene
 from worker.sensors import world_from_sensor
@@ -17,19 +17,6 @@ from worker.sensors import world_from_sensor
 
 def sensors_on(s: Sensors) -> bool:
     return s.fls.enabled or s.sss.enabled or s.any_nav
-
-
-def sensor_paths(s: Sensors, index: int) -> list[str]:
-    """Relative paths of the sensor files of frame `index` (none with every sensor off)."""
-    n = frame_name(index)
-    paths = []
-    if s.fls.enabled:
-        paths += [f"fls/{n}.png", f"fls_fan/{n}.png", f"fls_label/{n}.json"]
-    if s.sss.enabled:
-        paths += [f"sss/{n}.png", f"sss_label/{n}.json"]
-    if s.any_nav:
-        paths.append(f"nav/{n}.json")
-    return paths
 
 
 def surface_z(spec: DatasetSpec, scene: Scene, index: int) -> float:
@@ -51,7 +38,11 @@ class SensorFrame:
 
 def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, renderer) -> SensorFrame:
     """The sensors' outputs of frame `index` (the camera's scene and draw items; the GL renderer)."""
-    s, n = spec.sensors, frame_name(index)
+    s = spec.sensors
+
+    def path(part: str) -> str:
+        return frame_file(part, index)
+
     outputs: dict[str, np.ndarray | str] = {}
     record: dict = {}
     surface = surface_z(spec, scene, index)
@@ -62,9 +53,9 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
         pose = world_from_sensor(scene.world_from_cam, s.fls.pose)
         fr = fls_frame(s.fls, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
                        frame_rng(spec.seed, index, STREAM_FLS))
-        outputs[f"fls/{n}.png"] = fr.polar
-        outputs[f"fls_fan/{n}.png"] = fr.fan
-        outputs[f"fls_label/{n}.json"] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
+        outputs[path("fls")] = fr.polar
+        outputs[path("fls_fan")] = fr.fan
+        outputs[path("fls_label")] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
         record["fls"] = fr.record
     if s.sss.enabled:
         from worker.sensors.sss import sss_frame
@@ -72,13 +63,13 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
         pose = world_from_sensor(scene.world_from_cam, s.sss.pose)
         fr = sss_frame(s.sss, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
                        frame_rng(spec.seed, index, STREAM_SSS))
-        outputs[f"sss/{n}.png"] = fr.row
-        outputs[f"sss_label/{n}.json"] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
+        outputs[path("sss")] = fr.row
+        outputs[path("sss_label")] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
         record["sss"] = fr.record
     if s.any_nav:
         from worker.sensors.nav import nav_record
 
         nav = nav_record(spec, index, scene, items, renderer, surface)
-        outputs[f"nav/{n}.json"] = json.dumps(nav, indent=1, sort_keys=True) + "\n"
+        outputs[path("nav")] = json.dumps(nav, indent=1, sort_keys=True) + "\n"
         record["nav"] = nav
     return SensorFrame(outputs=outputs, record=record)
