@@ -30,14 +30,16 @@ class RenderGate:
         token = uuid.uuid4().hex
         self._latest[client] = token
         try:
-            await asyncio.wait_for(self._slots.acquire(), self._wait_s)
-        except TimeoutError:
-            raise Unavailable(self._busy) from None
-        try:
-            if self._latest.get(client) != token:
-                raise Conflict("superseded by a newer request from the same client")
-            return await run_in_threadpool(fn)
-        finally:
-            self._slots.release()
+            try:
+                await asyncio.wait_for(self._slots.acquire(), self._wait_s)
+            except TimeoutError:
+                raise Unavailable(self._busy) from None
+            try:
+                if self._latest.get(client) != token:
+                    raise Conflict("superseded by a newer request from the same client")
+                return await run_in_threadpool(fn)
+            finally:
+                self._slots.release()
+        finally:  # also when the wait timed out or the request was cancelled while it waited
             if self._latest.get(client) == token:
                 del self._latest[client]

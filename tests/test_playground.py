@@ -126,14 +126,19 @@ def test_the_gate_renders_each_clients_newest_request_and_says_when_busy():
         await asyncio.sleep(0.01)
         newer = asyncio.create_task(gate.run("b", job("b2")))
         other = asyncio.create_task(gate.run("c", job("c1")))
+        gone = asyncio.create_task(gate.run("d", job("d1")))
+        await asyncio.sleep(0.01)
+        gone.cancel()  # a client that hung up while it waited
         await asyncio.sleep(0.7)  # past wait_s: every waiter gave up
         release.set()
-        results = await asyncio.gather(first, older, newer, other, return_exceptions=True)
-        return ran, results
+        results = await asyncio.gather(first, older, newer, other, gone, return_exceptions=True)
+        return ran, results, dict(gate._latest)
 
-    ran, (a1, b1, b2, c1) = asyncio.run(scenario())
+    ran, (a1, b1, b2, c1, d1), left = asyncio.run(scenario())
     assert a1 == {"name": "a1"} and ran == ["a1"]
     assert all(isinstance(r, Unavailable) for r in (b1, b2, c1))
+    assert isinstance(d1, asyncio.CancelledError)
+    assert left == {}  # no client's entry outlives its request, whichever way it ended
 
     async def superseded():
         gate = RenderGate(slots=1, wait_s=5)
@@ -145,11 +150,12 @@ def test_the_gate_renders_each_clients_newest_request_and_says_when_busy():
         newer = asyncio.create_task(gate.run("b", lambda: {"n": 3}))
         await asyncio.sleep(0.05)
         release.set()
-        return await asyncio.gather(first, older, newer, return_exceptions=True)
+        return *await asyncio.gather(first, older, newer, return_exceptions=True), dict(gate._latest)
 
-    first, older, newer = asyncio.run(superseded())
+    first, older, newer, left = asyncio.run(superseded())
     assert first == {"n": 1} and newer == {"n": 3}
     assert isinstance(older, Conflict)
+    assert left == {}
 
 
 def test_local_runs_go_one_at_a_time_and_report_their_progress(tmp_path):
