@@ -3,6 +3,7 @@ status, cancel, purge, build manifests and fetch single frames. Uploaded assets:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 import uuid
@@ -73,16 +74,16 @@ def create_dataset(services: Services, spec: DatasetSpec) -> DatasetCreated:
                   shards=shards)
     now = time.time()
     save_record(services.records, services.store, dataset_id, {"spec": spec_json, **fields, "created_at": now})
-    services.records.create(dataset_id, spec_json, **fields, now=now)
+    try:
+        services.records.create(dataset_id, spec_json, **fields, now=now)
+    except Exception:  # Redis unreachable (503): no record, and no client has the id
+        _forget_unpublished(services, dataset_id)
+        raise
     try:
         publish(services, TASK_PLAN, [dataset_id, 0], shard_queue(s.worker_version))
     except Unavailable:
         services.records.discard(dataset_id)
-        try:
-            forget(services.records, services.store, dataset_id)  # nothing may restore what no client was given
-        except Unavailable as err:
-            log.warning("dataset %s: never published, but its bucket record stays (%s); a Redis restarted without "
-                        "its data would restore it", dataset_id, err)
+        _forget_unpublished(services, dataset_id)
         raise
     return DatasetCreated(
         id=dataset_id,
@@ -92,6 +93,15 @@ def create_dataset(services: Services, spec: DatasetSpec) -> DatasetCreated:
         code_version=s.worker_version,
         links=links(dataset_id),
     )
+
+
+def _forget_unpublished(services: Services, dataset_id: str) -> None:
+    """Delete the bucket record of a dataset whose creation failed: nothing may restore what no client was given."""
+    try:
+        forget(services.records, services.store, dataset_id)
+    except Unavailable as err:
+        log.warning("dataset %s: never published, but its bucket record stays (%s); a Redis restarted without "
+                    "its data would restore it", dataset_id, err)
 
 
 def _time(t: float | None) -> datetime | None:
@@ -266,7 +276,12 @@ def cancel_dataset(services: Services, dataset_id: str) -> DatasetPublic:
     # Noted in the bucket first: a dataset restored after Redis lost its data stays cancelled.
     marker = cancelled_key(services.records, dataset_id)
     services.store.put_bytes(marker, b"", "text/plain")
-    state = services.records.cancel(dataset_id, time.time())
+    try:
+        state = services.records.cancel(dataset_id, time.time())
+    except Exception:  # Redis unreachable (503): the client is told it is not cancelled, so the bucket says so too
+        with contextlib.suppress(Exception):
+            services.store.delete(marker)
+        raise
     if state != CANCELLED:
         services.store.delete(marker)
         raise Conflict(f"dataset {dataset_id} already {state}; nothing to cancel (DELETE it to remove it)")

@@ -49,6 +49,20 @@ def test_a_dataset_the_broker_cannot_take_is_503_and_leaves_no_record(serve, ser
     assert {o.key for o in services.store.list("records/")} == bucket_records
 
 
+def test_a_dataset_redis_cannot_take_is_503_and_leaves_no_bucket_record(serve, services, settings):
+    import redis
+
+    from service.records import Records
+
+    dead = Records(redis.Redis(port=free_port(), decode_responses=True, socket_connect_timeout=2), settings.key_prefix)
+    url = serve(records=dead)
+    bucket_records = {o.key for o in services.store.list("records/")}
+    r = httpx.post(f"{url}/datasets", json=tiny_spec(), headers={"X-API-Key": KEY}, timeout=60)
+    assert r.status_code == 503 and r.headers["retry-after"] == str(settings.retry_after_s), r.text
+    # The creation record written before Redis refused is gone: a Redis restarted without its data restores nothing.
+    assert {o.key for o in services.store.list("records/")} == bucket_records
+
+
 def test_status_reads_survive_a_broker_outage_and_retry_the_nudge(serve, services):
     url = serve(producer=dead_producer())
     headers = {"X-API-Key": KEY}
