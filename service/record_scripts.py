@@ -16,14 +16,21 @@ return tries
 """
 
 # SADD first: only the first commit of a shard adds its frames, however many times it runs. A record Redis lost
-# is not recreated in part: the commit marker in the bucket is adopted when the record is restored.
+# is not recreated in part: the commit marker in the bucket is adopted when the record is restored. A shard given
+# up as failed whose marker turns up after all (its last attempt wrote it, then died) is committed: it leaves the
+# failed set (KEYS[4]), its error and the shown failed indices (KEYS[5], KEYS[6]), so it is never counted twice.
+# ARGV[4]: the new touched_at, or '' to leave it (a restore, which wants the dataset swept at once).
 COMMIT = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return {0, 0, 0} end
 local added = redis.call('SADD', KEYS[2], ARGV[1])
 if added == 1 then
   redis.call('HINCRBY', KEYS[1], 'frames_done', ARGV[2])
   redis.call('HSET', KEYS[3], ARGV[1], ARGV[3])
-  redis.call('HSET', KEYS[1], 'touched_at', ARGV[4])
+  if ARGV[4] ~= '' then redis.call('HSET', KEYS[1], 'touched_at', ARGV[4]) end
+  if redis.call('SREM', KEYS[4], ARGV[1]) == 1 then
+    redis.call('HDEL', KEYS[5], ARGV[1])
+    redis.call('ZREM', KEYS[6], ARGV[1])
+  end
 end
 return {added, redis.call('SCARD', KEYS[2]), redis.call('SCARD', KEYS[4])}
 """

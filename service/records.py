@@ -302,11 +302,12 @@ class Records:
     def is_failed(self, dataset_id: str, index: int) -> bool:
         return bool(self.r.sismember(self._k(dataset_id, "failed"), index))
 
-    def commit(self, dataset_id: str, commit: ShardCommit) -> tuple[bool, int, int]:
-        """Count a committed shard once; return (newly added, shards done, shards failed)."""
+    def commit(self, dataset_id: str, commit: ShardCommit, touch: bool = True) -> tuple[bool, int, int]:
+        """Count a committed shard once (no longer failed, if it was); return (newly added, shards done, shards
+        failed). touch=False leaves touched_at as it is."""
         keys = [self._k(dataset_id), self._k(dataset_id, "done"), self._k(dataset_id, "shards"),
-                self._k(dataset_id, "failed")]
-        args = [commit.index, commit.frame_count, commit.to_json(), repr(time.time())]
+                self._k(dataset_id, "failed"), self._k(dataset_id, "errors"), self._k(dataset_id, "shown")]
+        args = [commit.index, commit.frame_count, commit.to_json(), repr(time.time()) if touch else ""]
         added, done, failed = self._commit(keys=keys, args=args)
         return bool(added), int(done), int(failed)
 

@@ -63,8 +63,8 @@ def restore(records: Records, store: ObjectStore, dataset_id: str, now: float) -
                            frames=fields["frames"], shard_size=fields["shard_size"], shards=fields["shards"],
                            created_at=fields["created_at"], now=now):
         return True  # another restorer won, or Redis has it again
-    for info in store.list(commit_prefix(dataset_id)):
-        records.commit(dataset_id, ShardCommit.from_json(store.get_bytes(info.key)))
+    for info in store.list(commit_prefix(dataset_id)):  # not touched: the restored record stays due a sweep
+        records.commit(dataset_id, ShardCommit.from_json(store.get_bytes(info.key)), touch=False)
     if store.head(cancelled_key(records, dataset_id)) is not None:
         records.cancel(dataset_id, now)
         return True

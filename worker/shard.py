@@ -82,6 +82,8 @@ def run_shard(ctx: ShardContext, dataset_id: str, index: int, sweep: bool = Fals
         log.warning("shard %s of dataset %s: the record is gone, dropped", index, dataset_id)
         return Outcome.MISSING
     if attempt < 0:
+        if _adopt_marker(ctx, dataset_id, index):  # the last attempt wrote its marker, then died before counting it
+            return Outcome.ALREADY_COMMITTED
         last = ctx.records.last_error(dataset_id, index) or "the worker was lost while rendering it"
         fail_shard(ctx, dataset_id, index, f"gave up after {ctx.settings.max_attempts} attempts; last: {last}")
         return Outcome.FAILED
@@ -155,6 +157,18 @@ class MarkerLookup:
         if self._err is not None:
             raise self._err
         return self._data
+
+
+def _adopt_marker(ctx: ShardContext, dataset_id: str, index: int) -> bool:
+    """Count the shard from its commit marker in the bucket, if there is one; False if there is none. A bucket that
+    cannot be read raises: a shard is never given up while its marker may exist (the task publishes it again)."""
+    try:
+        found = ctx.store.get_bytes(commit_key(dataset_id, index))
+    except NotFound:
+        return False
+    ctx.records.commit(dataset_id, ShardCommit.from_json(found))
+    finalise_or_defer(ctx, dataset_id)
+    return True
 
 
 def _before_attempt(ctx: ShardContext, dataset_id: str, index: int, sweep: bool) -> Outcome | None:

@@ -142,3 +142,30 @@ def test_a_bulk_delete_that_leaves_objects_is_an_error():
     with pytest.raises(Unavailable) as info:
         store.delete_prefix("d/")
     assert str(info.value) == "s3://bkt/d/: 1 objects not deleted, e.g. d/b (AccessDenied: Access Denied)"
+
+
+def test_a_record_restored_with_committed_shards_is_swept_at_once(serve, services):
+    """Redis lost a dataset of which one shard of three had committed: the status read that restores it from the
+    bucket adopts that shard's marker without making the dataset look recently active, so that same read sweeps it
+    (a reconcile task for the rest), not one a stall timeout later."""
+    from service.recovery import save_record
+    from service.shards import commit_key
+
+    records, store = services.records, services.store
+    spec = tiny_spec(frames=3, shard_size=1)
+    dataset_id = new_record(records, frames=3)
+    rec = records.get(dataset_id)
+    save_record(records, store, dataset_id, {"spec": spec, "seed": rec.seed, "code_version": rec.code_version,
+                                             "frames": 3, "shard_size": 1, "shards": 3, "created_at": rec.created_at})
+    shard = commit(records, dataset_id, 0, b"tar 0", store)
+    store.put_bytes(commit_key(dataset_id, 0), shard.to_json().encode())
+    for key in records.r.scan_iter(match=f"{records.p}:ds:{dataset_id}*"):  # Redis loses the dataset
+        records.r.delete(key)
+
+    url = serve()
+    r = httpx.get(f"{url}/datasets/{dataset_id}", headers={"X-API-Key": KEY})
+    assert r.status_code == 200, r.text
+    assert (r.json()["state"], r.json()["shards_done"], r.json()["frames_done"]) == ("queued", 1, 1)
+    assert r.json()["restored_at"] is not None
+    assert records.get(dataset_id).touched_at == 0.0
+    assert records.swept(dataset_id)

@@ -126,3 +126,44 @@ def test_a_marker_redis_missed_is_adopted_and_nothing_uploaded_over_it(infra, re
     rec = records.get(ds)
     assert (rec.state, rec.frames_done, rec.shards_done, rec.attempts, rec.errors) == ("running", 2, 1, 1, {})
     assert stored(tmp_path) == [f"store/{commit_key(ds, 1)}"] and records.running(ds) == {}
+
+
+def test_a_shard_whose_last_attempt_wrote_its_marker_is_committed_not_given_up(infra, records, tmp_path):
+    """Every attempt was lost (the worker killed), the last one after its marker was written and before Redis
+    counted it: the execution that finds no attempt left adopts the marker instead of failing the shard."""
+    session = FakeSession()
+    ctx = make_ctx(infra, records, tmp_path, session)
+    ds = new_dataset(records, frames=4, shard_size=2)
+    for _ in range(ctx.settings.max_attempts):
+        records.start_attempt(ds, 1, ctx.settings.max_attempts, {"since": 0.0})
+        records.end_attempt(ds, 1)
+    marker = ShardCommit(1, shard_key(ds, 1), 2, 2, "0" * 64, 10, __version__, session.renderer_name)
+    ctx.store.put_bytes(commit_key(ds, 1), marker.to_json().encode())
+    assert run_shard(ctx, ds, 1) is Outcome.ALREADY_COMMITTED
+    rec = records.get(ds)
+    assert (rec.state, rec.shards_done, rec.shards_failed, rec.frames_done, rec.errors) == ("running", 1, 0, 2, {})
+    assert session.calls == []
+    assert run_shard(ctx, ds, 0) is Outcome.COMMITTED and records.get(ds).state == "succeeded"
+    # Without a marker, the execution that finds no attempt left gives the shard up.
+    other = new_dataset(records, frames=2, shard_size=2, dataset_id="d" * 32)
+    for _ in range(ctx.settings.max_attempts):
+        records.start_attempt(other, 0, ctx.settings.max_attempts, {"since": 0.0})
+        records.end_attempt(other, 0)
+    assert run_shard(ctx, other, 0) is Outcome.FAILED
+    assert (records.get(other).state, records.get(other).shards_failed) == ("failed", 1)
+
+
+def test_a_failed_shard_whose_marker_turns_up_is_counted_once_as_committed(records):
+    """A reconcile that adopts the marker of a shard already given up: done, no longer failed, its error gone, so
+    done + failed never reaches the shard total early."""
+    ds = new_dataset(records, frames=6, shard_size=2)
+    records.fail(ds, 1, "gave up after 3 attempts")
+    records.fail(ds, 2, "gave up after 3 attempts")
+    rec = records.get(ds)
+    assert (rec.shards_failed, sorted(rec.errors)) == (2, [1, 2])
+    marker = ShardCommit(1, shard_key(ds, 1), 2, 2, "0" * 64, 10, __version__, "r")
+    assert records.commit(ds, marker) == (True, 1, 1)
+    assert records.commit(ds, marker) == (False, 1, 1)  # once
+    rec = records.get(ds)
+    assert (rec.shards_done, rec.shards_failed, rec.frames_done, sorted(rec.errors)) == (1, 1, 2, [2])
+    assert records.fail(ds, 1, "late") == (1, 1)  # a committed shard is never failed again
