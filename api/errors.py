@@ -16,8 +16,10 @@ from service.errors import (
     CalibrationError,
     Conflict,
     LimitExceeded,
+    ExportError,
     NotFound,
     OutputError,
+    ParameterError,
     RenderError,
     SeasynthError,
     SpecError,
@@ -32,6 +34,7 @@ STATUS: list[tuple[type[Exception], int]] = [
     (SpecError, 422),
     (AssetError, 422),
     (CalibrationError, 422),
+    (ParameterError, 422),
     (LimitExceeded, 413),
     (NotFound, 404),
     (Conflict, 409),
@@ -41,6 +44,9 @@ STATUS: list[tuple[type[Exception], int]] = [
     # In the API a RenderError is a frame worker's report that rendering failed: a fault behind this server,
     # and not one that waiting cures (so no 503 and no Retry-After).
     (RenderError, 502),
+    # A stored shard the preview sheet cannot read (unreadable tar, a frame's file missing or undecodable): the data
+    # behind this server is at fault, not the request.
+    (ExportError, 502),
 ]
 
 

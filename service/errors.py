@@ -22,6 +22,11 @@ class ExportError(SeasynthError):
     export folder that cannot be written; the message names the file, frame or option at fault."""
 
 
+class ParameterError(SeasynthError, ValueError):
+    """A request's parameters ask for more than can be served (e.g. a preview sheet too large to draw); the message
+    names the parameters."""
+
+
 class RenderError(SeasynthError):
     """The renderer could not start or render; the message says which backend and why."""
 

@@ -12,12 +12,15 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from service import __version__
-from service.errors import ExportError, NotFound
+from service.errors import ExportError, NotFound, ParameterError
 from service.kitti import parse_label_file
 from service.record_types import DatasetRecord, ShardCommit
 from service.records import Records
 from service.shards import FRAME_PARTS, named_file, preview_key
 from service.sheet import (
+    COLUMNS,
+    GAP,
+    HEADER,
     TILE_WIDTH,
     SummaryCounter,
     Tile,
@@ -33,6 +36,9 @@ from service.storage import ObjectStore
 
 SHEET_FRAMES = 12  # tiles on a sheet by default
 MAX_SHEET_FRAMES = 48
+# Pixels of a sheet's grid at most (8-bit RGB: 192 MB while drawn): the default sheet of a 1920x1080 dataset with
+# depth and instances is about 2.3 Mpx, 48 frames of it at tile_width 768 about 50 Mpx.
+MAX_SHEET_PIXELS = 64_000_000
 COMMITS_PER_READ = 1000  # shard indices per Redis read while looking for the first committed shards
 # The folders of a frame the sheet reads (calib/, clean/ and range/ are skipped unread).
 READ = tuple(FRAME_PARTS[part][0] for part in ("image", "label", "meta", "depth", "instance"))
@@ -65,8 +71,9 @@ def dataset_preview(store: ObjectStore, records: Records, dataset_id: str, frame
     label summary of every frame in those shards. NotFound while no shard is committed (or once purged). The
     sheet is read from the bucket when it was drawn before, else drawn and stored there."""
     if not 1 <= frames <= MAX_SHEET_FRAMES:
-        raise ExportError(f"frames: {frames} is not in 1..{MAX_SHEET_FRAMES}")
-    tile_size(1, 1, tile_width)  # refuses a width below 1
+        raise ParameterError(f"frames: {frames} is not in 1..{MAX_SHEET_FRAMES}")
+    if tile_width < 1:
+        raise ParameterError(f"tile_width: {tile_width} px; at least 1")
     rec = records.get(dataset_id)
     if rec.purged:
         raise NotFound(f"dataset {dataset_id} was purged; its objects are gone")
@@ -79,13 +86,30 @@ def dataset_preview(store: ObjectStore, records: Records, dataset_id: str, frame
         return key, store.get_bytes(key)
     except NotFound:
         pass
-    png = draw_preview(store, parse_spec(rec.spec, source=f"dataset {dataset_id}"), sources, frames, tile_width)
+    spec = parse_spec(rec.spec, source=f"dataset {dataset_id}")
+    check_sheet_size(spec, min(frames, rec.frames_total), tile_width)
+    png = draw_preview(store, spec, sources, frames, tile_width)
     store.put_bytes(key, png, "image/png")
     # Checked after the write, as workers do: a purge that listed the prefix before it would leave it behind.
     if records.purge_started(dataset_id):
         store.delete(key)
         raise NotFound(f"dataset {dataset_id} was purged; its objects are gone")
     return key, png
+
+
+def check_sheet_size(spec: DatasetSpec, tiles: int, tile_width: int) -> None:
+    """ParameterError where a sheet of `tiles` frames of `spec` at `tile_width` would exceed MAX_SHEET_PIXELS (its
+    grid alone: the summary panel below it adds a few hundred rows)."""
+    o = spec.outputs
+    w, h = tile_size(spec.camera.width, spec.camera.height, tile_width)
+    panels = 1 + o.depth + o.instance
+    rows = -(-tiles // COLUMNS)
+    grid_w, grid_h = GAP + min(tiles, COLUMNS) * (panels * w + GAP), GAP + rows * (HEADER + h + GAP)
+    if grid_w * grid_h > MAX_SHEET_PIXELS:
+        raise ParameterError(
+            f"frames, tile_width: a sheet of {tiles} frames of {spec.camera.width}x{spec.camera.height} ({panels} "
+            f"panels each) at tile_width {tile_width} would be {grid_w}x{grid_h} px, over the "
+            f"{MAX_SHEET_PIXELS // 10**6} Mpx a sheet may have; ask for fewer frames or a smaller tile_width")
 
 
 def draw_preview(store: ObjectStore, spec: DatasetSpec, sources: list[ShardCommit], frames: int,

@@ -88,7 +88,7 @@ def get_frame(
     responses={200: {"content": {"image/png": {}},
                      "description": "The contact sheet: the first frames with their boxes (depth and instances where "
                                     "the spec has them) over a label summary of the shards drawn from"},
-               **error_responses(404)},
+               **error_responses(404, 502)},
 )
 def get_preview(
     id: DatasetId,

@@ -215,6 +215,42 @@ def test_preview_is_the_sheet_of_the_first_shards_and_is_cached(dataset, client,
     assert two.status_code == 200 and two.headers["etag"] != r.headers["etag"]
 
 
+def test_a_preview_too_large_to_draw_is_422_and_one_of_an_unreadable_shard_502(infra):
+    """Refused before any shard is read: a sheet over MAX_SHEET_PIXELS (a remote caller could otherwise have the
+    API allocate gigabytes); a shard in the bucket that is not a tar is the data's fault behind the API: 502."""
+    import time
+    import uuid
+
+    from api.deps import open_services
+
+    big = tiny_spec(frames=48, shard_size=24)
+    big["camera"] = {**big["camera"], "width": 4096, "height": 4096}
+    big["outputs"] = {**big.get("outputs", {}), "depth": True, "instance": True}
+    spec = parse_spec(big)
+    services = open_services(infra.settings(key_prefix="previews"))
+    dataset_id = uuid.uuid4().hex
+    try:
+        services.records.create(dataset_id, spec.model_dump(mode="json"), seed=spec.seed, code_version=__version__,
+                                frames=48, shard_size=24, shards=2, now=time.time())
+        key = shard_key(dataset_id, 0, "none")
+        services.store.put_bytes(key, b"not a tar")
+        services.records.commit(dataset_id, ShardCommit(0, key, 0, 24, hashlib.sha256(b"not a tar").hexdigest(), 9,
+                                                        __version__, "r"))
+        with api_on(services) as c:
+            r = c.get(f"/datasets/{dataset_id}/preview.png", params={"frames": 48, "tile_width": 4096})
+            assert r.status_code == 422, r.text
+            assert r.json()["detail"].startswith("frames, tile_width: a sheet of 48 frames of 4096x4096 (3 panels "
+                                                 "each) at tile_width 4096 would be 49172x49348 px, over the 64 Mpx")
+            r = c.get(f"/datasets/{dataset_id}/preview.png", params={"frames": 1, "tile_width": 64})
+            assert r.status_code == 502 and r.json()["detail"].startswith(f"{key}: unreadable shard tar"), r.text
+            responses = c.get("/openapi.json").json()["paths"]["/datasets/{id}/preview.png"]["get"]["responses"]
+            assert {"404", "422", "502"} <= set(responses)
+        assert list(services.store.list(f"datasets/{dataset_id}/previews/")) == []
+    finally:
+        services.store.delete(key)
+        services.close()
+
+
 def test_preview_before_any_shard_is_404_and_keys_are_needed(infra, dataset, client):
     with unserved_api(infra) as unserved:
         waiting = post(unserved, tiny_spec(frames=2, shard_size=1))
