@@ -24,13 +24,19 @@ def tree(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
-def start(out: Path, workers: int, *extra: str) -> subprocess.Popen:
-    """`seasynth generate` in a session (process group) of its own, with SIGINT's default disposition."""
+def start(out: Path, workers: int, *extra: str, tmp: Path | None = None) -> subprocess.Popen:
+    """`seasynth generate` in a session (process group) of its own, with default signal dispositions; `tmp`: its
+    TMPDIR (where the render processes share terrain variants)."""
     cmd = [sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out), "--frames", str(FRAMES),
            *SIZE, "--workers", str(workers), *extra]
-    # The test runner may itself run with SIGINT ignored (a background job), which children would inherit.
+    env = None if tmp is None else {**os.environ, "TMPDIR": str(tmp)}
+
+    def defaults() -> None:  # the test runner may run with SIGINT or SIGHUP ignored, which children would inherit
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_DFL)
+
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            preexec_fn=defaults, env=env)
 
 
 def wait_for(predicate, proc: subprocess.Popen, what: str, timeout: float = 120.0) -> None:
@@ -120,6 +126,26 @@ def test_sigint_exits_130_and_resume_completes_identically(tmp_path, reference, 
     record = tree(out).pop(RECORD)
     assert {k: v for k, v in tree(out).items() if k != RECORD} == {k: v for k, v in reference.items() if k != RECORD}
     assert record == reference[RECORD]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_stop_like_ctrl_c_and_leave_no_temporary_folder(tmp_path, sig):
+    """docker stop, timeout or a batch scheduler (SIGTERM to the command alone), a closed terminal (SIGHUP): the run
+    unwinds as for Ctrl-C, exits 128 + the signal, and leaves no process, temporary file or variant folder."""
+    out, tmp = tmp_path / "ds", tmp_path / "tmp"
+    tmp.mkdir()
+    proc = start(out, 2, tmp=tmp)
+    wait_for(lambda: len(list((out / "image_2").glob("*.png"))) >= 3, proc, "three frames")
+    assert len(list(tmp.glob("seasynth-variants-*"))) == 1  # the pool's shared folder
+    os.kill(proc.pid, sig)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + sig, (stdout, stderr)
+    lines = stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"stopped by {sig.name}: ") and "--resume" in lines[0], stderr
+    assert group_gone(proc.pid), "a process of the stopped run is still alive"
+    assert sorted(p.name for p in out.rglob(".*")) == []
+    assert json.loads((out / RECORD).read_text())["state"] == "incomplete"
+    assert list(tmp.iterdir()) == []
 
 
 def test_sigint_to_group_while_pool_children_start(tmp_path):

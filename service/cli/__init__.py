@@ -5,7 +5,9 @@ reconcile), bench.py (`seasynth bench ...`)."""
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Annotated, NoReturn, Optional
 
@@ -19,7 +21,21 @@ app.add_typer(bench_app, name="bench")
 
 
 class Interrupted(Exception):
-    """Ctrl-C stopped a command; the message says what it leaves behind. `main` prints it and exits 130."""
+    """Ctrl-C (or SIGTERM, SIGHUP) stopped a command; the message says what it leaves behind. `main` prints it and
+    exits 128 + the signal's number."""
+
+
+# SIGTERM (docker stop, timeout, a batch scheduler) and SIGHUP (a closed terminal) stop a command as Ctrl-C does: the
+# same unwinding (render processes stopped, temporary files and folders removed, the record left incomplete),
+# instead of the interpreter dying where it stands. Servers (serve, worker) install their own handlers on start.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+_stopped_by = signal.SIGINT
+
+
+def _stop(signum: int, frame) -> None:
+    global _stopped_by
+    _stopped_by = signal.Signals(signum)
+    raise KeyboardInterrupt
 
 
 FramesOpt = Annotated[Optional[int], typer.Option("--frames", help="Override the spec's frame count.")]
@@ -109,6 +125,10 @@ def _cli_exceptions() -> tuple[tuple[type, ...], tuple[type, ...], tuple[type, .
 def main() -> None:
     """Entry point: domain errors become one clear line and an exit code (2 for an invalid spec or usage)."""
     exits, aborts, usage_errors = _cli_exceptions()
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            if signal.getsignal(sig) is signal.SIG_DFL:  # one a parent set to SIG_IGN (nohup) stays ignored
+                signal.signal(sig, _stop)
     try:
         code = app(standalone_mode=False, prog_name="seasynth")
     except Interrupted as err:
@@ -153,9 +173,10 @@ def _extra_hint(module: str | None) -> str:
 
 
 def _interrupted(detail: str | None = None) -> NoReturn:
-    """One line on stderr, exit 130 (128 + SIGINT) as shells expect of Ctrl-C."""
-    typer.echo(f"interrupted: {detail}" if detail else "interrupted", err=True)
-    sys.exit(130)
+    """One line on stderr, exit 128 + the signal's number as shells expect: 130 for Ctrl-C, 143 for SIGTERM."""
+    what = "interrupted" if _stopped_by == signal.SIGINT else f"stopped by {_stopped_by.name}"
+    typer.echo(f"{what}: {detail}" if detail else what, err=True)
+    sys.exit(128 + int(_stopped_by))
 
 
 def _show_usage_error(err: Exception) -> None:
