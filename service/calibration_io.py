@@ -59,6 +59,12 @@ def read_photo(data: bytes, name: str) -> np.ndarray:
     if image.mode in ("I", "I;16", "I;16B", "I;16L", "F", "RGB;16", "RGBA;16"):
         raise CalibrationError(f"{name}: {image.mode} ({'16-bit' if '16' in image.mode else 'float'}) images are "
                                "not taken; give an 8-bit sRGB photo (PNG or JPEG)")
+    # Pillow opens 16-bit colour (a 48-bit PNG, a 16-bit TIFF) as mode RGB or RGBA and keeps only the high byte:
+    # the decoder's raw mode says how many bits a sample has.
+    raw = {str(tile[3][0] if isinstance(tile[3], tuple) else tile[3]) for tile in getattr(image, "tile", None) or ()}
+    if any(";16" in r or ";32" in r for r in raw):
+        raise CalibrationError(f"{name}: {image.mode} with 16-bit samples ({', '.join(sorted(raw))}) is not taken; "
+                               "give an 8-bit sRGB photo (PNG or JPEG)")
     return _decode(image, name, "RGB")
 
 

@@ -9,6 +9,7 @@ import struct
 import zlib
 from pathlib import Path
 
+import imagecodecs
 import numpy as np
 import pytest
 import yaml
@@ -345,7 +346,13 @@ def test_range_maps_read_as_metres_in_each_format():
     [
         (b"not an image", "photo.jpg", "^photo.jpg: not an image"),
         (png_bytes(np.zeros((4, 4), np.uint16)), "photo16.png", "^photo16.png: I;16 .16-bit. images are not taken"),
+        # 16-bit colour opens as mode RGB: read as 8 bits it would keep only each sample's high byte
+        (imagecodecs.png_encode(np.full((4, 4, 3), 511, np.uint16)), "photo48.png",
+         r"^photo48.png: RGB with 16-bit samples \(RGB;16B\) is not taken"),
+        (imagecodecs.tiff_encode(np.full((4, 4, 3), 511, np.uint16)), "photo16.tif",
+         r"^photo16.tif: RGB with 16-bit samples \(RGB;16L\) is not taken"),
     ],
+    ids=["not-an-image", "grey16", "rgb16-png", "rgb16-tiff"],
 )
 def test_bad_photos_are_refused_naming_the_file(data, name, message):
     with pytest.raises(CalibrationError, match=message):
