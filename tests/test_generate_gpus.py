@@ -133,3 +133,14 @@ def test_generate_refuses_bad_gpus_with_one_line(tmp_path):
     r = seasynth("generate", EXAMPLE, "--out", tmp_path / "b", "--frames", "2", "--width", "32", "--height", "24",
                  "--gpus", "7,", "--workers", "2")
     assert r.returncode == 1 and "GPU device 7 asked for, but EGL finds" in r.stderr and "Traceback" not in r.stderr
+    # Refused before OUT is made, so the corrected command runs as it is.
+    assert not (tmp_path / "b").exists()
+    for extra in (("--gpus", "7,", "--workers", "1"), ("--gl", "egl:7"), ("--gpus", "9")):
+        r = seasynth("generate", EXAMPLE, "--out", tmp_path / "c", "--frames", "2", *extra)
+        assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+        assert ("9 GPUs asked for, but EGL finds" if extra[1] == "9" else "GPU device 7 asked for, but EGL finds") \
+            in r.stderr
+        assert not (tmp_path / "c").exists()
+    r = seasynth("generate", EXAMPLE, "--out", tmp_path / "d", "--gl", "opengl")
+    assert r.returncode == 2 and "Invalid value for '--gl': unsupported GL platform 'opengl'" in r.stderr, r.stderr
+    assert not (tmp_path / "d").exists()

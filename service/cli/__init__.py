@@ -43,7 +43,19 @@ SeedOpt = Annotated[Optional[int], typer.Option("--seed", help="Override the spe
 WidthOpt = Annotated[Optional[int], typer.Option("--width", help="Override camera.width.")]
 HeightOpt = Annotated[Optional[int], typer.Option("--height", help="Override camera.height.")]
 QualityOpt = Annotated[Optional[str], typer.Option("--quality", help="Override the quality preset.")]
-PlatformOpt = Annotated[str, typer.Option("--gl", help="Headless GL platform: egl or osmesa.")]
+def _platform(value: str) -> str:
+    """--gl: refused as a usage error (exit 2) before the command does anything."""
+    from worker.render.devices import parse_platform
+
+    try:
+        parse_platform(value)
+    except SeasynthError as err:
+        raise typer.BadParameter(str(err), param_hint="'--gl'") from None
+    return value
+
+
+PlatformOpt = Annotated[str, typer.Option("--gl", help="Headless GL platform: egl, egl:N (EGL device N) or osmesa.",
+                                          callback=_platform)]
 
 
 def load_overridden(spec_path: Path, frames, seed, width, height, quality=None):

@@ -56,7 +56,9 @@ def generate(
 
         start_early()  # its imports overlap the next line's
     from worker.generate import auto_workers, open_dataset, render_frames
+    from worker.render.devices import check_devices
 
+    check_devices(gl, choice)  # a device this machine lacks is refused before OUT is made
     todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")
     if count is None:
         from worker.capacity import gpus_found

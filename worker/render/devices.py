@@ -109,9 +109,27 @@ def egl_platform(gpu: int | None):
     except RuntimeError as err:  # no EGL_EXT_device_enumeration: no device can be chosen
         raise RenderError(f"GPU device {gpu} asked for, but EGL cannot list devices here ({err})") from err
     if gpu >= len(devices):
-        have = f"{len(devices)} device(s) here (indices 0..{len(devices) - 1})" if devices else "no device here"
-        raise RenderError(f"GPU device {gpu} asked for, but EGL finds {have}")
+        raise RenderError(_no_device(gpu, len(devices)))
     return EGLPlatform(8, 8, device=devices[gpu])
+
+
+def _no_device(gpu: int, have: int) -> str:
+    found = f"{have} device(s) here (indices 0..{have - 1})" if have else "no device here"
+    return f"GPU device {gpu} asked for, but EGL finds {found}"
+
+
+def check_devices(platform: str, gpus: GpuChoice | None) -> None:
+    """RenderError now, in this process, where the devices a command names (`egl:N`, `--gpus` indices or a count)
+    are not on this machine: before it writes anything. Lists EGL's devices only when a device is named."""
+    _, gpu = parse_platform(platform)
+    named = [] if gpus is None or gpus.auto else list(resolve_gpus(gpus, platform))  # a count too many raises
+    if gpu is not None:
+        named.append(gpu)
+    if (gpus is not None and gpus.indices is not None) or gpu is not None:
+        have = len(egl_devices())
+        for index in named:
+            if index >= have:
+                raise RenderError(_no_device(index, have))
 
 
 def platform_for_worker(platform: str, gpus: GpuChoice | None, k: int) -> str:
