@@ -101,7 +101,7 @@ class Water(SpecModel):
     model: WaterModel | None = None
     jerlov: list[str] = Field(default_factory=lambda: ["II", "III", "3C", "5C"], max_length=MAX_CHOICES)
     # Multiplies a type's coefficients per frame (physical: a and b together; paper: beta_D).
-    beta_jitter: PositiveInterval = (0.85, 1.15)
+    beta_jitter: Annotated[PositiveInterval, AfterValidator(lambda v: within(v, 0, 100))] = (0.85, 1.15)
     # Physical: explicit per-channel absorption a and scattering b (1/m), instead of the Jerlov types' values.
     absorption: RGBInterval | None = None
     scattering: RGBInterval | None = None

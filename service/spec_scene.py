@@ -7,7 +7,16 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, StrictFloat, StrictInt, field_validator, model_validator
 
-from service.spec_types import MAX_CHOICES, Interval, NonNegInterval, PositiveInterval, SpecModel, Vec3
+from service.spec_types import (
+    MAX_CHOICES,
+    MAX_MAGNITUDE,
+    Interval,
+    NonNegInterval,
+    PositiveInterval,
+    SpecModel,
+    Vec3,
+    within,
+)
 
 # Documented limits (with service.spec's): they keep one frame inside memory.
 MAX_SIDE = 4096
@@ -33,6 +42,8 @@ def _count_range(v: tuple[int, int]) -> tuple[int, int]:
 
 
 CountInterval = Annotated[tuple[StrictInt, StrictInt], AfterValidator(_count_range)]
+# An object's scale against its asset's size: up to 100x (an urchin asset 10 m wide).
+ScaleInterval = Annotated[PositiveInterval, AfterValidator(lambda v: within(v, 0, 100))]
 
 
 class Box(SpecModel):
@@ -52,10 +63,10 @@ class Box(SpecModel):
 
 
 class Intrinsics(SpecModel):
-    fx: StrictFloat = Field(gt=0)
-    fy: StrictFloat = Field(gt=0)
-    cx: StrictFloat
-    cy: StrictFloat
+    fx: StrictFloat = Field(gt=0, le=MAX_MAGNITUDE)
+    fy: StrictFloat = Field(gt=0, le=MAX_MAGNITUDE)
+    cx: StrictFloat = Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)
+    cy: StrictFloat = Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)
 
 
 class Camera(SpecModel):
@@ -65,7 +76,7 @@ class Camera(SpecModel):
     hfov_deg: StrictFloat | None = Field(None, gt=1.0, lt=170.0)
     intrinsics: Intrinsics | None = None
     clip: PositiveInterval = (0.02, 300.0)
-    look_at_jitter_m: StrictFloat = Field(0.05, ge=0)
+    look_at_jitter_m: StrictFloat = Field(0.05, ge=0, le=100)
 
     @field_validator("clip")
     @classmethod
@@ -78,6 +89,12 @@ class Camera(SpecModel):
     def _one_projection(self) -> Camera:
         if self.hfov_deg is not None and self.intrinsics is not None:
             raise ValueError("give either hfov_deg or intrinsics, not both")
+        i = self.intrinsics
+        if i is not None:  # the same bound as hfov_deg's, on each axis: a focal length that sees less than 170 deg
+            for name, f, side in (("fx", i.fx, self.width), ("fy", i.fy, self.height)):
+                if 2 * math.degrees(math.atan(side / (2 * f))) >= 170.0:
+                    raise ValueError(f"intrinsics.{name} {f} px gives a field of view of 170 deg or more over "
+                                     f"{side} px; at least {side / (2 * math.tan(math.radians(85.0))):.4g}")
         return self
 
     def K(self) -> list[list[float]]:
@@ -129,7 +146,7 @@ class Targets(SpecModel):
         default_factory=lambda: [AssetRef(procedural="urchin")], min_length=1, max_length=MAX_ASSETS
     )
     count: CountInterval = (3, 8)
-    scale: PositiveInterval = (0.8, 1.25)
+    scale: ScaleInterval = (0.8, 1.25)
 
 
 class Distractors(SpecModel):
@@ -139,7 +156,7 @@ class Distractors(SpecModel):
         max_length=MAX_ASSETS,
     )
     count: CountInterval = (4, 12)
-    scale: PositiveInterval = (0.7, 1.4)
+    scale: ScaleInterval = (0.7, 1.4)
 
 
 class Terrain(SpecModel):

@@ -8,11 +8,21 @@ from typing import Annotated
 from pydantic import AfterValidator, BaseModel, ConfigDict, StrictFloat
 
 MAX_CHOICES = 64  # entries in water.jerlov and terrain.styles (repeats weight the draw)
+# Every interval and vector of the spec lies within +-MAX_MAGNITUDE: far beyond any scene (metres, intensities,
+# coefficients), and far inside float32, whose range the renderer works in (1e40 overflows it to inf, then NaN).
+MAX_MAGNITUDE = 1e6
+
+
+def bounded(v: tuple[float, ...]) -> tuple[float, ...]:
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError("bounds must be finite")
+    if any(abs(x) > MAX_MAGNITUDE for x in v):
+        raise ValueError(f"must lie within +-{MAX_MAGNITUDE:,.0f}")
+    return v
 
 
 def ordered(v: tuple[float, float]) -> tuple[float, float]:
-    if not (math.isfinite(v[0]) and math.isfinite(v[1])):
-        raise ValueError("bounds must be finite")
+    bounded(v)
     if v[0] > v[1]:
         raise ValueError(f"min {v[0]} > max {v[1]}")
     return v
@@ -34,7 +44,7 @@ def positive(v: tuple[float, float]) -> tuple[float, float]:
 Interval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered)]
 NonNegInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered), AfterValidator(nonneg)]
 PositiveInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered), AfterValidator(positive)]
-Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
+Vec3 = Annotated[tuple[StrictFloat, StrictFloat, StrictFloat], AfterValidator(bounded)]
 
 
 class SpecModel(BaseModel):

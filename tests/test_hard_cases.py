@@ -373,3 +373,37 @@ def test_a_camera_workspace_wholly_inside_geometry_is_refused_naming_it(render_s
     rng = np.random.default_rng(0)
     with pytest.raises(SceneError, match=rf"^workspaces\.camera: .* {CAMERA_TRIES} draws"):
         sample_scene(spec, rng, render_session.asset_for, render_session.terrain_for)
+
+
+# Values at the spec's caps (service.spec_types.MAX_MAGNITUDE and the per-field bounds): beyond them the spec refuses
+# (tests/test_spec_refusals.py); at them a frame renders, its float32 light never overflowing to inf or NaN.
+AT_THE_CAPS = {
+    "sun": ("urchins", {"lighting.sun_intensity": [1e6, 1e6]}),
+    "lamp-far-and-bright": ("night-dive", {"lighting.lamps": [{"offset_m": [1e6, 1e6, -1e6],
+                                                                "intensity": [1e6, 1e6]}]}),
+    "lamp-bright": ("night-dive", {"lighting.lamps": [{"intensity": [1e6, 1e6]}]}),
+    "water-100x": ("urchins", {"water.beta_jitter": [100.0, 100.0]}),
+    "widest-intrinsics": ("urchins", {"camera": {"width": 32, "height": 24, "intrinsics": {
+        "fx": 1.41, "fy": 1.06, "cx": 1e6, "cy": -1e6}}}),
+    "clip": ("urchins", {"camera.clip": [1e-6, 1e6]}),
+    "look-at-jitter": ("urchins", {"camera.look_at_jitter_m": 100.0}),
+}
+
+
+@pytest.mark.parametrize("name", list(AT_THE_CAPS))
+def test_values_at_the_specs_caps_render(render_session, name):
+    import io
+    import json
+
+    from PIL import Image
+
+    example, changes = AT_THE_CAPS[name]
+    spec = load_spec(f"examples/{example}.yaml", {"camera.width": 32, "camera.height": 24, "frames": 1,
+                                                  "quality": "draft", **changes})
+    files = render_session.frame_files(spec, 0)
+    assert np.asarray(Image.open(io.BytesIO(files["image_2/000000.png"]))).shape == (24, 32, 3)
+
+    def refuse(constant: str):
+        raise AssertionError(f"{name}: meta holds {constant}")
+
+    json.loads(files["meta/000000.json"], parse_constant=refuse)
