@@ -106,6 +106,14 @@ def test_a_worker_reply_names_a_spec_error_as_422_and_answers_json(session):
     assert [f["frame"] for f in __import__("json").loads(body)["frames"]] == [0, 1]
 
 
+def test_a_spec_whose_workspaces_admit_no_scene_is_422_naming_the_workspace(session):
+    """Every camera position under the terrain: the spec cannot render (422), not a failed render (500)."""
+    buried = {**SPEC, "workspaces": {"camera": {"min": [-5.0, -5.0, -2.0], "max": [5.0, 5.0, -1.0]}}}
+    header, body = preview_reply(session, "preview", buried, [0, []])
+    assert header["ok"] is False and header["status"] == 422 and body == b""
+    assert header["error"].startswith("workspaces.camera: no camera position outside the terrain and objects")
+
+
 def test_the_gate_renders_each_clients_newest_request_and_says_when_busy():
     async def scenario():
         gate = RenderGate(slots=1, wait_s=0.5)

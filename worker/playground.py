@@ -180,13 +180,13 @@ def preview_reply(session: RenderSession, kind: str, spec_json: dict, args: list
     with the status the API answers (422: the spec or its assets cannot render; 500: rendering failed)."""
     import json
 
-    from service.errors import AssetError, SpecError
     from service.spec import parse_spec
+    from worker.scene import INPUT_ERRORS
 
     try:
         spec = parse_spec(spec_json)
         out = render_preview(session, spec, *args) if kind == "preview" else render_strip(session, spec, *args)
-    except (SpecError, AssetError) as err:
+    except INPUT_ERRORS as err:
         return {"ok": False, "status": 422, "error": str(err)}, b""
     except Exception as err:  # reported to the page as a failed render; the worker goes on
         log.exception("playground %s failed", kind)

@@ -8,7 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from service.errors import SeasynthError
+from service.errors import AssetError, SeasynthError, SpecError
 from service.spec import DatasetSpec
 from service.spec_scene import AssetRef, Box
 from service.water import jerlov_beta, jerlov_veiling_light
@@ -25,6 +25,10 @@ CAMERA_CLEARANCE_M = 0.05  # the camera keeps at least this far above the terrai
 
 class SceneError(SeasynthError):
     """A frame whose workspaces admit no valid scene (e.g. every camera position is inside geometry)."""
+
+
+# What says that a spec or its files cannot render (a 422 to an API client), as opposed to rendering failing.
+INPUT_ERRORS = (SpecError, AssetError, SceneError)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from worker.packing import pack_tar
 from worker.renderer_pinning import deferred_key, renderer_found
 from worker.shard_context import FrameSource, Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 from worker.shard_exports import keep_frame, pack_parts, part_keys, upload_parts
+from worker.scene import INPUT_ERRORS
 
 log = logging.getLogger(__name__)
 
@@ -349,3 +350,22 @@ def render_frame(ctx: ShardContext, dataset_id: str, index: int, part: str) -> t
     if name not in files:
         raise NotFound(f"frame {index} of dataset {dataset_id} has no {name} (is that output switched on?)")
     return {"ok": True, "name": name, "renderer": ctx.session.renderer_name}, files[name]
+
+
+def frame_reply(ctx: ShardContext, dataset_id: str, index: int, part: str) -> tuple[dict[str, Any], bytes]:
+    """render_frame's answer, or the failure the API maps to a status: 404 (no such frame or file), 422 (the
+    dataset's spec or files cannot render it), 503 (another renderer's dataset), 500 (rendering failed).
+    WrongVersion is raised: the task sends the request on to that version's queue."""
+    try:
+        return render_frame(ctx, dataset_id, index, part)
+    except WrongVersion:
+        raise
+    except WrongRenderer as wrong:
+        return {"ok": False, "status": 503, "error": str(wrong)}, b""
+    except NotFound as err:
+        return {"ok": False, "status": 404, "error": str(err)}, b""
+    except INPUT_ERRORS as err:
+        return {"ok": False, "status": 422, "error": str(err)}, b""
+    except Exception as err:
+        log.exception("frame %s of dataset %s failed", index, dataset_id)
+        return {"ok": False, "status": 500, "error": f"{type(err).__name__}: {err}"}, b""

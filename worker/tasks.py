@@ -28,7 +28,7 @@ from worker.asset_cache import AssetCache
 from worker.metrics import TimedFrames, TimedStore, WorkerMetrics
 from worker.playground import preview_reply
 from worker.renderer_pinning import HEARTBEAT_S, defer_to_renderer, note_renderer
-from worker.shard import reconcile, render_frame, run_shard, sweepable
+from worker.shard import frame_reply, reconcile, run_shard, sweepable
 from worker.shard_context import Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 
 log = logging.getLogger(__name__)
@@ -290,17 +290,10 @@ def register(app: Celery, settings: Settings) -> ProcessResources:
         if (ctx := frame_ctx(TASK_FRAME, [dataset_id, frame_index, part, reply_key])) is None:
             return
         try:
-            header, body = render_frame(ctx, dataset_id, frame_index, part)
+            header, body = frame_reply(ctx, dataset_id, frame_index, part)
         except WrongVersion as wrong:
             app.send_task(TASK_FRAME, args=[dataset_id, frame_index, part, reply_key], queue=frame_queue(wrong.version))
             return
-        except WrongRenderer as wrong:
-            header, body = {"ok": False, "status": 503, "error": str(wrong)}, b""
-        except NotFound as err:
-            header, body = {"ok": False, "status": 404, "error": str(err)}, b""
-        except Exception as err:
-            log.exception("frame %s of dataset %s failed", frame_index, dataset_id)
-            header, body = {"ok": False, "status": 500, "error": f"{type(err).__name__}: {err}"}, b""
         push_reply(ctx.raw_redis, reply_key, header, body, ttl_s=reply_ttl_s)
 
     @app.task(name=TASK_PREVIEW, shared=False, acks_late=False)

@@ -10,9 +10,11 @@ from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  #
 
 from service import __version__
 from service.record_types import ShardCommit
+from service.errors import AssetError
 from service.records import Records
 from service.shards import commit_key, manifest_key, shard_key
 from service.storage import LocalStore
+from worker.scene import SceneError
 from worker.shard import run_shard
 from worker.shard_context import Outcome, RetryShard
 
@@ -167,3 +169,20 @@ def test_a_failed_shard_whose_marker_turns_up_is_counted_once_as_committed(recor
     rec = records.get(ds)
     assert (rec.shards_done, rec.shards_failed, rec.frames_done, sorted(rec.errors)) == (1, 1, 2, [2])
     assert records.fail(ds, 1, "late") == (1, 1)  # a committed shard is never failed again
+
+
+@pytest.mark.parametrize(("error", "status"), [
+    (SceneError("workspaces.camera: no camera position outside the terrain and objects after 64 draws"), 422),
+    (AssetError("terrain.mesh: seabed.obj: no triangles"), 422),
+    (RuntimeError("GL context lost"), 500),
+], ids=["scene", "asset", "render"])
+def test_a_frame_the_datasets_inputs_cannot_render_is_422_a_failed_render_500(infra, records, tmp_path, error,
+                                                                             status):
+    from worker.shard import frame_reply
+
+    ctx = make_ctx(infra, records, tmp_path, FakeSession(error))
+    ds = new_dataset(records, frames=4, shard_size=2)
+    header, body = frame_reply(ctx, ds, 1, "image")
+    assert (header["ok"], header["status"], body) == (False, status, b"")
+    assert header["error"] == (str(error) if status == 422 else f"RuntimeError: {error}")
+    assert frame_reply(ctx, ds, 9, "image")[0]["status"] == 404
