@@ -87,6 +87,7 @@ def test_workers_and_resume_give_identical_files(full, tmp_path):
     (two / "image_2/000003.png").unlink()
     (two / "meta/000001.json").unlink()
     (two / "image_2/.000004.png.tmp-1").write_bytes(b"partial")
+    (two / f".{RECORD}.tmp-1").write_bytes(b"{")  # the record's own, killed mid-write
     record = json.loads((two / RECORD).read_text())
     record["state"] = "incomplete"
     (two / RECORD).write_text(json.dumps(record))

@@ -96,7 +96,7 @@ def prepare_output(out: Path, spec: DatasetSpec, mode: Mode, files: dict[str, st
                     shutil.rmtree(target)
                 elif target.exists():
                     target.unlink()
-        for p in out.glob("*/.*.tmp-*"):  # left by an interrupted run
+        for p in (*out.glob(".*.tmp-*"), *out.glob("*/.*.tmp-*")):  # left by an interrupted run (the record's too)
             p.unlink()
         for rel in frame_paths(spec, 0):
             (out / rel).parent.mkdir(exist_ok=True)
