@@ -107,3 +107,19 @@ def read_inputs(photo: bytes, photo_name: str, depth: bytes | None = None, depth
         raise CalibrationError(f"{depth_name}: {range_m.shape[1]}x{range_m.shape[0]} does not match {photo_name}'s "
                                f"{image.shape[1]}x{image.shape[0]}")
     return image, range_m
+
+
+def estimate_files(photo: bytes, photo_name: str, depth: bytes | None = None, depth_name: str = "depth", **options):
+    """service.calibration.estimate_water of a photo file and optional range map file (read_inputs), its errors
+    naming the file at fault where estimate_water names its argument (image, range_m)."""
+    from service.calibration import estimate_water
+
+    image, range_m = read_inputs(photo, photo_name, depth, depth_name)
+    try:
+        return estimate_water(image, range_m, **options)
+    except CalibrationError as err:
+        message = str(err)
+        for argument, name in (("image: ", photo_name), ("range_m: ", depth_name)):
+            if message.startswith(argument):
+                raise CalibrationError(f"{name}: {message[len(argument):]}") from None
+        raise

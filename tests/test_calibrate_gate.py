@@ -26,14 +26,14 @@ def png() -> bytes:
 
 def test_a_calibration_that_finds_no_free_slot_gets_503_and_the_running_one_completes(monkeypatch):
     started, release = threading.Event(), threading.Event()
-    real = calibrate.estimate_water
+    real = calibrate.estimate_files
 
     def slow_estimate(*args, **kw):
         started.set()
         assert release.wait(30)
         return real(*args, **kw)
 
-    monkeypatch.setattr(calibrate, "estimate_water", slow_estimate)
+    monkeypatch.setattr(calibrate, "estimate_files", slow_estimate)
     monkeypatch.setattr(calibrate, "GATE", RenderGate(1, 0.3, busy=calibrate.GATE._busy))
     app = FastAPI()
     install(app, retry_after_s=7)

@@ -70,11 +70,14 @@ def test_calibrate_without_range_prints_what_is_not_identified(files):
         (("missing.png",), "error: {d}/missing.png: cannot read"),
         (("photo.png", "--depth", "photo.png"), "error: {d}/photo.png: a RGB PNG cannot hold range"),
         (("photo.png", "--depth", "small.npy"), "error: {d}/small.npy: 3x2 does not match {d}/photo.png's 320x240"),
+        (("photo.png", "--depth", "unmeasured.npy"), "error: {d}/unmeasured.npy: only 0 pixels have a usable finite "
+                                                     "range"),
     ],
-    ids=["photo-not-image", "photo-missing", "depth-8bit", "depth-size"],
+    ids=["photo-not-image", "photo-missing", "depth-8bit", "depth-size", "depth-unmeasured"],
 )
 def test_bad_files_are_named_on_stderr_with_exit_1(files, args, message):
     np.save(files / "small.npy", np.ones((2, 3), np.float32))
+    np.save(files / "unmeasured.npy", np.full((240, 320), np.nan, np.float32))  # no pixel has a range
     r = seasynth("calibrate", *[files / a if not a.startswith("--") else a for a in args])
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.strip() == message.format(d=files) or r.stderr.startswith(message.format(d=files)), r.stderr

@@ -8,9 +8,9 @@ from fastapi import APIRouter, Query, UploadFile
 
 from api.models import CalibrationPublic, WaterEstimatePublic, error_responses
 from api.slots import RenderGate
-from service.calibration import WaterEstimate, estimate_water
+from service.calibration import WaterEstimate
 from service.calibration_output import to_spec_water
-from service.calibration_io import read_inputs
+from service.calibration_io import estimate_files
 
 router = APIRouter(tags=["calibration"])
 # An estimate takes 0.4-3.5 s of one core (bench/results/cpu/calibration.md): at most this many run at once in an
@@ -52,9 +52,8 @@ async def calibrate(
     depth_bytes = None if depth is None else await depth.read()
 
     def run() -> CalibrationPublic:
-        image, range_m = read_inputs(photo_bytes, photo.filename or "photo", depth_bytes,
-                                     (depth and depth.filename) or "depth")
-        estimate = estimate_water(image, range_m, prior=prior)
+        estimate = estimate_files(photo_bytes, photo.filename or "photo", depth_bytes,
+                                  (depth and depth.filename) or "depth", prior=prior)
         return CalibrationPublic(estimate=estimate_public(estimate), water=to_spec_water(estimate, spread=range_spread))
 
     return await GATE.run(uuid.uuid4().hex, run)  # a fresh client token: calibrations queue, none supersedes another

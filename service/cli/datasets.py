@@ -224,9 +224,8 @@ def calibrate(
 ) -> None:
     """Estimate the water (beta_D, beta_B, B_inf with uncertainties) of a real photo, with or without a range map,
     and write it as a spec water: section."""
-    from service.calibration import estimate_water
+    from service.calibration_io import estimate_files
     from service.calibration_output import describe, to_spec_water
-    from service.calibration_io import read_inputs
     from service.errors import CalibrationError
 
     def read(path: Path) -> bytes:
@@ -235,8 +234,8 @@ def calibrate(
         except OSError as err:
             raise CalibrationError(f"{path}: cannot read ({err.strerror or err})") from None
 
-    image, range_m = read_inputs(read(photo), str(photo), None if depth is None else read(depth), str(depth))
-    estimate = estimate_water(image, range_m, seed=seed, prior=None if prior == "none" else prior)
+    estimate = estimate_files(read(photo), str(photo), None if depth is None else read(depth), str(depth), seed=seed,
+                              prior=None if prior == "none" else prior)
     water = to_spec_water(estimate, spread=range_spread)
     typer.echo(describe(estimate))
     import yaml

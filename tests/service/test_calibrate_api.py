@@ -79,7 +79,7 @@ def test_calibrate_without_range_says_what_it_cannot_identify(api, shot):
          "d.exr: unknown range map format '.exr'"),
         ({"photo": ("reef.png", "PHOTO", "image/png"), "depth": ("d.npy", npy(np.ones((2, 3))), "x/y")},
          "d.npy: 3x2 does not match reef.png's 320x240"),
-        ({"photo": ("flat.png", png(np.full((64, 64, 3), 2, np.uint8)), "image/png")}, "image: too dark"),
+        ({"photo": ("flat.png", png(np.full((64, 64, 3), 2, np.uint8)), "image/png")}, "flat.png: too dark"),
     ],
     ids=["not-image", "bomb", "depth-format", "depth-size", "dark"],
 )
