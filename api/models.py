@@ -56,6 +56,9 @@ class DatasetPublic(BaseModel):
     restored_at: datetime | None = Field(
         None, description="When this record was rebuilt from the bucket after Redis lost its data: the committed "
         "shards and the state are back, the attempts, errors and timings from before are not")
+    notice: str | None = Field(
+        None, description="Why the dataset is not progressing, where a worker knows: its shards wait for a worker "
+        "running the renderer they were started with (how long, how many hand-backs), or gave up on one")
     links: DatasetLinks
 
 

@@ -138,6 +138,7 @@ def public(rec: DatasetRecord, now: float) -> DatasetPublic:
         finished_at=_time(rec.finished_at),
         purged=rec.purged,
         restored_at=_time(rec.restored_at),
+        notice=rec.notice,
         links=links(rec.id),
     )
 

@@ -41,6 +41,9 @@ class DatasetRecord:
     # when the record was rebuilt from the bucket after Redis lost it (service.recovery): attempts, errors and
     # timings from before are lost; None for a record that never was
     restored_at: float | None = None
+    # why the dataset is not progressing, where a worker knows: its shards wait for a worker of the renderer they
+    # were started with (worker.renderer_pinning), or gave up on one; None otherwise
+    notice: str | None = None
 
     @cached_property
     def spec(self) -> dict[str, Any]:

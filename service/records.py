@@ -172,6 +172,7 @@ class Records:
             purged=h.get("purged") == "1",
             errors={int(i): e for i, e in zip(errors[::2], errors[1::2])},
             restored_at=opt("restored_at"),
+            notice=h.get("notice") or None,
         )
 
     def exists(self, dataset_id: str) -> bool:

@@ -228,6 +228,9 @@ def test_a_real_worker_hands_back_an_absent_renderers_shards_then_the_dataset_fa
                      "three hand-backs")
             notice = services.records.r.hget(services.records._k(ds), "notice")
             assert notice.startswith(f"waiting for a shard worker with renderer {GPU!r}: none has run for "), notice
+            with api_on(services) as client:  # the status read says why nothing progresses
+                shown = client.get(f"/datasets/{ds}").json()["notice"]
+            assert shown.startswith(f"waiting for a shard worker with renderer {GPU!r}: none has run for "), shown
             # A forced sweep republishes none of the shards going round: still one message per shard.
             services.producer.send_task(TASK_RECONCILE, args=[ds, True], queue=queue)
             wait_for(lambda: not any(t != TASK_SHARD for t, _ in queued_tasks(raw, queue)), 20, "the sweep to run")
@@ -243,6 +246,7 @@ def test_a_real_worker_hands_back_an_absent_renderers_shards_then_the_dataset_fa
             assert got == ("failed", 0, 3, 0), final
             assert [e["shard"] for e in final["errors"]] == [0, 1, 2]
             assert all(f"no shard worker with renderer {GPU!r}" in e["error"] for e in final["errors"])
+            assert final["notice"].startswith(f"no shard worker with renderer {GPU!r}")
             assert "hand-back not recorded" not in worker.tail(400)
         finally:
             worker.stop()
