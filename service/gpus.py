@@ -67,3 +67,19 @@ def gpu_for_worker(k: int, devices: Sequence[int]) -> int | None:
     if k < 0:
         raise ValueError(f"worker index must be >= 0, got {k}")
     return devices[k % len(devices)] if devices else None
+
+
+def parse_platform(platform: str, gpu: int | None = None) -> tuple[str, int | None]:
+    """("egl" or "osmesa", EGL device index or None) of a platform name, which may name its device as `egl:N`
+    (so callers that pass a platform name through, like RenderSession, can bind a GPU)."""
+    name, sep, index = platform.partition(":")
+    if name not in ("egl", "osmesa"):
+        raise RenderError(f"unsupported GL platform {platform!r}; use 'egl', 'egl:N' (EGL device N) or 'osmesa'")
+    if sep:
+        if name != "egl" or not index.isdigit() or (gpu is not None and gpu != int(index)):
+            raise RenderError(f"GL platform {platform!r}: only egl takes a device, as egl:N with N >= 0 "
+                              f"(and no other gpu={gpu})")
+        gpu = int(index)
+    if gpu is not None and name != "egl":
+        raise RenderError(f"GPU device {gpu} asked for on the {name} platform, which renders on the CPU; use egl")
+    return name, gpu

@@ -69,7 +69,8 @@ def test_settings_take_one_gpu_or_a_spread(monkeypatch):
 
 
 def test_platform_names_bind_a_device_only_on_egl():
-    from worker.render.devices import gl_platform, parse_platform
+    from service.gpus import parse_platform
+    from worker.render.devices import gl_platform
 
     assert parse_platform("egl") == ("egl", None) and parse_platform("egl:2") == ("egl", 2)
     assert parse_platform("egl", 1) == ("egl", 1) and gl_platform("egl", 1) == "egl:1"
@@ -141,6 +142,9 @@ def test_generate_refuses_bad_gpus_with_one_line(tmp_path):
         assert ("9 GPUs asked for, but EGL finds" if extra[1] == "9" else "GPU device 7 asked for, but EGL finds") \
             in r.stderr
         assert not (tmp_path / "c").exists()
+    r = seasynth("generate", EXAMPLE, "--out", tmp_path / "c", "--gl", "egl:0", "--gpus", "0,")
+    assert r.returncode == 1 and "GL platform 'egl:0' binds one device and --gpus 0, spreads over GPUs" in r.stderr
+    assert not (tmp_path / "c").exists()
     r = seasynth("generate", EXAMPLE, "--out", tmp_path / "d", "--gl", "opengl")
     assert r.returncode == 2 and "Invalid value for '--gl': unsupported GL platform 'opengl'" in r.stderr, r.stderr
     assert not (tmp_path / "d").exists()

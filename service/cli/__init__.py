@@ -43,9 +43,11 @@ SeedOpt = Annotated[Optional[int], typer.Option("--seed", help="Override the spe
 WidthOpt = Annotated[Optional[int], typer.Option("--width", help="Override camera.width.")]
 HeightOpt = Annotated[Optional[int], typer.Option("--height", help="Override camera.height.")]
 QualityOpt = Annotated[Optional[str], typer.Option("--quality", help="Override the quality preset.")]
+
+
 def _platform(value: str) -> str:
     """--gl: refused as a usage error (exit 2) before the command does anything."""
-    from worker.render.devices import parse_platform
+    from service.gpus import parse_platform
 
     try:
         parse_platform(value)

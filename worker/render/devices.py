@@ -6,7 +6,7 @@ import os
 from dataclasses import dataclass
 
 from service.errors import RenderError
-from service.gpus import GpuChoice, gpu_for_worker
+from service.gpus import GpuChoice, gpu_for_worker, parse_platform
 
 _EGL_EXTENSIONS = 0x3055  # eglQueryDeviceStringEXT(device, EGL_EXTENSIONS)
 
@@ -37,22 +37,6 @@ def prepare_environment(platform: str) -> None:
         raise RenderError(
             f"PYOPENGL_PLATFORM is {os.environ['PYOPENGL_PLATFORM']!r} but platform {platform!r} was asked for"
         )
-
-
-def parse_platform(platform: str, gpu: int | None = None) -> tuple[str, int | None]:
-    """("egl" or "osmesa", EGL device index or None) of a platform name, which may name its device as `egl:N`
-    (so callers that pass a platform name through, like RenderSession, can bind a GPU)."""
-    name, sep, index = platform.partition(":")
-    if name not in ("egl", "osmesa"):
-        raise RenderError(f"unsupported GL platform {platform!r}; use 'egl', 'egl:N' (EGL device N) or 'osmesa'")
-    if sep:
-        if name != "egl" or not index.isdigit() or (gpu is not None and gpu != int(index)):
-            raise RenderError(f"GL platform {platform!r}: only egl takes a device, as egl:N with N >= 0 "
-                              f"(and no other gpu={gpu})")
-        gpu = int(index)
-    if gpu is not None and name != "egl":
-        raise RenderError(f"GPU device {gpu} asked for on the {name} platform, which renders on the CPU; use egl")
-    return name, gpu
 
 
 def gl_platform(platform: str, gpu: int | None) -> str:
@@ -121,8 +105,10 @@ def _no_device(gpu: int, have: int) -> str:
 def check_devices(platform: str, gpus: GpuChoice | None) -> None:
     """RenderError now, in this process, where the devices a command names (`egl:N`, `--gpus` indices or a count)
     are not on this machine: before it writes anything. Lists EGL's devices only when a device is named."""
-    _, gpu = parse_platform(platform)
-    named = [] if gpus is None or gpus.auto else list(resolve_gpus(gpus, platform))  # a count too many raises
+    name, gpu = parse_platform(platform)
+    if gpu is not None and gpus is not None:
+        raise RenderError(f"GL platform {platform!r} binds one device and --gpus {gpus} spreads over GPUs: give one")
+    named = [] if gpus is None or gpus.auto else list(resolve_gpus(gpus, name))  # a count too many raises
     if gpu is not None:
         named.append(gpu)
     if (gpus is not None and gpus.indices is not None) or gpu is not None:

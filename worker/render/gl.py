@@ -17,11 +17,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.errors import RenderError
+from service.gpus import parse_platform
 from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
 from worker.render import shaders
 from worker.render.coverage import pixels_alone
 from worker.render.depth import ClipControl, projection
-from worker.render.devices import egl_platform, parse_platform, prepare_environment
+from worker.render.devices import egl_platform, prepare_environment
 from worker.render.frustum import sphere_in_view
 from worker.render.readback import Pending, Readback
 from worker.render.surface import SurfaceReads, surface_pass
