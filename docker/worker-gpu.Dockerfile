@@ -6,7 +6,7 @@
 #   docker build -f docker/worker-gpu.Dockerfile -t seasynth-worker-gpu .
 #   docker run --gpus 'all,"capabilities=compute,utility,graphics"' seasynth-worker-gpu
 # SEASYNTH_GPUS=auto: the worker's render processes are spread over every GPU the container sees, pool process k
-# on the k-th round robin (one GPU seen: all on it). SEASYNTH_GPU=N instead binds them all to EGL device N.
+# on the k-th round robin (one GPU seen: all on it). SEASYNTH_GPUS=N, instead binds them all to EGL device N.
 
 FROM python:3.11-slim AS build
 ENV PIP_NO_CACHE_DIR=1 \

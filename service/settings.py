@@ -79,8 +79,10 @@ class Settings(BaseSettings):
     def _limits_consistent(self) -> Settings:
         if self.task_soft_time_limit_s < 1:
             raise ValueError("task_time_limit_s is too short to leave a soft limit")
-        if self.gpu is not None and self.gpus is not None:
-            raise ValueError("gpu (SEASYNTH_GPU) and gpus (SEASYNTH_GPUS) exclude each other; set one")
+        if self.gpu is not None and self.gpus is not None and self.gpus.strip():  # blank SEASYNTH_GPUS: unset
+            raise ValueError("gpu (SEASYNTH_GPU) and gpus (SEASYNTH_GPUS) exclude each other; set one (the GPU "
+                             "worker image sets SEASYNTH_GPUS=auto: there, SEASYNTH_GPUS=N, binds every render "
+                             "process to EGL device N)")
         self.gpu_choice  # noqa: B018 (a bad SEASYNTH_GPUS fails here, at the entry point)
         return self
 

@@ -264,6 +264,18 @@ def test_compose_flower_is_an_opt_in_monitor_with_the_workers_visibility_timeout
     config = runpy.run_path(str(ROOT / "docker" / "flower" / "celeryconfig.py"))
     assert config["broker_url"] == compose["services"]["worker"]["environment"]["SEASYNTH_REDIS_URL"]
     assert config["broker_transport_options"] == {"visibility_timeout": Settings().visibility_timeout_s}
+    # Flower reads the workers' settings from the same environment, so a longer task limit set for the workers
+    # sets Flower's visibility timeout too.
+    workers = compose["services"]["worker"]["environment"]
+    assert {k: v for k, v in flower["environment"].items() if k.startswith("SEASYNTH_")} == \
+        {k: v for k, v in workers.items() if k.startswith("SEASYNTH_")}
+    import os
+    from unittest import mock
+
+    with mock.patch.dict(os.environ, {**flower["environment"], "SEASYNTH_TASK_TIME_LIMIT_S": "7200"}):
+        longer = runpy.run_path(str(ROOT / "docker" / "flower" / "celeryconfig.py"))
+        assert longer["broker_transport_options"] == {"visibility_timeout": Settings().visibility_timeout_s} == \
+            {"visibility_timeout": 3 * 7200}
 
 
 def test_every_pod_runs_as_non_root(rendered):

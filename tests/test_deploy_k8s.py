@@ -194,6 +194,10 @@ def test_k8s_redis_never_evicts_and_persists(rendered):
     assert c["image"].startswith("redis:7")
     args = dict(zip(c["args"][::2], c["args"][1::2]))
     assert args["--appendonly"] == "yes" and args["--maxmemory-policy"] == "noeviction", c["args"]
+    # noeviction acts only at --maxmemory: set, and far enough below the container's limit for a rewrite's fork
+    assert args["--maxmemory"].endswith("mb"), c["args"]
+    limit_mb = _gib(c["resources"]["limits"]["memory"]) * 1024
+    assert 0.5 * limit_mb <= int(args["--maxmemory"][:-2]) <= 0.75 * limit_mb, (args["--maxmemory"], limit_mb)
     assert args["--appendfsync"] == "always", c["args"]  # what the fault suite's Redis restarts are tested with
     (claim,) = sts["spec"]["volumeClaimTemplates"]
     mounts = {m["name"]: m["mountPath"] for m in c["volumeMounts"]}
@@ -273,6 +277,8 @@ def test_keda_scales_on_this_versions_shard_queue(rendered, kustomization, targe
     assert scaled["spec"]["scaleTargetRef"]["name"] == target
     # KEDA sees waiting shards only, not running ones: at zero replicas it would stop workers mid-shard.
     assert scaled["spec"]["minReplicaCount"] >= 1, "one shard worker stays warm"
+    # Its target leaves the count to KEDA: a spec.replicas would be applied back over it by every `kubectl apply`.
+    assert "replicas" not in _by(rendered[kustomization], "Deployment", target)["spec"]
     frames = _by(rendered[kustomization], "Deployment", "worker-frames")
     assert frames["spec"]["replicas"] == 1, "the frames worker is not scaled on the shard queue"
 

@@ -59,6 +59,12 @@ def test_settings_take_one_gpu_or_a_spread(monkeypatch):
     assert Settings().gpu_choice == GpuChoice()
     monkeypatch.setenv("SEASYNTH_GPUS", "")
     assert Settings().gpu_choice is None
+    monkeypatch.setenv("SEASYNTH_GPU", "1")  # a blank SEASYNTH_GPUS (over the GPU image's auto) is unset
+    assert Settings().gpu_choice == GpuChoice(indices=(1,))
+    monkeypatch.setenv("SEASYNTH_GPUS", "1,")  # what the GPU image's docs give for one device
+    monkeypatch.delenv("SEASYNTH_GPU")
+    assert Settings().gpu_choice == GpuChoice(indices=(1,))
+    monkeypatch.delenv("SEASYNTH_GPUS")
     for env in ({"SEASYNTH_GPUS": "many"}, {"SEASYNTH_GPUS": "auto", "SEASYNTH_GPU": "0"}, {"SEASYNTH_GPU": "-1"}):
         for k, v in env.items():
             monkeypatch.setenv(k, v)
