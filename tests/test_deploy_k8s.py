@@ -354,3 +354,16 @@ def test_image_tags_follow_the_code_version(rendered, kustomization):
                 name, _, tag = c["image"].partition(":")
                 if name in ours:
                     assert tag == _project_version(), f"{c['image']}: tag it {_project_version()} (pyproject.toml)"
+
+
+def test_a_stopping_api_outwaits_its_longest_request(rendered, compose):
+    """uvicorn lets in-flight requests finish on SIGTERM; the longest is a frame request (frame_timeout_s): the grace
+    period outlasts it, in compose and on Kubernetes alike."""
+    from service.settings import Settings
+
+    need = Settings().frame_timeout_s + 10
+    assert _duration_s(compose["services"]["api"]["stop_grace_period"]) >= need
+    for kustomization, docs in rendered.items():
+        pod = _by(docs, "Deployment", "api")["spec"]["template"]["spec"]
+        assert pod["terminationGracePeriodSeconds"] == _duration_s(compose["services"]["api"]["stop_grace_period"]), (
+            kustomization)
