@@ -3,11 +3,13 @@ merge the shards' parts of an export format into one export)."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import shutil
 import tarfile
+import threading
 import urllib.parse
 import urllib.request
 from collections.abc import Callable
@@ -77,7 +79,14 @@ def get_manifest_page(client, url: str, api_url: str, dataset_id: str) -> dict[s
         raise Unauthorized(f"{api_url}: an API key is needed (--api-key or SEASYNTH_API_KEY)")
     if r.status_code >= 400:
         raise Unavailable(f"{api_url}: manifest of {dataset_id} failed with HTTP {r.status_code}: {_detail(r)}")
-    return r.json()
+    try:
+        page = r.json()
+    except ValueError:
+        page = None
+    if not isinstance(page, dict) or not isinstance(page.get("shards"), list):
+        raise Unavailable(f"{api_url}: the manifest of {dataset_id} is not a seasynth manifest page (HTTP "
+                          f"{r.status_code}, {r.headers.get('content-type', 'no content type')}): is --api the API?")
+    return page
 
 
 def url_refresher(client, api_url: str, dataset_id: str, fmt: str | None = None) -> Callable[[dict[str, Any]], str]:
@@ -102,15 +111,23 @@ def _detail(r) -> str:
         return r.text[:200]
 
 
-def _safe_member(name: str) -> str:
+def _safe_member(name: str, key: str) -> str:
+    """A tar member's name, if it is a plain relative path outside the fetch's own files."""
     parts = name.split("/")
     if not name or name.startswith("/") or any(p in ("", ".", "..") for p in parts):
-        raise IntegrityError(f"shard member {name!r} is not a plain relative path")
+        raise IntegrityError(f"{key}: member {name!r} is not a plain relative path")
+    if parts[0] in (STATE_DIR, "manifest.json"):
+        raise IntegrityError(f"{key}: member {name!r} would overwrite the fetch's own {parts[0]}")
     return name
 
 
-def download(client, url: str, part: Path, on_bytes: Callable[[int], None]) -> None:
-    """Download `url` to `part`, continuing a partial file with an HTTP Range request."""
+class Stopped(Exception):
+    """A download stopped because another one failed or the fetch was interrupted; its part file is kept."""
+
+
+def download(client, url: str, part: Path, on_bytes: Callable[[int], None], stop=None) -> None:
+    """Download `url` to `part`, continuing a partial file with an HTTP Range request. stop: a threading.Event
+    that, once set, ends the download after its current chunk (Stopped), the part kept for the next run."""
     if url.startswith("file://"):  # a local object store
         src = Path(urllib.request.url2pathname(urllib.parse.urlparse(url).path))
         shutil.copyfile(src, part)
@@ -132,6 +149,8 @@ def download(client, url: str, part: Path, on_bytes: Callable[[int], None]) -> N
             for chunk in r.iter_bytes(1 << 20):
                 f.write(chunk)
                 on_bytes(len(chunk))
+                if stop is not None and stop.is_set():
+                    raise Stopped(url.split("?")[0])
 
 
 def sha256_file(path: Path) -> str:
@@ -142,22 +161,41 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
-def extract(tar_path: Path, out: Path) -> int:
-    """Write every member into `out` (each file written whole, then renamed); return the file count."""
+def extract(tar_path: Path, out: Path, key: str | None = None) -> int:
+    """Write every member into `out` (each file written whole, then renamed); return the file count. key: the
+    shard's, for errors (default: the tar's file name)."""
+    key = key or tar_path.name
     n = 0
     with tarfile.open(tar_path, "r:*") as tar:
         for m in tar:
-            name = _safe_member(m.name)
+            name = _safe_member(m.name, key)
             if not m.isfile():
-                raise IntegrityError(f"{tar_path.name}: member {name!r} is not a regular file")
+                raise IntegrityError(f"{key}: member {name!r} is not a regular file")
             dest = out / name
-            dest.parent.mkdir(parents=True, exist_ok=True)
             tmp = dest.with_name(f".{dest.name}.part")
-            with tar.extractfile(m) as src, open(tmp, "wb") as f:
-                shutil.copyfileobj(src, f)
-            os.replace(tmp, dest)
+            try:
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                with tar.extractfile(m) as src, open(tmp, "wb") as f:
+                    shutil.copyfileobj(src, f)
+                os.replace(tmp, dest)
+            except OSError as err:
+                with contextlib.suppress(OSError):
+                    tmp.unlink(missing_ok=True)
+                raise OutputError(f"{dest}: cannot write {name} of {key} ({err.strerror or err})") from None
             n += 1
     return n
+
+
+def _write_text(path: Path, text: str) -> None:
+    """`text` into `path` whole (a temporary file renamed), or OutputError naming it."""
+    tmp = path.with_name(f".{path.name}.part")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
 
 
 def fetch_shard(
@@ -168,6 +206,7 @@ def fetch_shard(
     refresh: Callable[[dict[str, Any]], str] | None = None,
     state: Path | None = None,
     replace: bool = False,
+    stop=None,
 ) -> tuple[bool, int]:
     """Fetch, verify and extract one shard (or export part: any object with index, key, url, sha256 and bytes)
     into `out` unless its .done marker says so; return (fetched, files).
@@ -175,7 +214,10 @@ def fetch_shard(
     refresh(shard): a new URL for the shard, asked for when the store refuses its URL (presigned URLs expire, and
     a long download can outlast them); the part already downloaded is kept and continued. state: the folder of
     its .part download and .done marker (default out/STATE_DIR). replace: `out` is this object's alone: what an
-    earlier object left there is removed before extracting.
+    earlier object left there is removed before extracting. stop: see download.
+
+    A part that failed its sha256 or size is deleted; one cut off by the network, a 5xx or a full disk is kept, and
+    the next attempt (or run) continues it with a Range request.
     """
     import httpx
 
@@ -187,9 +229,11 @@ def fetch_shard(
         on_bytes(shard["bytes"])
         return False, 0
     part = state / f"{name}.part"
+    if part.exists():  # an earlier run's, which download continues: its bytes count as downloaded
+        on_bytes(part.stat().st_size)
     for attempt in range(1, ATTEMPTS + 1):
         try:
-            download(client, shard["url"], part, on_bytes)
+            download(client, shard["url"], part, on_bytes, stop)
             size, digest = part.stat().st_size, sha256_file(part)
             if size != shard["bytes"] or digest != shard["sha256"]:
                 raise IntegrityError(
@@ -202,14 +246,15 @@ def fetch_shard(
                 raise
             shard = {**shard, "url": refresh(shard)}
         except (IntegrityError, Unavailable, OSError, httpx.HTTPError) as err:
-            on_bytes(-(part.stat().st_size if part.exists() else 0))
-            part.unlink(missing_ok=True)  # a bad or stale part never gets resumed
+            if isinstance(err, IntegrityError):  # a bad part is never resumed
+                on_bytes(-(part.stat().st_size if part.exists() else 0))
+                part.unlink(missing_ok=True)
             if attempt == ATTEMPTS:
                 raise err if isinstance(err, SeasynthError) else Unavailable(f"{shard['key']}: {err}") from err
     if replace:
         shutil.rmtree(out, ignore_errors=True)
-    files = extract(part, out)
-    done.write_text(shard["sha256"] + "\n")
+    files = extract(part, out, shard["key"])
+    _write_text(done, shard["sha256"] + "\n")
     part.unlink()
     return True, files
 
@@ -266,8 +311,8 @@ def _fetch(api, api_url: str, dataset_id: str, man: dict[str, Any], out: Path, *
     fetched, skipped, files, downloaded = _download_all(api, api_url, dataset_id, shards, out, None,
                                                         parallel=parallel, progress=progress)
     public = {k: v for k, v in man.items() if k != "shards"}
-    public["shards"] = [{k: v for k, v in s.items() if k != "url"} for s in shards]
-    (out / "manifest.json").write_text(json.dumps(public, indent=1, sort_keys=True) + "\n")
+    public["shards"] = [_without_urls(s) for s in shards]
+    _write_text(out / "manifest.json", json.dumps(public, indent=1, sort_keys=True) + "\n")
     return FetchReport(len(shards), fetched, skipped, downloaded, files)
 
 
@@ -300,6 +345,15 @@ def fetch_export(api, api_url: str, dataset_id: str, man: dict[str, Any], out: P
     return FetchReport(len(parts), fetched, skipped, downloaded, files)
 
 
+def _without_urls(shard: dict[str, Any]) -> dict[str, Any]:
+    """A manifest shard without its presigned URLs (its own and its export parts'): they expire, and let whoever
+    holds a copy of the dataset read the bucket until then."""
+    out = {k: v for k, v in shard.items() if k != "url"}
+    if out.get("exports"):
+        out["exports"] = {fmt: {k: v for k, v in part.items() if k != "url"} for fmt, part in out["exports"].items()}
+    return out
+
+
 def _part_folder(shard: dict[str, Any]) -> str:
     return f"shard-{shard['index']:06d}"
 
@@ -322,16 +376,25 @@ def _download_all(api, api_url: str, dataset_id: str, objects: list[dict[str, An
     bar = _Bar(sum(s["bytes"] for s in objects), f"{dataset_id[:8]}: {len(objects)} {what}", progress)
     state = None if fmt is None else out / STATE_DIR / fmt
     # Presigned URLs carry their own authorisation: no API key goes to the object store.
+    # The first failure (or Ctrl-C, SIGTERM) stops the rest: queued shards never start, running downloads end
+    # after their current chunk with their part kept, so the next run continues them.
+    stop = threading.Event()
     with bar, httpx.Client(timeout=httpx.Timeout(120.0, connect=10.0)) as storage:
         with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
             refresh = url_refresher(api, api_url, dataset_id, fmt)
             futures = [pool.submit(fetch_shard, storage, s, out if state is None else state / _part_folder(s),
-                                   bar.advance, refresh, state, state is not None) for s in objects]
-            for fut in as_completed(futures):
-                got, n = fut.result()
-                fetched += got
-                skipped += not got
-                files += n
+                                   bar.advance, refresh, state, state is not None, stop) for s in objects]
+            try:
+                for fut in as_completed(futures):
+                    got, n = fut.result()
+                    fetched += got
+                    skipped += not got
+                    files += n
+            except BaseException:
+                stop.set()
+                for f in futures:
+                    f.cancel()
+                raise
     return fetched, skipped, files, bar.downloaded
 
 

@@ -113,6 +113,40 @@ def test_a_merge_refuses_a_part_of_another_dataset(dataset, tmp_path):
         PartMerger("coco").merge(man, [(man["shards"][0], tmp_path / "parts" / "shard-000000")], out)
 
 
+@pytest.mark.parametrize("loss", ["folder", "image", "label"])
+def test_a_yolo_merge_refuses_a_part_that_lost_files(dataset, tmp_path, loss):
+    """A part folder removed or emptied since it was fetched: refused naming the shard, not a complete export."""
+    merged(dataset, "yolo", 3, tmp_path)
+    man = manifest_of(dataset, 3)
+    folder = tmp_path / "parts" / "shard-000001"
+    if loss == "folder":
+        for p in sorted(folder.rglob("*"), reverse=True):
+            p.unlink() if p.is_file() else p.rmdir()
+        folder.rmdir()
+    else:
+        victim = next(p for p in sorted((folder / ("images" if loss == "image" else "labels")).rglob("*"))
+                      if p.is_file())
+        victim.unlink()
+    parts = [(s, tmp_path / "parts" / f"shard-{s['index']:06d}") for s in man["shards"]]
+    with pytest.raises(ExportError, match=r"shard-000001: shard 1's YOLO part holds \d+ images and \d+ label files "
+                                          r"for its 3 frames"):
+        PartMerger("yolo").merge(man, parts, tmp_path / "out")
+
+
+@pytest.mark.parametrize("name", ["../../../escape.png", "/abs.png", "sub/x.png", "..", ""])
+def test_a_coco_merge_refuses_an_image_file_name_that_is_not_plain(dataset, tmp_path, name):
+    out = merged(dataset, "coco", FRAMES, tmp_path)
+    man = manifest_of(dataset, FRAMES)
+    folder = tmp_path / "parts" / "shard-000000"
+    path = folder / "annotations" / "instances_train.json"
+    data = json.loads(path.read_text())
+    data["images"][0]["file_name"] = name
+    path.write_text(json.dumps(data))
+    with pytest.raises(ExportError, match=f"instances_train.json: image file_name {name!r} is not a plain file name"):
+        PartMerger("coco").merge(man, [(man["shards"][0], folder)], out)
+    assert not (tmp_path / "escape.png").exists()
+
+
 def test_generate_writes_the_spec_exports(tmp_path):
     spec = tmp_path / "spec.yaml"
     spec.write_text(EXAMPLE.read_text())

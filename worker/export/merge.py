@@ -67,7 +67,7 @@ def _merge_coco(info: ExportInfo, parts: list[tuple[dict, Path]]) -> tuple[set[s
                     raise ExportError(f"{path}: shard {shard['index']}'s part was made for another dataset, spec, "
                                       "code version or split than its manifest says")
                 for image in data["images"]:
-                    rel = f"images/{split}/{image['file_name']}"
+                    rel = f"images/{split}/{_plain_name(image.get('file_name'), path)}"
                     place_file(_existing(folder / rel), info.out / rel)
                     written.add(rel)
                 exporter.add_entries(split, data["images"], data["annotations"])
@@ -80,18 +80,29 @@ def _merge_coco(info: ExportInfo, parts: list[tuple[dict, Path]]) -> tuple[set[s
 
 
 def _merge_yolo(info: ExportInfo, parts: list[tuple[dict, Path]]) -> tuple[set[str], dict[str, int]]:
-    """Every part's images/ and labels/ files, then data.yaml naming this folder."""
+    """Every part's images/ and labels/ files, then data.yaml naming this folder. A part must hold one image and
+    one label file for each frame of its shard, or the merge stops naming it (a part folder removed or emptied
+    since it was fetched)."""
     exporter = exporter_for("yolo")
     exporter.begin(info)
     written, counts = set(), dict.fromkeys(SPLITS, 0)
-    for _, folder in parts:
-        for split in SPLITS:
-            for kind in ("images", "labels"):
-                for src in sorted((folder / kind / split).glob("*")):
-                    rel = f"{kind}/{split}/{src.name}"
-                    place_file(src, info.out / rel)
-                    written.add(rel)
-                    counts[split] += kind == "images"
+    for shard, folder in parts:
+        files = {(kind, split): sorted(p for p in (folder / kind / split).glob("*") if p.is_file())
+                 for kind in ("images", "labels") for split in SPLITS}
+        images = sorted(p.stem for split in SPLITS for p in files["images", split])
+        labels = sorted(p.stem for split in SPLITS for p in files["labels", split])
+        first = shard["first_frame"]
+        want = [f"{i:06d}" for i in range(first, first + shard["frame_count"])]
+        if images != want or labels != want:
+            raise ExportError(f"{folder}: shard {shard['index']}'s YOLO part holds {len(images)} images and "
+                              f"{len(labels)} label files for its {shard['frame_count']} frames (remove the "
+                              "folder's .seasynth-fetch/ and fetch again)")
+        for (kind, split), srcs in files.items():
+            for src in srcs:
+                rel = f"{kind}/{split}/{src.name}"
+                place_file(src, info.out / rel)
+                written.add(rel)
+                counts[split] += kind == "images"
     exporter.finish()
     return written | {"data.yaml"}, counts
 
@@ -149,6 +160,13 @@ def _remove_unwritten(out: Path, written: set[str]) -> None:
                     os.unlink(Path(dirpath, name))
     except OSError as err:
         raise ExportError(f"{out}: cannot remove files of an earlier export ({err.strerror or err})") from None
+
+
+def _plain_name(name, where: Path) -> str:
+    """A COCO image's file_name, if it is a plain file name (it is joined to paths inside and outside the part)."""
+    if not isinstance(name, str) or not name or "/" in name or "\\" in name or name in (".", ".."):
+        raise ExportError(f"{where}: image file_name {name!r} is not a plain file name")
+    return name
 
 
 def _existing(path: Path) -> Path:
