@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from service.errors import Conflict, NotFound, OutputError, SeasynthError, Unauthorized, Unavailable
+from service.files import write_atomic
 
 STATE_DIR = ".seasynth-fetch"  # per-shard .part downloads and .done markers; resume reads it
 ATTEMPTS = 3
@@ -186,18 +187,6 @@ def extract(tar_path: Path, out: Path, key: str | None = None) -> int:
     return n
 
 
-def _write_text(path: Path, text: str) -> None:
-    """`text` into `path` whole (a temporary file renamed), or OutputError naming it."""
-    tmp = path.with_name(f".{path.name}.part")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except OSError as err:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
-
-
 def fetch_shard(
     client,
     shard: dict[str, Any],
@@ -254,7 +243,7 @@ def fetch_shard(
     if replace:
         shutil.rmtree(out, ignore_errors=True)
     files = extract(part, out, shard["key"])
-    _write_text(done, shard["sha256"] + "\n")
+    write_atomic(done, (shard["sha256"] + "\n").encode())
     part.unlink()
     return True, files
 
@@ -312,7 +301,7 @@ def _fetch(api, api_url: str, dataset_id: str, man: dict[str, Any], out: Path, *
                                                         parallel=parallel, progress=progress)
     public = {k: v for k, v in man.items() if k != "shards"}
     public["shards"] = [_without_urls(s) for s in shards]
-    _write_text(out / "manifest.json", json.dumps(public, indent=1, sort_keys=True) + "\n")
+    write_atomic(out / "manifest.json", (json.dumps(public, indent=1, sort_keys=True) + "\n").encode())
     return FetchReport(len(shards), fetched, skipped, downloaded, files)
 
 

@@ -12,7 +12,6 @@ import json
 import tarfile
 import threading
 import time
-from pathlib import Path
 
 import httpx
 import pytest

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
 import shutil
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -13,6 +11,7 @@ from typing import Literal
 
 import service
 from service.errors import OutputError
+from service.files import TMP_GLOB, write_atomic
 from service.gpus import GpuChoice
 from service.spec import DatasetSpec, spec_digest
 from worker.capacity import render_processes
@@ -33,24 +32,6 @@ class GenerateReport:
     frames_rendered: int
     frames_skipped: int
     renderer: str
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` so that readers see the old file or the whole new one, never a part."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except OSError as err:
-        # A folder that turned read-only refuses the unlink too: the error to report is the write's, and the next
-        # run (prepare_output) removes the temporary file.
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
-    except BaseException:  # Ctrl-C mid-write leaves no temporary file behind
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def write_frame(out: Path, files: dict[str, bytes]) -> None:
@@ -96,7 +77,7 @@ def prepare_output(out: Path, spec: DatasetSpec, mode: Mode, files: dict[str, st
                     shutil.rmtree(target)
                 elif target.exists():
                     target.unlink()
-        for p in (*out.glob(".*.tmp-*"), *out.glob("*/.*.tmp-*")):  # left by an interrupted run (the record's too)
+        for p in (*out.glob(TMP_GLOB), *out.glob(f"*/{TMP_GLOB}")):  # left by an interrupted run (the record's too)
             p.unlink()
         for rel in frame_paths(spec, 0):
             (out / rel).parent.mkdir(exist_ok=True)

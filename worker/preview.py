@@ -7,7 +7,6 @@ The drawing is service.sheet's (the API draws the same sheet of a service datase
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import ExportError
+from service.files import atomic_path
 from service.shards import frame_file
 from service.sheet import (
     TILE_WIDTH,
@@ -123,11 +123,6 @@ def make_preview(dataset: Path, out: Path, frames: int = 12,
 
 
 def _write_atomic(path: Path, write: Callable[[Path], None]) -> None:
-    """Write through a temporary name in the same folder, then rename: readers never see half a file."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    """write(temporary path), then rename onto `path`: readers never see half a file."""
+    with atomic_path(path, ExportError) as tmp:
         write(tmp)
-        os.replace(tmp, path)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise ExportError(f"{path}: cannot write ({err.strerror or err})") from None

@@ -11,31 +11,17 @@ from pathlib import Path
 from typing import BinaryIO
 
 from service.errors import ExportError
+from service.files import TMP_GLOB, atomic_path, tmp_name  # noqa: F401 (TMP_GLOB, tmp_name: for the exporters)
 
 EXPORT_RECORD = "seasynth-export.json"  # says which format and whether the export is finished
-TMP_GLOB = ".*.tmp-*"
-
-
-def tmp_name(path: Path) -> Path:
-    """Where `path` is written before it is renamed into place (hidden; this process's id keeps runs apart)."""
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 
 
 @contextlib.contextmanager
 def atomic_writer(path: Path) -> Iterator[BinaryIO]:
     """A binary file that appears at `path` whole when the block ends, and not at all if it raises."""
-    tmp = tmp_name(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as f:
-            yield f
-        os.replace(tmp, path)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise ExportError(f"{path}: cannot write ({err.strerror or err})") from None
-    except BaseException:  # Ctrl-C or an error mid-write leaves no temporary file behind
-        tmp.unlink(missing_ok=True)
-        raise
+    make_dirs(path.parent)
+    with atomic_path(path, ExportError) as tmp, open(tmp, "wb") as f:
+        yield f
 
 
 def write_atomic(path: Path, data: bytes) -> None:
