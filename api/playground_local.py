@@ -20,7 +20,7 @@ from api.models import error_responses
 from api.playground import Previewer, playground_router
 from api.routes import calibrate
 from service.errors import Conflict, NotFound
-from service.spec import parse_spec
+from service.spec import parse_spec, resolve_paths
 from service.spec_outputs import IMAGE_SUFFIXES
 
 ERROR_TAIL = 2000  # characters of a failed run's stderr shown on the page
@@ -45,6 +45,8 @@ class LocalRuns:
 
     def start(self, spec_data: dict[str, Any]) -> LocalRunPublic:
         """Start a run of `spec_data`; Conflict while another is running (one at a time: they share this machine)."""
+        # Relative file paths are read from this process's folder by the previews: the run's spec names them so too.
+        spec_data = resolve_paths(spec_data, Path.cwd())
         spec = parse_spec(spec_data)
         with self._lock:
             busy = [rid for rid, (proc, _, _) in self._runs.items() if proc.poll() is None]
@@ -87,9 +89,20 @@ class LocalRuns:
                 proc.wait(timeout=30)
 
 
-def create_local_app(previewer: Previewer, start_spec: dict[str, Any], out_root: Path) -> FastAPI:
-    """The page and its routes on one process: no Redis, no bucket, no workers."""
+# Host headers a playground bound to loopback answers: a page of another site whose name resolves to 127.0.0.1 (DNS
+# rebinding) sends its own host name, and is refused (400), so it cannot render or generate local files through it.
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]", "::1")
+
+
+def create_local_app(previewer: Previewer, start_spec: dict[str, Any], out_root: Path,
+                     allowed_hosts: tuple[str, ...] | None = LOOPBACK_HOSTS) -> FastAPI:
+    """The page and its routes on one process: no Redis, no bucket, no workers. allowed_hosts: the Host headers it
+    answers (None: any, for a playground bound to a shared interface on purpose)."""
     app = FastAPI(title="seasynth playground", docs_url=None, redoc_url=None)
+    if allowed_hosts is not None:
+        from starlette.middleware.trustedhost import TrustedHostMiddleware
+
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(allowed_hosts))
     errors.install(app, retry_after_s=1)
     runs = LocalRuns(out_root)
     app.state.runs = runs

@@ -7,9 +7,13 @@ import asyncio
 import base64
 import io
 import threading
+import time
+from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
+import yaml
 from PIL import Image
 
 from api.slots import RenderGate
@@ -165,6 +169,34 @@ def test_the_gate_renders_each_clients_newest_request_and_says_when_busy():
     assert isinstance(older, Conflict)
     assert left == {}
 
+    async def one_client_many_slots():
+        """Free slots do not let one client render twice at once: its newer request waits for its running one."""
+        gate = RenderGate(slots=3, wait_s=5)
+        running, peak, order = [0], [0], []
+
+        def job(n: int):
+            def run():
+                running[0] += 1
+                peak[0] = max(peak[0], running[0])
+                time.sleep(0.3)
+                order.append(n)
+                running[0] -= 1
+                return n
+            return run
+
+        tasks = []
+        for n in range(3):
+            tasks.append(asyncio.create_task(gate.run("a", job(n))))
+            await asyncio.sleep(0.05)
+        other = asyncio.create_task(gate.run("b", job(9)))  # another client takes another slot meanwhile
+        results = await asyncio.gather(*tasks, other, return_exceptions=True)
+        return results, peak[0], order, dict(gate._latest), dict(gate._clients)
+
+    (r0, r1, r2, r9), peak, order, left, clients = asyncio.run(one_client_many_slots())
+    assert (r0, r2, r9) == (0, 2, 9) and isinstance(r1, Conflict)
+    assert peak == 2 and order.index(0) < order.index(2)  # client a never twice at once; b beside it
+    assert left == {} and clients == {}
+
 
 def test_local_runs_go_one_at_a_time_and_report_their_progress(tmp_path):
     from api.playground_local import LocalRuns
@@ -180,3 +212,40 @@ def test_local_runs_go_one_at_a_time_and_report_their_progress(tmp_path):
     finally:
         runs.close()
     assert runs.status(first.id).state == "failed"  # terminated, and the dataset says incomplete
+
+
+def test_a_local_run_reads_relative_files_where_the_previews_do(tmp_path, monkeypatch):
+    """A path typed in the page is read from the playground's folder by the previews: the run's spec names it so,
+    not relative to the run's own folder."""
+    from api.playground_local import LocalRuns
+
+    monkeypatch.chdir(tmp_path)
+    runs = LocalRuns(tmp_path / "runs")
+    run = runs.start({**SPEC, "frames": 1, "targets": {"assets": [{"path": "meshes/ball.obj"}]}})
+    try:
+        written = yaml.safe_load((tmp_path / "runs" / run.id / "spec.yaml").read_text())
+    finally:
+        runs.close()
+    assert written["targets"]["assets"] == [{"path": str(tmp_path / "meshes" / "ball.obj")}]
+
+
+def test_the_local_playground_answers_only_its_loopback_host_names():
+    """A page of another site whose name resolves to 127.0.0.1 (DNS rebinding) sends its own Host: refused."""
+    from api.playground_local import create_local_app
+
+    app = create_local_app(None, {}, Path("/nonexistent"))
+
+    async def get(host: str) -> int:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url=f"http://{host}:8765") as c:
+            return (await c.get("/playground/config")).status_code
+
+    assert [asyncio.run(get(h)) for h in ("127.0.0.1", "localhost", "evil.example")] == [200, 200, 400]
+    shared = create_local_app(None, {}, Path("/nonexistent"), allowed_hosts=None)  # --host 0.0.0.0 on purpose
+
+    async def get_shared() -> int:
+        transport = httpx.ASGITransport(app=shared)
+        async with httpx.AsyncClient(transport=transport, base_url="http://workstation.lan:8765") as c:
+            return (await c.get("/playground/config")).status_code
+
+    assert asyncio.run(get_shared()) == 200

@@ -61,7 +61,7 @@ def playground(
     """The scene playground with no servers: tune a spec in the browser against live previews."""
     import uvicorn
 
-    from api.playground_local import create_local_app
+    from api.playground_local import LOOPBACK_HOSTS, create_local_app
     from service.spec import parse_spec, read_spec_file, resolve_paths
     from worker.playground import LocalPreviewer
 
@@ -70,7 +70,8 @@ def playground(
         data = resolve_paths(read_spec_file(spec_path), spec_path.parent)
         parse_spec(data, source=str(spec_path))
     with LocalPreviewer(gl) as previewer:
-        app = create_local_app(previewer, data, out.resolve())
+        loopback = host in ("127.0.0.1", "localhost", "::1") or host.startswith("127.")
+        app = create_local_app(previewer, data, out.resolve(), None if not loopback else LOOPBACK_HOSTS)
         url = f"http://{host}:{port}/playground"
         typer.echo(f"seasynth playground: {url}")
         if open_browser:
