@@ -11,6 +11,7 @@ import base64
 import json
 import os
 import socket
+import time
 from pathlib import Path
 
 import httpx
@@ -181,3 +182,65 @@ def test_a_photo_uploaded_to_the_calibration_gives_an_estimate_the_spec_takes(pa
     wait(lambda: yaml.safe_load(driver.find_element("id", "spec-yaml").get_attribute("value")) == page_spec(driver),
          30, "the YAML of the spec with it")
     parse_spec(page_spec(driver))
+
+
+def yaml_box(driver) -> str:
+    return driver.find_element("id", "spec-yaml").get_attribute("value")
+
+
+def test_an_edit_inside_a_section_the_spec_lacks_keeps_the_rest_of_it(page):
+    """The spec has no workspaces: one coordinate edited starts the section from the defaults the form shows."""
+    driver, _, _ = page
+    shown = driver.find_element("id", "f-workspaces.camera.max.0").get_attribute("value")
+    set_value(driver, "f-workspaces.camera.min.0", -1.25)
+    camera = wait(lambda: (page_spec(driver).get("workspaces") or {}).get("camera"), 10, "the edited workspace")
+    assert camera["min"][0] == -1.25 and camera["max"][0] == float(shown)
+    wait(lambda: "workspaces:" in yaml_box(driver), 30, "the validated spec's YAML")
+    assert driver.find_element("id", "e-workspaces.camera").text == ""
+    assert driver.find_element("id", "e-workspaces.camera.max").text == ""
+
+
+def test_an_interval_cleared_again_is_unset(page):
+    driver, _, _ = page
+    set_value(driver, "f-water.beta_D.min.0", 0.1)
+    wait(lambda: "beta_D" in page_spec(driver)["water"], 10, "beta_D set")
+    set_value(driver, "f-water.beta_D.min.0", "")
+    wait(lambda: "beta_D" not in page_spec(driver)["water"], 10, "beta_D unset")
+    wait(lambda: "beta_D" not in yaml_box(driver) and driver.find_element("id", "e-water.beta_D").text == "", 30,
+         "the spec valid again without beta_D")
+
+
+def test_a_seed_beyond_2_53_reaches_the_yaml_exactly(page):
+    driver, _, _ = page
+    set_value(driver, "f-seed", "9007199254740993")  # 2^53 + 1: a float64 would make it ...992
+    wait(lambda: "seed: 9007199254740993\n" in yaml_box(driver), 30, "the exact seed in the YAML")
+    set_value(driver, "f-seed", SPEC["seed"])
+    wait(lambda: f"seed: {SPEC['seed']}\n" in yaml_box(driver), 30, "the seed back")
+
+
+def test_a_frame_change_right_after_an_edit_keeps_the_edit(page):
+    driver, _, _ = page
+    set_value(driver, "f-terrain.relief_m", 0.31)
+    set_value(driver, "frame", 1)  # within the edit's 250 ms debounce
+    wait(lambda: "relief_m: 0.31" in yaml_box(driver), 30, "the edit validated")
+    wait(lambda: driver.find_element("id", "preview-image").get_attribute("data-frame") == "1", 60, "frame 1")
+    set_value(driver, "frame", 0)
+
+
+def test_an_older_validate_answer_does_not_override_a_newer_one(page):
+    driver, _, _ = page
+    driver.execute_script("""
+      const real = window.fetch; let slowed = false;
+      window.fetch = async (url, opts) => {
+        const r = await real(url, opts);
+        if (url === '/playground/validate' && !slowed) { slowed = true; await new Promise((ok) => setTimeout(ok, 1500)); }
+        return r;
+      };""")  # the next validate (of the bad value) answers after the one that follows it
+    set_value(driver, "f-terrain.relief_m", -5)
+    time.sleep(0.4)
+    set_value(driver, "f-terrain.relief_m", 0.27)
+    wait(lambda: "relief_m: 0.27" in yaml_box(driver), 30, "the newer spec validated")
+    time.sleep(2.0)  # the older answer has come meanwhile
+    assert driver.find_element("id", "e-terrain.relief_m").text == ""
+    assert status(driver) != "the spec has errors"
+    assert "relief_m: 0.27" in yaml_box(driver)

@@ -4,8 +4,20 @@
 
 const $ = (id) => document.getElementById(id);
 const client = (crypto.randomUUID ? crypto.randomUUID() : String(Math.random())).slice(0, 36);
-let config = null, spec = {}, defs = {}, timer = null, inflight = null, stripInflight = null, lastYaml = "";
-let calibWater = null;
+let config = null, spec = {}, defs = {}, timer = null, frameTimer = null, inflight = null, stripInflight = null;
+let lastYaml = "", calibWater = null, validated = 0;
+let shownDefaults = {};  // a section's default as the form shows it, by path: an edit inside a missing section starts there
+
+// ---- JSON with integers beyond 2^53 (seeds go to 2^63 - 1) kept exact, as BigInt
+function parseJSON(text) {
+  return JSON.parse(text, (k, v, ctx) =>
+    (typeof v === "number" && Number.isInteger(v) && !Number.isSafeInteger(v) && ctx && /^-?\d+$/.test(ctx.source))
+      ? BigInt(ctx.source) : v);
+}
+function toJSON(value) {
+  return JSON.stringify(value, (k, v) => (typeof v === "bigint" ? `__bigint__${v}` : v))
+    .replace(/"__bigint__(-?\d+)"/g, "$1");
+}
 
 // ---- HTTP: the API key (kept for this tab only), JSON, 401 asks for a key, 503 says the server is busy
 function headers(extra) {
@@ -14,12 +26,13 @@ function headers(extra) {
   if (key) h["X-API-Key"] = key;
   return h;
 }
-async function call(method, path, body, signal) {
-  const opts = {method, headers: headers(body instanceof FormData ? {} : {"Content-Type": "application/json"}), signal};
-  if (body !== undefined) opts.body = body instanceof FormData ? body : JSON.stringify(body);
+async function call(method, path, body, signal, extraHeaders) {
+  const kind = body instanceof FormData ? {} : {"Content-Type": "application/json"};
+  const opts = {method, headers: headers(Object.assign(kind, extraHeaders || {})), signal};
+  if (body !== undefined) opts.body = body instanceof FormData ? body : toJSON(body);
   const r = await fetch(path, opts);
   if (r.status === 401) { $("key-box").hidden = false; status("an API key is required"); }
-  const data = r.headers.get("content-type")?.includes("json") ? await r.json() : null;
+  const data = r.headers.get("content-type")?.includes("json") ? parseJSON(await r.text()) : null;
   return {status: r.status, data, retry: Number(r.headers.get("Retry-After") || 1)};
 }
 function status(text) { $("status").textContent = text; }
@@ -28,7 +41,13 @@ function status(text) { $("status").textContent = text; }
 function getAt(obj, path) { return path.reduce((o, k) => (o == null ? undefined : o[k]), obj); }
 function setAt(obj, path, value) {
   let o = obj;
-  for (const k of path.slice(0, -1)) { if (o[k] == null || typeof o[k] !== "object") o[k] = {}; o = o[k]; }
+  path.slice(0, -1).forEach((k, n) => {  // a missing section starts as the form showed it, so one edit keeps the rest
+    if (o[k] == null || typeof o[k] !== "object") {
+      const shown = shownDefaults[pid(path.slice(0, n + 1))];
+      o[k] = shown && typeof shown === "object" ? structuredClone(shown) : {};
+    }
+    o = o[k];
+  });
   if (value === undefined) delete o[path[path.length - 1]]; else o[path[path.length - 1]] = value;
   // A section left empty goes, so an optional one (terrain.mesh, ...) is unset again rather than set to {}.
   for (let n = path.length - 1; n > 0 && value === undefined; n--) {
@@ -51,6 +70,7 @@ function resolve(s) {
 // ---- the form
 function buildForm() {
   defs = config.schema.$defs || {};
+  shownDefaults = {};
   const form = $("spec-form");
   form.innerHTML = "";
   for (const [name, sub] of Object.entries(config.schema.properties)) addField(form, [name], sub);
@@ -62,6 +82,7 @@ function addField(parent, path, raw, inherited) {
   const dflt = own !== undefined ? own : inherited;
   const current = getAt(spec, path), value = current !== undefined ? current : dflt;
   if (s.type === "object" && s.properties) {
+    if (dflt && typeof dflt === "object") shownDefaults[pid(path)] = dflt;
     const fs = document.createElement("fieldset");
     fs.innerHTML = `<legend>${label(path)}</legend>`;
     fs.id = "f-" + pid(path);
@@ -82,11 +103,16 @@ function errorSpan(path) {
   e.className = "field-error"; e.id = "e-" + pid(path);
   return e;
 }
-function numberInput(id, value, onValue) {
+function numberValue(text, integer) {
+  if (text === "") return undefined;
+  if (integer && /^-?\d+$/.test(text) && !Number.isSafeInteger(Number(text))) return BigInt(text);  // exact
+  return Number(text);
+}
+function numberInput(id, value, onValue, integer) {
   const i = document.createElement("input");
-  i.type = "number"; i.step = "any"; i.id = "f-" + id;
-  if (value != null) i.value = value;
-  i.addEventListener("input", () => onValue(i.value === "" ? undefined : Number(i.value)));
+  i.type = "number"; i.step = integer ? "1" : "any"; i.id = "f-" + id;
+  if (value != null) i.value = String(value);
+  i.addEventListener("input", () => onValue(numberValue(i.value, integer)));
   return i;
 }
 function control(path, s, value) {
@@ -106,16 +132,18 @@ function control(path, s, value) {
     c.addEventListener("change", () => changed(path, c.checked));
     return c;
   }
-  if (s.type === "number" || s.type === "integer") return numberInput(pid(path), value, (v) => changed(path, v));
+  if (s.type === "number" || s.type === "integer") {
+    return numberInput(pid(path), value, (v) => changed(path, v), s.type === "integer");
+  }
   if (s.type === "array" && s.prefixItems && s.prefixItems.every((x) => ["number", "integer"].includes(resolve(x).type))) {
     const pair = document.createElement("span");
     pair.className = "pair"; pair.id = "f-" + pid(path);
     const n = s.prefixItems.length, vals = Array.isArray(value) ? value.slice() : new Array(n).fill(null);
-    s.prefixItems.forEach((_, k) => {
+    s.prefixItems.forEach((item, k) => {
       const i = numberInput(pid(path.concat(k)), vals[k], (v) => {
         vals[k] = v === undefined ? null : v;
-        changed(path, vals.slice());
-      });
+        changed(path, vals.every((x) => x == null) ? undefined : vals.slice());  // all cleared: unset again
+      }, resolve(item).type === "integer");
       i.placeholder = n === 2 ? ["min", "max"][k] : "xyz"[k] || String(k);
       pair.appendChild(i);
     });
@@ -129,9 +157,9 @@ function control(path, s, value) {
   }
   // Anything else (lists of assets or lamps, intrinsics, ...) is edited as JSON.
   const ta = document.createElement("textarea");
-  ta.id = "f-" + pid(path); ta.rows = 3; ta.value = value === undefined ? "" : JSON.stringify(value);
+  ta.id = "f-" + pid(path); ta.rows = 3; ta.value = value === undefined ? "" : toJSON(value);
   ta.addEventListener("input", () => {
-    try { changed(path, ta.value.trim() === "" ? undefined : JSON.parse(ta.value)); ta.classList.remove("invalid"); }
+    try { changed(path, ta.value.trim() === "" ? undefined : parseJSON(ta.value)); ta.classList.remove("invalid"); }
     catch (err) { ta.classList.add("invalid"); $("e-" + pid(path)).textContent = "not JSON: " + err.message; }
   });
   return ta;
@@ -145,7 +173,10 @@ function jerlovControl(path, chosen) {
     const srgb = rgb.map((v) => Math.round(255 * (v <= 0.0031308 ? 12.92 * v : 1.055 * v ** (1 / 2.4) - 0.055)));
     l.appendChild(c);
     l.insertAdjacentHTML("beforeend", `<span class="swatch" style="background:rgb(${srgb})"></span> ${name}`);
-    c.addEventListener("change", () => changed(path, [...box.querySelectorAll("input:checked")].map((x) => x.value)));
+    c.addEventListener("change", () => {  // repeats weight the draw: types still chosen keep theirs
+      const now = getAt(spec, path) || chosen;
+      changed(path, c.checked ? now.concat([name]) : now.filter((x) => x !== name));
+    });
     box.appendChild(l);
   }
   return box;
@@ -172,7 +203,10 @@ function showErrors(errors) {
 }
 function views() { return [...document.querySelectorAll("[data-view]:checked")].map((c) => c.dataset.view); }
 async function refresh() {
+  clearTimeout(frameTimer);  // its preview comes with this one's
+  const mine = ++validated;
   const v = await call("POST", "/playground/validate", {spec});
+  if (mine !== validated) return;  // a newer spec was sent meanwhile: its answer decides
   if (v.status !== 200) return;
   showErrors(v.data.errors);
   if (!v.data.valid) { status("the spec has errors"); return; }
@@ -231,7 +265,9 @@ async function strip() {
   const first = Math.max(0, Math.min((Number($("frame").value) || 0) - 3, frames - 8));
   try {
     const r = await call("POST", "/playground/strip", {spec, first, count: 8}, ctl.signal);
-    if (r.status !== 200) return;
+    if (r.status === 503) { setTimeout(() => { if (stripInflight === null) strip(); }, 1000 * r.retry); return; }
+    if (r.status === 409) return;  // a newer strip of ours replaced it
+    if (r.status !== 200) { status("strip: " + (r.data ? r.data.detail : `error ${r.status}`)); return; }
     const box = $("strip");
     box.innerHTML = "";
     for (const f of r.data.frames) {
@@ -241,6 +277,7 @@ async function strip() {
       box.appendChild(i);
     }
   } catch (err) { if (err.name !== "AbortError") status(String(err)); }
+  finally { if (stripInflight === ctl) stripInflight = null; }
 }
 
 // ---- YAML and generate
@@ -300,9 +337,11 @@ async function calibrate() {
   $("calib-apply").disabled = false;
   $("calib-photo-view").onload = showStats;
   $("calib-photo-view").src = URL.createObjectURL(photo);
-  const trial = JSON.parse(JSON.stringify(spec));
+  const trial = structuredClone(spec);
   trial.water = calibWater;
-  const p = await call("POST", "/playground/preview", {spec: trial, frame: Number($("frame").value) || 0, views: []});
+  // Its own client name: the page's preview and this one do not replace each other.
+  const p = await call("POST", "/playground/preview", {spec: trial, frame: Number($("frame").value) || 0, views: []},
+                       undefined, {"X-Playground-Client": client + ":calibration"});
   if (p.status === 200) { $("calib-frame").onload = showStats; $("calib-frame").src = p.data.images.image; }
 }
 function calibrationTable(c) {
@@ -323,18 +362,22 @@ function applyCalibration() {
 
 // ---- start
 async function start() {
-  const saved = sessionStorage.getItem("seasynth-key");
-  if (saved) $("api-key").value = saved;
-  $("api-key").addEventListener("change", () => { sessionStorage.setItem("seasynth-key", $("api-key").value); start(); });
   const r = await call("GET", "/playground/config");
   if (r.status !== 200) return;
   config = r.data;
-  spec = JSON.parse(JSON.stringify(config.spec));
+  spec = structuredClone(config.spec);
   $("mode").textContent = `${config.mode} · ${config.version}`;
   buildForm();
   refresh();
 }
-$("frame").addEventListener("input", () => { clearTimeout(timer); timer = setTimeout(() => { preview(); strip(); }, 250); });
+// A frame change previews on its own timer: a spec edit waiting to be validated is not dropped (refresh previews too).
+$("frame").addEventListener("input", () => {
+  clearTimeout(frameTimer);
+  frameTimer = setTimeout(() => { preview(); strip(); }, 250);
+});
+const savedKey = sessionStorage.getItem("seasynth-key");
+if (savedKey) $("api-key").value = savedKey;
+$("api-key").addEventListener("change", () => { sessionStorage.setItem("seasynth-key", $("api-key").value); start(); });
 document.querySelectorAll("[data-view]").forEach((c) => c.addEventListener("change", preview));
 $("show-boxes").addEventListener("change", preview);
 $("download-yaml").addEventListener("click", downloadYaml);
