@@ -281,11 +281,16 @@ def fetch_dataset(
     headers = {"X-API-Key": api_key} if api_key else {}
     with httpx.Client(headers=headers, timeout=httpx.Timeout(60.0, connect=10.0), follow_redirects=True) as api:
         man = get_manifest(api, api_url, dataset_id)
+        indices = [s["index"] for s in man["shards"]]
+        if indices != sorted(set(indices)) or (man["complete"] and len(indices) != man["shards_total"]):
+            raise IntegrityError(f"{api_url}: the manifest of {dataset_id} lists shards {len(indices)} times for "
+                                 f"{len(set(indices))} shards of {man['shards_total']} (complete: {man['complete']}); "
+                                 "a proxy or server that repeats or drops pages?")
         if not man["complete"] and not partial:
-            raise Conflict(
-                f"dataset {dataset_id} is {man['state']} with {len(man['shards'])} of {man['shards_total']} "
-                "shards committed; wait for it to finish or pass --partial"
-            )
+            hint = ("it will not complete (pass --partial to fetch the committed ones)"
+                    if man["state"] in ("failed", "cancelled") else "wait for it to finish or pass --partial")
+            raise Conflict(f"dataset {dataset_id} is {man['state']} with {len(man['shards'])} of {man['shards_total']} "
+                           f"shards committed; {hint}")
         if merger is not None:
             return fetch_export(api, api_url, dataset_id, man, Path(out), merger, parallel=parallel,
                                 progress=progress)

@@ -152,3 +152,31 @@ def test_a_reply_that_is_not_a_manifest_page_is_a_clear_error(store, body, kind)
     with httpx.Client() as api:
         with pytest.raises(Unavailable, match=r"the manifest of d is not a seasynth manifest page .*is --api the API"):
             get_manifest_page(api, store.url("/datasets/d/manifest"), store.url(""), "d")
+
+
+def manifest_body(shards: list[dict], **fields) -> bytes:
+    return json.dumps({"id": "d", "state": "succeeded", "complete": True, "shards_total": len(shards),
+                       "spec": {}, "next": None, **fields, "shards": shards}).encode()
+
+
+def test_a_manifest_that_repeats_or_drops_shards_is_refused(store, tmp_path):
+    from service.fetch import IntegrityError, fetch_dataset
+
+    a, b = entry(store, 0, 1024), entry(store, 1, 1024)
+    for shards, total in (([a, a], 2), ([a], 2), ([b, a], 2)):
+        store.objects["/datasets/d/manifest"] = (manifest_body(shards, shards_total=total), "application/json")
+        with pytest.raises(IntegrityError, match="the manifest of d lists shards"):
+            fetch_dataset(store.url(""), "d", tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_dataset_that_will_not_complete_says_so(store, tmp_path):
+    from service.errors import Conflict
+    from service.fetch import fetch_dataset
+
+    a = entry(store, 0, 1024)
+    store.objects["/datasets/d/manifest"] = (manifest_body([a], state="failed", complete=False, shards_total=2),
+                                             "application/json")
+    with pytest.raises(Conflict, match=r"is failed with 1 of 2 shards committed; it will not complete \(pass "
+                                       r"--partial"):
+        fetch_dataset(store.url(""), "d", tmp_path / "out", progress=False)
