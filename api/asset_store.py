@@ -58,7 +58,7 @@ def store_asset(services: Services, filename: str, stream: BinaryIO) -> tuple[di
         asset_id = sha.hexdigest()
         stored, created = _sidecar(services, asset_id), False
         if stored is None:
-            validate(Path(tmp.name), fmt, filename)
+            validate(Path(tmp.name), fmt, filename, services.settings.upload_check_memory_mib)
             info = {"filename": Path(filename).name, "bytes": size, "sha256": asset_id, "format": fmt.format,
                     "kind": fmt.kind}
             # The sidecar goes first (an asset whose object exists always has its sidecar), and only if absent:

@@ -1,15 +1,20 @@
 """Uploaded files: their formats, what each spec field needs, and the checks that a mesh loads and an image decodes.
 
-The checks use trimesh and Pillow (pure Python plus NumPy; no OpenGL), imported when an upload arrives.
+The checks use trimesh and Pillow (pure Python plus NumPy; no OpenGL). A mesh is loaded in a child process with a
+memory budget (api.mesh_check), so a mesh too large to load is refused (413) instead of taking the API's memory.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from service.errors import AssetError, SeasynthError
+from service.errors import AssetError, LimitExceeded, SeasynthError
 
 MESH, IMAGE = "mesh", "image"
 ARTICLED = {MESH: "a mesh", IMAGE: "an image"}
@@ -24,6 +29,7 @@ FORMATS: dict[str, tuple[str, str]] = {
     ".jpg": ("jpeg", IMAGE),
     ".jpeg": ("jpeg", IMAGE),
 }
+MESH_CHECK_TIMEOUT_S = 120
 # Decoding a texture holds all its pixels; a few bytes of PNG can declare billions of them.
 MAX_TEXTURE_PIXELS = 8192 * 8192
 
@@ -52,32 +58,39 @@ def field_kind(field: str) -> str:
     return IMAGE if field == "terrain.texture" else MESH
 
 
-def validate(path: Path, fmt: FileFormat, name: str) -> None:
+def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = 768) -> None:
     """AssetError naming `name` unless the file at `path` loads as `fmt`: a mesh with triangles and finite
-    vertices, or an image that decodes whole."""
+    vertices (loaded within `mesh_budget_mib` of memory, else LimitExceeded), or an image that decodes whole."""
     if fmt.kind == MESH:
-        _check_mesh(path, fmt.format, name)
+        _check_mesh(path, fmt.format, name, mesh_budget_mib)
     else:
         _check_image(path, name)
 
 
-def _check_mesh(path: Path, file_type: str, name: str) -> None:
+def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
+    """Load the mesh as the workers do, in a child process (api.mesh_check) within `budget_mib` of memory."""
+    # The script by its path: it needs only the standard library, NumPy and trimesh, not this package on sys.path.
+    cmd = [sys.executable, str(Path(__file__).with_name("mesh_check.py")), str(path), file_type, str(budget_mib)]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     try:
-        import numpy as np
-        import trimesh
-    except ImportError as err:
-        raise ValidatorMissing(f"checking mesh uploads needs trimesh in the API's environment ({err})") from err
-    try:
-        with open(path, "rb") as f:
-            # As the workers read it (worker/assets/user.py): every part with triangles, transforms applied.
-            scene = trimesh.load_scene(file_obj=f, file_type=file_type)
-            parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh) and len(g.faces)]
-    except Exception as err:  # any parser failure means a bad file: answered 422 naming it
-        raise AssetError(f"{name}: not a valid {file_type} mesh ({type(err).__name__}: {err})") from err
-    if not parts:
-        raise AssetError(f"{name}: the {file_type} mesh has no triangles")
-    if not all(np.isfinite(np.asarray(g.vertices)).all() for g in parts):
-        raise AssetError(f"{name}: the {file_type} mesh has vertices that are NaN or infinite")
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=MESH_CHECK_TIMEOUT_S, env=env)
+        answer = json.loads(run.stdout.strip().splitlines()[-1]) if run.stdout.strip() else {}
+    except subprocess.TimeoutExpired:
+        raise LimitExceeded(f"{name}: the {file_type} mesh did not load within {MESH_CHECK_TIMEOUT_S} s; "
+                            "upload a smaller one (decimate it, or split it into assets)") from None
+    except (OSError, ValueError) as err:
+        raise ValidatorMissing(f"checking mesh uploads failed to run ({err})") from err
+    if answer.get("memory") or (not answer and run.returncode < 0):  # MemoryError, or killed for memory
+        raise LimitExceeded(f"{name}: loading the {file_type} mesh needs more than {budget_mib} MiB "
+                            "(SEASYNTH_UPLOAD_CHECK_MEMORY_MIB); upload a smaller one (decimate it, or split it "
+                            "into assets)")
+    if "error" in answer:
+        raise AssetError(f"{name}: {answer['error']}")
+    if not answer.get("ok"):
+        if "No module named" in run.stderr:
+            raise ValidatorMissing(f"checking mesh uploads needs trimesh in the API's environment "
+                                   f"({run.stderr.strip().splitlines()[-1]})")
+        raise ValidatorMissing(f"checking {name} failed: exit code {run.returncode}: {run.stderr.strip()[-500:]}")
 
 
 def _check_image(path: Path, name: str) -> None:

@@ -40,6 +40,8 @@ class Settings(BaseSettings):
     max_side: int = Field(4096, ge=8)  # camera.width and camera.height
     max_objects: int = Field(64, ge=0)  # per role and frame (upper end of targets.count, distractors.count)
     max_asset_bytes: int = Field(256 * 2**20, ge=1)  # one uploaded file; a multipart body may add 64 KiB
+    # Memory the check of an uploaded mesh may use (a child process: api.mesh_check); a mesh needing more is 413.
+    upload_check_memory_mib: int = Field(768, ge=256)  # NumPy and trimesh themselves take about 150 MiB
     max_spec_bytes: int = Field(2**20, ge=1024)  # the body of POST /datasets (and of any other non-upload request)
     frame_timeout_s: float = Field(60.0, gt=0)  # GET /datasets/{id}/frames/{i} waits this long, then 503
     # Frame requests waiting at once per API process; more are 503 at once. Each holds one of the 40 threads all

@@ -14,7 +14,7 @@ import zlib
 import httpx
 import pytest
 
-from hardening import api, serve, services, settings  # noqa: F401 (fixtures)
+from hardening import KEY, api, serve, services, settings  # noqa: F401 (fixtures)
 from service.shards import asset_info_key, asset_key
 from service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_state
@@ -159,3 +159,41 @@ def test_datasets_need_meshes_for_objects_and_an_image_for_the_texture(api):
     r = api.post("/datasets", json=right)
     assert r.status_code == 202, r.text
     assert api.post(f"/datasets/{r.json()['id']}/cancel").json()["state"] == "cancelled"
+
+
+def binary_stl(triangles: int) -> bytes:
+    """A binary STL of seeded random triangles (no two share a vertex: loading it holds every one)."""
+    import numpy as np
+
+    record = np.dtype([("normal", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    rows = np.zeros(triangles, record)
+    rows["v"] = np.random.default_rng(7).random((triangles, 3, 3), dtype=np.float32)
+    return b"\0" * 80 + np.uint32(triangles).tobytes() + rows.tobytes()
+
+
+def test_a_mesh_too_large_to_load_within_the_check_budget_is_413_and_the_api_stays_up(services, settings):
+    """The check loads the mesh in a child process within SEASYNTH_UPLOAD_CHECK_MEMORY_MIB: a 5.4 M-triangle STL
+    took 3.5 GB in the API process before. A small one passes under the same budget."""
+    import dataclasses
+
+    from api.main import create_app
+    from hardening import serving
+
+    roomy = settings.model_copy(update={"max_asset_bytes": 64 * 2**20, "upload_check_memory_mib": 256})
+    with serving(create_app(roomy, dataclasses.replace(services, settings=roomy))) as url:
+        check_budget(url, services)
+
+
+def check_budget(url: str, services) -> None:
+    headers = {"X-API-Key": KEY}
+    big = binary_stl(1_000_000)  # 50 MB
+    r = httpx.post(f"{url}/assets", files={"file": ("scan.stl", big)}, headers=headers, timeout=120)
+    assert r.status_code == 413, r.text
+    assert r.json()["detail"] == ("scan.stl: loading the stl mesh needs more than 256 MiB "
+                                  "(SEASYNTH_UPLOAD_CHECK_MEMORY_MIB); upload a smaller one (decimate it, or split "
+                                  "it into assets)")
+    assert services.store.head(asset_key(hashlib.sha256(big).hexdigest())) is None
+    small = binary_stl(2000)
+    r = httpx.post(f"{url}/assets", files={"file": ("rock.stl", small)}, headers=headers, timeout=120)
+    assert r.status_code == 201, r.text
+    assert httpx.get(f"{url}/healthz").status_code == 200
