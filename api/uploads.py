@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ FORMATS: dict[str, tuple[str, str]] = {
     ".jpeg": ("jpeg", IMAGE),
 }
 MESH_CHECK_TIMEOUT_S = 120
+_MESH_CHECKS = threading.BoundedSemaphore(1)
 # Decoding a texture holds all its pixels; a few bytes of PNG can declare billions of them.
 MAX_TEXTURE_PIXELS = 8192 * 8192
 
@@ -73,7 +75,8 @@ def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
     cmd = [sys.executable, str(Path(__file__).with_name("mesh_check.py")), str(path), file_type, str(budget_mib)]
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     try:
-        run = subprocess.run(cmd, capture_output=True, text=True, timeout=MESH_CHECK_TIMEOUT_S, env=env)
+        with _MESH_CHECKS:  # one at a time: the API's memory holds one budget beside its own (deploy/core/api.yaml)
+            run = subprocess.run(cmd, capture_output=True, text=True, timeout=MESH_CHECK_TIMEOUT_S, env=env)
         answer = json.loads(run.stdout.strip().splitlines()[-1]) if run.stdout.strip() else {}
     except subprocess.TimeoutExpired:
         raise LimitExceeded(f"{name}: the {file_type} mesh did not load within {MESH_CHECK_TIMEOUT_S} s; "

@@ -367,3 +367,14 @@ def test_a_stopping_api_outwaits_its_longest_request(rendered, compose):
         pod = _by(docs, "Deployment", "api")["spec"]["template"]["spec"]
         assert pod["terminationGracePeriodSeconds"] == _duration_s(compose["services"]["api"]["stop_grace_period"]), (
             kustomization)
+
+
+def test_the_api_pod_holds_a_mesh_check_beside_itself(rendered):
+    """An upload's mesh is loaded in a child process of the API (api.mesh_check) within upload_check_memory_mib,
+    one at a time: the pod's limit leaves that and 512 MiB for the API itself."""
+    from service.settings import Settings
+
+    need_gib = (Settings().upload_check_memory_mib + 512) / 1024
+    for kustomization, docs in rendered.items():
+        c = _container(_by(docs, "Deployment", "api"))
+        assert _gib(c["resources"]["limits"]["memory"]) >= need_gib, kustomization
