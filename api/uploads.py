@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from service.errors import AssetError, LimitExceeded, SeasynthError
+from service.settings import UPLOAD_CHECK_MEMORY_MIB
 
 MESH, IMAGE = "mesh", "image"
 ARTICLED = {MESH: "a mesh", IMAGE: "an image"}
@@ -60,7 +61,7 @@ def field_kind(field: str) -> str:
     return IMAGE if field == "terrain.texture" else MESH
 
 
-def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = 768) -> None:
+def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = UPLOAD_CHECK_MEMORY_MIB) -> None:
     """AssetError naming `name` unless the file at `path` loads as `fmt`: a mesh with triangles and finite
     vertices (loaded within `mesh_budget_mib` of memory, else LimitExceeded), or an image that decodes whole."""
     if fmt.kind == MESH:

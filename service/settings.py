@@ -12,6 +12,10 @@ from service import __version__
 from service.gpus import GpuChoice, parse_gpus
 
 
+# Memory the check of an uploaded mesh may use by default (SEASYNTH_UPLOAD_CHECK_MEMORY_MIB, api.uploads).
+UPLOAD_CHECK_MEMORY_MIB = 768
+
+
 class Settings(BaseSettings):
     """Everything the API, the workers and `seasynth fetch` read from the environment.
 
@@ -41,7 +45,7 @@ class Settings(BaseSettings):
     max_objects: int = Field(64, ge=0)  # per role and frame (upper end of targets.count, distractors.count)
     max_asset_bytes: int = Field(256 * 2**20, ge=1)  # one uploaded file; a multipart body may add 64 KiB
     # Memory the check of an uploaded mesh may use (a child process: api.mesh_check); a mesh needing more is 413.
-    upload_check_memory_mib: int = Field(768, ge=256)  # NumPy and trimesh themselves take about 150 MiB
+    upload_check_memory_mib: int = Field(UPLOAD_CHECK_MEMORY_MIB, ge=256)  # NumPy and trimesh take ~150 MiB
     max_spec_bytes: int = Field(2**20, ge=1024)  # the body of POST /datasets (and of any other non-upload request)
     frame_timeout_s: float = Field(60.0, gt=0)  # GET /datasets/{id}/frames/{i} waits this long, then 503
     # Frame requests waiting at once per API process; more are 503 at once. Each holds one of the 40 threads all

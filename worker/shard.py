@@ -26,9 +26,9 @@ from worker.export.parts import kitti_names, parts_render_spec
 from worker.finalise import fail_shard, finalise_or_defer, maybe_finalise
 from worker.packing import pack_tar
 from worker.renderer_pinning import deferred_key, renderer_found
+from worker.scene import INPUT_ERRORS
 from worker.shard_context import FrameSource, Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 from worker.shard_exports import keep_frame, pack_parts, part_keys, upload_parts
-from worker.scene import INPUT_ERRORS
 
 log = logging.getLogger(__name__)
 
@@ -167,9 +167,14 @@ def _adopt_marker(ctx: ShardContext, dataset_id: str, index: int) -> bool:
         found = ctx.store.get_bytes(commit_key(dataset_id, index))
     except NotFound:
         return False
-    ctx.records.commit(dataset_id, ShardCommit.from_json(found))
-    finalise_or_defer(ctx, dataset_id)
+    _count_marker(ctx, dataset_id, found)
     return True
+
+
+def _count_marker(ctx: ShardContext, dataset_id: str, marker: bytes) -> None:
+    """Count a commit marker Redis does not know (Redis lost it, or its writer died first), then finalise if due."""
+    ctx.records.commit(dataset_id, ShardCommit.from_json(marker))
+    finalise_or_defer(ctx, dataset_id)
 
 
 def _before_attempt(ctx: ShardContext, dataset_id: str, index: int, sweep: bool) -> Outcome | None:
@@ -261,8 +266,7 @@ def _render_and_commit(ctx: ShardContext, dataset_id: str, index: int, marker: M
                 raise
         found = marker.result()  # the read's error, if it failed, fails the attempt here
         if found is not None:  # a marker Redis does not know (e.g. Redis lost it): count it now
-            ctx.records.commit(dataset_id, ShardCommit.from_json(found))
-            finalise_or_defer(ctx, dataset_id)
+            _count_marker(ctx, dataset_id, found)
             return Outcome.ALREADY_COMMITTED
         if ctx.records.state(dataset_id) == CANCELLED:
             return Outcome.CANCELLED

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from service.errors import ExportError, SpecError
+from service.shards import frame_name
 from service.spec import DatasetSpec, parse_spec, spec_digest
 from worker.export import SPLITS, STREAM_SPLIT, ExportInfo, exporter_for
 from worker.export.coco import coco_head
@@ -92,7 +93,7 @@ def _merge_yolo(info: ExportInfo, parts: list[tuple[dict, Path]]) -> tuple[set[s
         images = sorted(p.stem for split in SPLITS for p in files["images", split])
         labels = sorted(p.stem for split in SPLITS for p in files["labels", split])
         first = shard["first_frame"]
-        want = [f"{i:06d}" for i in range(first, first + shard["frame_count"])]
+        want = [frame_name(i) for i in range(first, first + shard["frame_count"])]
         if images != want or labels != want:
             raise ExportError(f"{folder}: shard {shard['index']}'s YOLO part holds {len(images)} images and "
                               f"{len(labels)} label files for its {shard['frame_count']} frames (remove the "
