@@ -172,6 +172,44 @@ def equal_error_spp(mse_seasynth: float, mse_halves: float, spp_half: int) -> fl
     return 2.0 * spp_half if rest <= s1 / (2.0 * spp_half) else s1 / rest
 
 
+@dataclasses.dataclass(frozen=True)
+class PathTracerCost:
+    """A path-traced frame's seconds on this machine as a fixed part (loading the scene, tracing the integrator's
+    kernel: paid once a frame) plus a part per sample per pixel."""
+
+    fixed_s: float
+    s_per_spp: float
+
+    def seconds(self, spp: float) -> float:
+        return self.fixed_s + self.s_per_spp * spp
+
+
+def fit_cost(spp_low: int, s_low: float, spp_high: int, s_high: float) -> PathTracerCost:
+    """The line through two timed renders (spp_high > spp_low); neither part below zero."""
+    if spp_high <= spp_low:
+        raise ValueError(f"fit_cost: spp_high ({spp_high}) must exceed spp_low ({spp_low})")
+    per = (s_high - s_low) / (spp_high - spp_low)
+    if per <= 0.0:  # the longer render timed no slower: its own rate per sample, the rest fixed
+        per = s_high / spp_high
+    return PathTracerCost(max(s_low - per * spp_low, 0.0), per)
+
+
+def path_tracer_cost(pts, timing_spp: int) -> tuple[PathTracerCost, float]:
+    """Times renders of `timing_spp` and 4x that (after a warm-up of `timing_spp`, which compiles the kernel) and
+    fits PathTracerCost; returns it and the seconds of the `timing_spp` render. Scaling one short render's seconds by a sample count counts its fixed part once per
+    `timing_spp` samples: 64 samples of clear-lamps took 2.3-2.5 s on a 2-core CPU, of which ~0.7 s fixed."""
+    from bench import pathtracer
+
+    def timed(spp: int) -> float:
+        t0 = time.perf_counter()
+        pathtracer.render(pts, spp, seed=2)
+        return time.perf_counter() - t0
+
+    timed(timing_spp)
+    low = timed(timing_spp)
+    return fit_cost(timing_spp, low, 4 * timing_spp, timed(4 * timing_spp)), low
+
+
 def block_means(image: np.ndarray, k: int = BLOCK) -> np.ndarray:
     """(h // k, w // k, 3): the means of k x k blocks of a linear image."""
     h, w = image.shape[0] // k * k, image.shape[1] // k * k
@@ -211,7 +249,6 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
     """Scores every configuration. Its reference is the stored one in `references` when there is one for this exact
     scene, else two renders of `spp` here. The path tracer's seconds per frame are always measured here, with
     `timing_spp` samples per pixel (a stored reference's own host and seconds are recorded beside them)."""
-    from bench import pathtracer
     from bench.reference import render_reference
     from bench.throughput import machine_description
     from worker.srgb import encode_srgb8
@@ -227,9 +264,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
             sources[name] = {"spp_per_half": ref.spp, "variant": ref.variant, "seconds": round(ref.seconds, 1),
                              "host": ref.host, "scene_sha256": ref.scene_sha256,
                              "lamp_housing_m": ref.lamp_housing_m}
-            t0 = time.perf_counter()
-            pathtracer.render(pts, timing_spp, seed=2)
-            pt_s = time.perf_counter() - t0
+            cost, pt_s = path_tracer_cost(pts, timing_spp)
             halves8 = [encode_srgb8(half) for half in ref.halves]
             floor, halves_mse = psnr_db(*halves8), mse(*halves8)
             floor_blocks = psnr_db(*(encode_srgb8(block_means(half)) for half in ref.halves))
@@ -244,9 +279,11 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
                        "ms_per_frame": round(ms, 2), "path_tracer_s_per_frame": round(pt_s, 2),
                        "path_tracer_spp": timing_spp, "noise_floor_db": round(floor, 2),
                        "psnr_blocks_db": round(psnr_db(encode_srgb8(block_means(linear)), target_blocks), 2),
+                       "path_tracer_fixed_s": round(cost.fixed_s, 3),
+                       "path_tracer_ms_per_spp": round(cost.s_per_spp * 1e3, 3),
                        "path_tracer_equal_error_spp": round(spp_eq),
-                       "path_tracer_equal_error_s": round(pt_s * spp_eq / timing_spp, 1),
-                       "speedup_equal_error": round(pt_s * spp_eq / timing_spp / (ms / 1e3)),
+                       "path_tracer_equal_error_s": round(cost.seconds(spp_eq), 1),
+                       "speedup_equal_error": round(cost.seconds(spp_eq) / (ms / 1e3)),
                        "noise_floor_blocks_db": round(floor_blocks, 2),
                        "spec_sha256": spec_digest(spec)}
                 rows.append(row)
@@ -256,6 +293,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
     result = {"machine": machine or machine_description(), "gl_renderer": session.renderer_name,
               "resolution": [WIDTH, HEIGHT], "path_tracer": "Mitsuba 3 volpath (max depth 64)",
               "timing": f"path tracer llvm_ad_rgb on this machine, {timing_spp} spp per frame",
+              "timing_spp": timing_spp,
               "references": sources, "repeats": repeats, "configs": configs, "rows": rows}
     write_results(out, "fidelity", result, format_table(result), lambda path: picture(pictures, path))
     return result
@@ -263,7 +301,8 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
 
 def format_table(result: dict) -> str:
     keys = ("psnr_db", "mae", "ms_per_frame", "path_tracer_s_per_frame", "noise_floor_db", "psnr_blocks_db",
-            "noise_floor_blocks_db", "path_tracer_equal_error_s", "speedup_equal_error")
+            "noise_floor_blocks_db", "path_tracer_fixed_s", "path_tracer_ms_per_spp", "path_tracer_equal_error_s",
+            "speedup_equal_error")
     lines = [
         f"# Fidelity against a path tracer ({result['resolution'][0]}x{result['resolution'][1]})",
         "",
@@ -276,10 +315,13 @@ def format_table(result: dict) -> str:
         f"noise_floor_blocks_db: the same on {BLOCK}x{BLOCK} block means of linear radiance  ",
         "lamp housing: the radius of a water-free sphere round each lamp in the path tracer (bench/pathtracer.py "
         "`_lamp`), which bounds its fireflies; 0 where none  ",
+        f"path_tracer_s_per_frame: one render of {result['timing_spp']} spp after a warm-up; "
+        f"path_tracer_fixed_s and path_tracer_ms_per_spp: the line through renders of {result['timing_spp']} and "
+        f"{4 * result['timing_spp']} spp (a frame's fixed cost, and its cost per sample per pixel)  ",
         "path_tracer_equal_error_s: the path tracer's seconds per frame on this machine at the samples per pixel "
         "where its error against the reference would equal the row's (extrapolated from the references' noise, "
-        "`equal_error_spp`; at least the reference's own samples where the row is within the reference's noise); "
-        "speedup_equal_error: that over ms_per_frame",
+        "`equal_error_spp`; at least the reference's own samples where the row is within the reference's noise): "
+        "fixed_s + ms_per_spp x spp; speedup_equal_error: that over ms_per_frame",
         "",
         "| config | reference spp (x2) | variant | seconds | lamp housing m | host |",
         "|---|---|---|---|---|---|",

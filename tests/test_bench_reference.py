@@ -80,3 +80,22 @@ def test_the_stored_fidelity_references_are_of_the_scenes_the_bench_exports_toda
     with pytest.raises(SystemExit, match="rendered for another scene"):
         fidelity.stored_reference(stored, "ocean-sun", load_scene(paths[0]))  # clear-ocean-sun's scene
     assert fidelity.stored_reference(tmp_path, "ocean-sun", load_scene(paths[0])) is None  # none stored there
+
+
+def test_the_path_tracers_cost_is_a_fixed_part_and_a_part_per_sample():
+    from bench.fidelity import fit_cost
+
+    cost = fit_cost(64, 2.4, 256, 7.5)
+    assert cost.s_per_spp == pytest.approx(5.1 / 192)
+    assert cost.fixed_s == pytest.approx(2.4 - 64 * 5.1 / 192)
+    # 1,230 samples cost the fixed part once, not once per 64 samples as scaling the short render would count it
+    assert cost.seconds(1230) == pytest.approx(cost.fixed_s + 1230 * cost.s_per_spp)
+    assert cost.seconds(1230) < 2.4 * 1230 / 64 - 10
+    # noise never makes a part negative: a longer render timed faster charges its rate per sample, a line through
+    # the origin's far side no fixed part
+    flat = fit_cost(64, 2.4, 256, 2.3)
+    assert (flat.fixed_s, flat.s_per_spp) == pytest.approx((2.4 - 64 * 2.3 / 256, 2.3 / 256))
+    steep = fit_cost(64, 1.0, 256, 8.0)
+    assert (steep.fixed_s, steep.s_per_spp) == pytest.approx((0.0, 7.0 / 192))
+    with pytest.raises(ValueError, match="spp_high"):
+        fit_cost(64, 1.0, 64, 2.0)

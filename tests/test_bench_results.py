@@ -60,7 +60,8 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
     rows = result["rows"]
     keys = {"config", "water", "light", "preset", "terms", "psnr_db", "mae", "ms_per_frame",
             "path_tracer_s_per_frame", "noise_floor_db", "psnr_blocks_db", "noise_floor_blocks_db",
-            "path_tracer_equal_error_spp", "path_tracer_equal_error_s", "speedup_equal_error"}
+            "path_tracer_equal_error_spp", "path_tracer_equal_error_s", "speedup_equal_error", "path_tracer_fixed_s",
+            "path_tracer_ms_per_spp"}
     assert all(keys <= set(r) for r in rows)
     table = (RESULTS / "cpu" / "fidelity.md").read_text()
     for name, text in fidelity.CONFIGS.items():
@@ -83,7 +84,13 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
         # the equal-error columns follow from the row's own numbers
         for r in mine:
             assert r["path_tracer_equal_error_s"] == pytest.approx(
-                r["path_tracer_s_per_frame"] * r["path_tracer_equal_error_spp"] / r["path_tracer_spp"], rel=0.01,
-                abs=0.1), (name, r["terms"])
+                r["path_tracer_fixed_s"] + r["path_tracer_ms_per_spp"] / 1e3 * r["path_tracer_equal_error_spp"],
+                rel=0.01, abs=0.1), (name, r["terms"])
+            assert r["speedup_equal_error"] * r["ms_per_frame"] / 1e3 == pytest.approx(
+                r["path_tracer_equal_error_s"], rel=0.01, abs=0.06), (name, r["terms"])
+            # the timed 64-spp frame lies on the fitted line (within the machine's noise)
+            assert r["path_tracer_s_per_frame"] == pytest.approx(
+                r["path_tracer_fixed_s"] + r["path_tracer_ms_per_spp"] / 1e3 * r["path_tracer_spp"], rel=0.02,
+                abs=0.02), (name, r["terms"])
         assert all(f"| {name} | {r['water']} | {r['light']} | {r['depth_m']} | {r['preset']} | {r['terms']} | "
                    f"{r['psnr_db']} |" in table for r in mine)
