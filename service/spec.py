@@ -173,7 +173,23 @@ def read_spec_file(path: str | Path) -> dict[str, Any]:
         return {}
     if not isinstance(data, dict):
         raise SpecError(f"{path}: the spec must be a mapping, got {type(data).__name__}")
-    return data
+    return data if suffix == ".json" else _empty_sections(data, DatasetSpec)
+
+
+def _empty_sections(data: dict[str, Any], model: type[SpecModel]) -> dict[str, Any]:
+    """YAML reads a section with nothing under it (`camera:` with every line commented out) as null: such a section
+    is empty, i.e. at its defaults, as an empty file is (and as apply_overrides reads it)."""
+    out = dict(data)
+    for key, value in data.items():
+        field = model.model_fields.get(key) if isinstance(key, str) else None
+        section = field.annotation if field is not None else None
+        if not (isinstance(section, type) and issubclass(section, SpecModel)):
+            continue
+        if value is None:
+            out[key] = {}
+        elif isinstance(value, dict):
+            out[key] = _empty_sections(value, section)
+    return out
 
 
 def resolve_paths(data: dict[str, Any], base: Path) -> dict[str, Any]:

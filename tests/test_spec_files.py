@@ -106,6 +106,24 @@ def test_empty_yaml_file_gives_the_defaults(tmp_path, text):
     assert load_spec(path) == DatasetSpec()
 
 
+def test_a_yaml_section_with_nothing_under_it_is_at_its_defaults_with_or_without_overrides(tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text("frames: 7\ncamera:\n#  width: 320\nsensors:\n  fls:\n  dvl:\n    enabled: true\n")
+    spec = load_spec(path)
+    assert spec == parse_spec({"frames": 7, "sensors": {"dvl": {"enabled": True}}})
+    assert spec.camera == DatasetSpec().camera and spec.sensors.fls == DatasetSpec().sensors.fls
+    # the same file with an override inside the empty section: that field set, the rest at its defaults
+    assert load_spec(path, {"camera.width": 320}) == parse_spec(
+        {"frames": 7, "camera": {"width": 320}, "sensors": {"dvl": {"enabled": True}}})
+    # null stays refused where it is not a section, and in JSON (which has no empty value to forgive)
+    path.write_text("frames:\n")
+    with pytest.raises(SpecError, match="frames: "):
+        load_spec(path)
+    (tmp_path / "s.json").write_text('{"camera": null}')
+    with pytest.raises(SpecError, match="camera: "):
+        load_spec(tmp_path / "s.json")
+
+
 def test_relative_asset_paths_resolve_against_the_spec_files_folder(tmp_path):
     folder = tmp_path / "specs"
     folder.mkdir()
