@@ -221,7 +221,10 @@ FRAME_PARTS: dict[str, tuple[str, str]] = {
     "sss_label": ("sss_label", ".json"),
     "nav": ("nav", ".json"),
 }
-SENSOR_PARTS = ("fls", "fls_fan", "fls_label", "sss", "sss_label", "nav")
+# Each sensor's parts (service.sensors): a frame has them where the spec switches that sensor on.
+PARTS_OF_SENSOR: dict[str, tuple[str, ...]] = {"fls": ("fls", "fls_fan", "fls_label"), "sss": ("sss", "sss_label"),
+                                               "nav": ("nav",)}
+SENSOR_PARTS = tuple(part for parts in PARTS_OF_SENSOR.values() for part in parts)
 # Media types of a frame's files by suffix (GET /datasets/{id}/frames/{i}, the playground's data URLs).
 MEDIA_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".txt": "text/plain; charset=utf-8",
                ".json": "application/json", ".npy": "application/octet-stream"}
@@ -257,7 +260,7 @@ def frame_parts(spec) -> list[str]:
     """The parts (FRAME_PARTS keys) every frame of `spec` (a service.spec.DatasetSpec) has."""
     o, s = spec.outputs, spec.sensors
     wanted = (("image", True), ("calib", True), ("label", o.labels), ("meta", o.meta), ("depth", o.depth),
-              ("instance", o.instance), ("clean", o.clean), ("range", o.range),
-              ("fls", s.fls.enabled), ("fls_fan", s.fls.enabled), ("fls_label", s.fls.enabled),
-              ("sss", s.sss.enabled), ("sss_label", s.sss.enabled), ("nav", s.any_nav))
-    return [part for part, want in wanted if want]
+              ("instance", o.instance), ("clean", o.clean), ("range", o.range))
+    sensors_on = {"fls": s.fls.enabled, "sss": s.sss.enabled, "nav": s.any_nav}
+    return [part for part, want in wanted if want] + [
+        part for sensor, parts in PARTS_OF_SENSOR.items() if sensors_on[sensor] for part in parts]
