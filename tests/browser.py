@@ -89,3 +89,47 @@ def playground_server(spec: Path, port: int, out: Path, log: Path) -> Iterator[s
             proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+@contextmanager
+def prefix_proxy(upstream: str, prefix: str) -> Iterator[tuple[str, list[str]]]:
+    """A reverse proxy on loopback that serves `upstream` under `prefix` ("/site"), as an ingress mounting the API
+    at a path would. Yields its base URL (prefix included) and the list of every path it was asked for (those
+    outside the prefix answered 404)."""
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    asked: list[str] = []
+    hop = {"connection", "keep-alive", "transfer-encoding", "content-length", "content-encoding", "host"}
+
+    class Handler(BaseHTTPRequestHandler):
+        def _forward(self) -> None:
+            asked.append(self.path)
+            if not self.path.startswith(prefix + "/"):
+                self.send_error(404)
+                return
+            body = self.rfile.read(int(self.headers.get("Content-Length") or 0))
+            headers = {k: v for k, v in self.headers.items() if k.lower() not in hop}
+            r = httpx.request(self.command, upstream + self.path[len(prefix):], headers=headers, content=body,
+                              timeout=120)
+            self.send_response(r.status_code)
+            for k, v in r.headers.items():
+                if k.lower() not in hop:
+                    self.send_header(k, v)
+            self.send_header("Content-Length", str(len(r.content)))
+            self.end_headers()
+            self.wfile.write(r.content)
+
+        do_GET = do_POST = do_PUT = do_DELETE = _forward
+
+        def log_message(self, *args) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}{prefix}", asked
+    finally:
+        server.shutdown()
+        server.server_close()

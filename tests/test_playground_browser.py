@@ -18,7 +18,7 @@ import httpx
 import pytest
 import yaml
 
-from browser import chromium, playground_server, set_value, wait
+from browser import chromium, playground_server, prefix_proxy, set_value, wait
 from service.spec import parse_spec
 from worker.generate import RECORD
 
@@ -244,3 +244,23 @@ def test_an_older_validate_answer_does_not_override_a_newer_one(page):
     assert driver.find_element("id", "e-terrain.relief_m").text == ""
     assert status(driver) != "the spec has errors"
     assert "relief_m: 0.27" in yaml_box(driver)
+
+
+def test_the_page_works_behind_a_proxy_that_mounts_it_under_a_path(page):
+    """An ingress serving the API at /site: the page's styles, script, previews, strip and generate all go through
+    /site (nothing asked for outside it)."""
+    driver, base, _ = page
+    with prefix_proxy(base, "/site") as (site, asked):
+        driver.get(site + "/playground")
+        wait(lambda: preview_src(driver).startswith("data:image/png") and "rendered" in status(driver), 60,
+             "the first preview through the proxy")
+        wait(lambda: len(driver.find_elements("css selector", "#strip img")) == 8, 60, "the strip through the proxy")
+        driver.find_element("id", "generate").click()
+        text = wait(lambda: (t := driver.find_element("id", "generate-progress").text) and
+                    ("succeeded" in t or "failed" in t or "error" in t) and t, 120, "the local run through the proxy")
+        assert ": succeeded, " in text, text
+    # (a browser asks for /favicon.ico at the host's root by itself: not the page's doing)
+    assert [p for p in asked if not p.startswith("/site/") and p != "/favicon.ico"] == []
+    assert {"/site/playground", "/site/playground/static/style.css", "/site/playground/static/app.js",
+            "/site/playground/config", "/site/playground/preview", "/site/playground/strip",
+            "/site/playground/generate"} <= set(asked)

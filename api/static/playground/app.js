@@ -19,7 +19,9 @@ function toJSON(value) {
     .replace(/"__bigint__(-?\d+)"/g, "$1");
 }
 
-// ---- HTTP: the API key (kept for this tab only), JSON, 401 asks for a key, 503 says the server is busy
+// ---- HTTP: the API key (kept for this tab only), JSON, 401 asks for a key, 503 says the server is busy.
+// Paths are relative ("playground/preview"): the page is at <root>/playground, so they resolve against the API's
+// root wherever a proxy mounts it (https://host/seasynth/playground calls https://host/seasynth/playground/preview).
 function headers(extra) {
   const h = Object.assign({"X-Playground-Client": client}, extra || {});
   const key = sessionStorage.getItem("seasynth-key");
@@ -205,7 +207,7 @@ function views() { return [...document.querySelectorAll("[data-view]:checked")].
 async function refresh() {
   clearTimeout(frameTimer);  // its preview comes with this one's
   const mine = ++validated;
-  const v = await call("POST", "/playground/validate", {spec});
+  const v = await call("POST", "playground/validate", {spec});
   if (mine !== validated) return;  // a newer spec was sent meanwhile: its answer decides
   if (v.status !== 200) return;
   showErrors(v.data.errors);
@@ -220,7 +222,7 @@ async function preview() {
   const ctl = inflight = new AbortController();
   status("rendering…");
   try {
-    const r = await call("POST", "/playground/preview", {spec, frame: Number($("frame").value) || 0, views: views()}, ctl.signal);
+    const r = await call("POST", "playground/preview", {spec, frame: Number($("frame").value) || 0, views: views()}, ctl.signal);
     if (r.status === 503) { status("the renderer is busy; retrying"); setTimeout(preview, 1000 * r.retry); return; }
     if (r.status === 409) return;  // a newer request of ours replaced it
     if (r.status !== 200) { status(r.data ? r.data.detail : `error ${r.status}`); return; }
@@ -264,7 +266,7 @@ async function strip() {
   const frames = spec.frames || config.schema.properties.frames.default;
   const first = Math.max(0, Math.min((Number($("frame").value) || 0) - 3, frames - 8));
   try {
-    const r = await call("POST", "/playground/strip", {spec, first, count: 8}, ctl.signal);
+    const r = await call("POST", "playground/strip", {spec, first, count: 8}, ctl.signal);
     if (r.status === 503) { setTimeout(() => { if (stripInflight === null) strip(); }, 1000 * r.retry); return; }
     if (r.status === 409) return;  // a newer strip of ours replaced it
     if (r.status !== 200) { status("strip: " + (r.data ? r.data.detail : `error ${r.status}`)); return; }
@@ -288,7 +290,7 @@ function downloadYaml() {
   a.click();
 }
 async function generate() {
-  const path = config.mode === "service" ? "/datasets" : "/playground/generate";
+  const path = config.mode === "service" ? "datasets" : "playground/generate";
   const r = await call("POST", path, spec);
   if (r.status !== 201 && r.status !== 202 && r.status !== 200) {
     $("generate-progress").textContent = r.data ? r.data.detail : `error ${r.status}`; return;
@@ -330,7 +332,7 @@ async function calibrate() {
   form.append("photo", photo);
   if ($("calib-depth").files[0]) form.append("depth", $("calib-depth").files[0]);
   $("calib-result").textContent = "estimating…";
-  const r = await call("POST", "/calibrate", form);
+  const r = await call("POST", "calibrate", form);
   if (r.status !== 200) { $("calib-result").textContent = r.data ? r.data.detail : `error ${r.status}`; return; }
   calibWater = r.data.water;
   $("calib-result").innerHTML = calibrationTable(r.data);
@@ -340,7 +342,7 @@ async function calibrate() {
   const trial = structuredClone(spec);
   trial.water = calibWater;
   // Its own client name: the page's preview and this one do not replace each other.
-  const p = await call("POST", "/playground/preview", {spec: trial, frame: Number($("frame").value) || 0, views: []},
+  const p = await call("POST", "playground/preview", {spec: trial, frame: Number($("frame").value) || 0, views: []},
                        undefined, {"X-Playground-Client": client + ":calibration"});
   if (p.status === 200) { $("calib-frame").onload = showStats; $("calib-frame").src = p.data.images.image; }
 }
@@ -362,7 +364,7 @@ function applyCalibration() {
 
 // ---- start
 async function start() {
-  const r = await call("GET", "/playground/config");
+  const r = await call("GET", "playground/config");
   if (r.status !== 200) return;
   config = r.data;
   spec = structuredClone(config.spec);
