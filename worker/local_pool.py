@@ -56,10 +56,13 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
             raise _last_word(conns[k]) or _lost(procs[k]) from None
         given += 1
 
+    note = Timeline.of(env, -1)  # the parent's own events: worker -1
     try:
+        note("pool")
         with sigint_blocked_for_children():
             for p in procs:
                 p.start()
+        note("started")
         for _, child in pipes:
             child.close()  # the processes hold their ends: EOF here means one has gone
         by_conn = {conn: k for k, conn in enumerate(conns)}
@@ -129,23 +132,60 @@ def _pool_main(payload: str, out: str, conn, platform: str, gpus: GpuChoice | No
     _ignore_sigint()
     os.environ.clear()
     os.environ.update(env)  # before OpenGL is imported: it reads PYOPENGL_PLATFORM once
+    note = Timeline.of(env, k)
+    note("start")
     spec = DatasetSpec.model_validate_json(payload)
     try:
         from worker.render.devices import platform_for_worker  # lists EGL devices here, never in the parent
 
         with RenderSession(platform=platform_for_worker(platform, gpus, k), variant_folder=variants) as session:
+            note("renderer")
             if pinned is not None and session.renderer_name != pinned:  # checked here: workers write frames
                 raise OutputError(wrong_renderer(out, pinned, session.renderer_name))
             conn.send(("renderer", session.renderer_name))
             while (chunk := conn.recv()) is not None:
                 for i in chunk:
-                    write_frame(Path(out), session.frame_files(spec, i))
+                    write_frame(Path(out), session.frame_files(spec, i, mark=note.stage(i)))
+                    note("written", i)
                 conn.send(("frames", len(chunk)))
     except BaseException as err:  # report every failure to the parent, which decides
         with contextlib.suppress(OSError):  # the parent may be gone (it stops its workers on its way out)
             conn.send(("error", (type(err).__module__, type(err).__qualname__, str(err))))
         return
     conn.send(("done", None))
+
+
+class Timeline:
+    """Where a render process's time goes, for benchmarks: with SEASYNTH_POOL_TIMELINE set to a file, each process
+    appends a JSON line per event (its start, its renderer open, each stage of its first frames, each frame
+    written) with the wall-clock time. Off (a no-op) otherwise."""
+
+    STAGED_FRAMES = 2  # frames of each process whose stages are noted
+
+    def __init__(self, path: str | None, worker: int) -> None:
+        self.path, self.worker, self.frames = path, worker, 0
+
+    @classmethod
+    def of(cls, env: dict[str, str], worker: int) -> Timeline:
+        return cls(env.get("SEASYNTH_POOL_TIMELINE") or None, worker)
+
+    def __call__(self, event: str, frame: int | None = None) -> None:
+        if self.path is None:
+            return
+        import json
+        import time
+
+        line = json.dumps({"t": time.time(), "pid": os.getpid(), "worker": self.worker, "event": event,
+                           "frame": frame}) + "\n"
+        with contextlib.suppress(OSError), open(self.path, "a", encoding="utf-8") as f:
+            f.write(line)
+
+    def stage(self, frame: int):
+        """frame_files' `mark` for `frame`: its stages noted for the process's first STAGED_FRAMES frames."""
+        self.frames += 1
+        if self.path is None or self.frames > self.STAGED_FRAMES:
+            return None
+        return lambda name: self(name, frame)
 
 
 def _rebuild_error(value: tuple[str, str, str]) -> Exception:
