@@ -96,6 +96,23 @@ def test_workers_and_resume_give_identical_files(full, tmp_path):
     assert tree(two) == tree(out)
 
 
+def test_the_pool_timeline_notes_each_process_and_frame_and_changes_no_file(full, tmp_path, monkeypatch):
+    out, spec = full
+    timeline = tmp_path / "timeline.jsonl"
+    monkeypatch.setenv("SEASYNTH_POOL_TIMELINE", str(timeline))
+    generate(spec, tmp_path / "two", workers=2)
+    assert tree(tmp_path / "two") == tree(out)
+    events = [json.loads(line) for line in timeline.read_text().splitlines()]
+    assert [e["event"] for e in events if e["worker"] == -1] == ["pool", "started"]
+    for w in (0, 1):
+        mine = [e for e in sorted(events, key=lambda e: e["t"]) if e["worker"] == w]
+        assert [e["event"] for e in mine[:2]] == ["start", "renderer"]
+        staged = list(dict.fromkeys(e["frame"] for e in mine if e["event"] not in ("start", "renderer", "written")))
+        assert 1 <= len(staged) <= 2  # the stages of a process's first two frames only
+    written = sorted(e["frame"] for e in events if e["event"] == "written")
+    assert written == list(range(spec.frames))
+
+
 def test_reproduce_equals_generate(full, tmp_path):
     out, spec = full
     paths = reproduce(spec, 3, tmp_path)
