@@ -69,11 +69,12 @@ def _water_overrides(water: str) -> dict:
     return out
 
 
-def config_spec(text: str) -> DatasetSpec:
+def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSpec:
+    """The configuration's spec; `size` (width, height) other than the table's for a look at how it scales."""
     water, light, depth = parse_config(text)
     sun = "sun" in light
     overrides = {
-        "seed": SEED, "frames": FRAME + 1, "camera.width": WIDTH, "camera.height": HEIGHT,
+        "seed": SEED, "frames": FRAME + 1, "camera.width": size[0], "camera.height": size[1],
         "water.model": "physical", "water.beta_jitter": [1.0, 1.0], "water.depth_m": [depth, depth],
         "lighting.sun_elevation_deg": [60.0, 60.0], "lighting.sun_azimuth_deg": [30.0, 30.0],
         "lighting.sun_intensity": [1.2, 1.2] if sun else [0.0, 0.0],
@@ -196,8 +197,9 @@ def fit_cost(spp_low: int, s_low: float, spp_high: int, s_high: float) -> PathTr
 
 def path_tracer_cost(pts, timing_spp: int) -> tuple[PathTracerCost, float]:
     """Times renders of `timing_spp` and 4x that (after a warm-up of `timing_spp`, which compiles the kernel) and
-    fits PathTracerCost; returns it and the seconds of the `timing_spp` render. Scaling one short render's seconds by a sample count counts its fixed part once per
-    `timing_spp` samples: 64 samples of clear-lamps took 2.3-2.5 s on a 2-core CPU, of which ~0.7 s fixed."""
+    fits PathTracerCost; returns it and the seconds of the `timing_spp` render. Scaling one short render's seconds
+    by a sample count counts its fixed part once per `timing_spp` samples: 64 samples of clear-lamps took 2.3-2.5 s
+    on a 2-core CPU, of which ~0.7 s fixed."""
     from bench import pathtracer
 
     def timed(spp: int) -> float:
@@ -216,7 +218,13 @@ def block_means(image: np.ndarray, k: int = BLOCK) -> np.ndarray:
     return image[:h, :w].reshape(h // k, k, w // k, k, -1).mean(axis=(1, 3))
 
 
-def export_scenes(out: Path, *, configs: dict[str, str], platform: str) -> list[Path]:
+def reference_name(name: str, size: tuple[int, int]) -> str:
+    """A configuration's scene and reference file stem: its name at the table's size, NAME-WxH at another."""
+    return name if tuple(size) == (WIDTH, HEIGHT) else f"{name}-{size[0]}x{size[1]}"
+
+
+def export_scenes(out: Path, *, configs: dict[str, str], platform: str,
+                  size: tuple[int, int] = (WIDTH, HEIGHT)) -> list[Path]:
     """Writes each configuration's path-tracer scene to OUT/NAME.scene.npz (for `python -m bench.reference`)."""
     from bench.reference import SCENE_SUFFIX, save_scene
     from worker.pipeline import RenderSession
@@ -225,8 +233,8 @@ def export_scenes(out: Path, *, configs: dict[str, str], platform: str) -> list[
     paths = []
     with RenderSession(platform=platform) as session:
         for name, text in configs.items():
-            paths.append(out / f"{name}{SCENE_SUFFIX}")
-            save_scene(path_traced_scene(session, config_spec(text)), paths[-1])
+            paths.append(out / f"{reference_name(name, size)}{SCENE_SUFFIX}")
+            save_scene(path_traced_scene(session, config_spec(text, size)), paths[-1])
     return paths
 
 
@@ -234,7 +242,7 @@ def stored_reference(references: Path | None, name: str, pts):
     """The stored reference of this configuration if one exists for exactly this scene, else None."""
     from bench.reference import REF_SUFFIX, load_reference, scene_digest
 
-    path = references / f"{name}{REF_SUFFIX}" if references else None
+    path = references / f"{reference_name(name, (pts.width, pts.height))}{REF_SUFFIX}" if references else None
     if path is None or not path.exists():
         return None
     ref = load_reference(path)
@@ -245,7 +253,7 @@ def stored_reference(references: Path | None, name: str, pts):
 
 
 def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: str | None, platform: str,
-        references: Path | None = None, timing_spp: int = 64) -> dict:
+        references: Path | None = None, timing_spp: int = 64, size: tuple[int, int] = (WIDTH, HEIGHT)) -> dict:
     """Scores every configuration. Its reference is the stored one in `references` when there is one for this exact
     scene, else two renders of `spp` here. The path tracer's seconds per frame are always measured here, with
     `timing_spp` samples per pixel (a stored reference's own host and seconds are recorded beside them)."""
@@ -258,7 +266,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
     with RenderSession(platform=platform) as session:
         for name, text in configs.items():
             water, light, depth = parse_config(text)
-            spec = config_spec(text)
+            spec = config_spec(text, size)
             pts = path_traced_scene(session, spec)
             ref = stored_reference(references, name, pts) or render_reference(pts, spp, host="this machine")
             sources[name] = {"spp_per_half": ref.spp, "variant": ref.variant, "seconds": round(ref.seconds, 1),
@@ -291,7 +299,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
                 if preset == "default" and terms == "full":
                     pictures.append((name, target, image))
     result = {"machine": machine or machine_description(), "gl_renderer": session.renderer_name,
-              "resolution": [WIDTH, HEIGHT], "path_tracer": "Mitsuba 3 volpath (max depth 64)",
+              "resolution": list(size), "path_tracer": "Mitsuba 3 volpath (max depth 64)",
               "timing": f"path tracer llvm_ad_rgb on this machine, {timing_spp} spp per frame",
               "timing_spp": timing_spp,
               "references": sources, "repeats": repeats, "configs": configs, "rows": rows}

@@ -134,6 +134,9 @@ def bench_fidelity(
                                             "timed render on this machine.")] = 64,
     repeats: Annotated[int, typer.Option("--repeats", min=1)] = 5,
     machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    resolution: Annotated[str, typer.Option("--resolution", help="WIDTHxHEIGHT of the frames and references "
+                                            "(other than the table's 160x120: references NAME-WxH.ref.npz).")]
+    = "160x120",
     gl: PlatformOpt = "egl",
 ) -> None:
     """seasynth's frames against a volumetric path tracer of the same scene: PSNR, MAE, time, per term."""
@@ -148,14 +151,17 @@ def bench_fidelity(
                                      param_hint="--config")
         chosen[name] = text or CONFIGS[name]
         parse_config(chosen[name])
+    size = _ints(resolution.lower(), "x", "--resolution", "WIDTHxHEIGHT")
+    if len(size) != 2:
+        raise typer.BadParameter("give WIDTHxHEIGHT, e.g. 320x240", param_hint="'--resolution'")
     if export_scenes is not None:
-        for path in export(export_scenes, configs=chosen, platform=gl):
+        for path in export(export_scenes, configs=chosen, platform=gl, size=(size[0], size[1])):
             typer.echo(str(path))
         return
     if out is None:
         raise typer.BadParameter("give --out (or --export-scenes)", param_hint="--out")
     run(out, configs=chosen, spp=spp, repeats=repeats, machine=machine, platform=gl, references=references,
-        timing_spp=timing_spp)
+        timing_spp=timing_spp, size=(size[0], size[1]))
 
 
 @bench_app.command("calibration")
