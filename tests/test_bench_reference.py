@@ -99,3 +99,25 @@ def test_the_path_tracers_cost_is_a_fixed_part_and_a_part_per_sample():
     assert (steep.fixed_s, steep.s_per_spp) == pytest.approx((0.0, 7.0 / 192))
     with pytest.raises(ValueError, match="spp_high"):
         fit_cost(64, 1.0, 64, 2.0)
+
+
+@pytest.mark.parametrize("size", [(320, 240), (640, 480)])
+def test_the_stored_references_at_other_sizes_are_of_the_scenes_and_tables_committed(tmp_path, size):
+    import json
+    from pathlib import Path
+
+    from bench import fidelity
+    from service.spec import spec_digest
+
+    results = Path(__file__).resolve().parents[1] / "bench" / "results" / "cpu"
+    (path,) = fidelity.export_scenes(tmp_path, configs={"clear-lamps": fidelity.CONFIGS["clear-lamps"]},
+                                     platform="egl", size=size)
+    assert path.name == f"clear-lamps-{size[0]}x{size[1]}.scene.npz"
+    pts = load_scene(path)
+    assert (pts.width, pts.height) == size
+    ref = fidelity.stored_reference(results / "fidelity-references", "clear-lamps", pts)
+    assert ref is not None and ref.spp > 10_000 and ref.halves[0].shape == (size[1], size[0], 3)
+    table = json.loads((results / "fidelity-resolution" / f"{size[0]}x{size[1]}" / "fidelity.json").read_text())
+    assert table["resolution"] == list(size)
+    assert {r["spec_sha256"] for r in table["rows"]} == {
+        spec_digest(fidelity.config_spec(fidelity.CONFIGS["clear-lamps"], size))}
