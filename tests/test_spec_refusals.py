@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import sys
+import unicodedata
 
 import pytest
 
@@ -11,6 +13,8 @@ from service.spec import MAX_FRAMES, apply_overrides, load_spec, parse_spec
 from service.spec_scene import MAX_ASSETS, MAX_OBJECTS, MAX_SIDE
 from service.spec_types import MAX_CHOICES
 from spec_helpers import refusal
+from worker.kitti import format_label_line, parse_label_file
+from worker.labels import KittiObject
 
 
 # --- refusals, each naming the field by its dotted path --------------------------------------------------------
@@ -119,6 +123,26 @@ def test_invalid_value_is_refused_naming_the_field(data, path, fragment):
     (line,) = refusal(data)
     assert line.startswith(f"{path}: "), line
     assert fragment in line
+
+
+def test_class_names_the_kitti_writer_would_split_or_garble_are_refused_naming_the_field():
+    # Every whitespace (str.isspace: what str.split() splits label lines on, U+001C..U+001F included, which the
+    # pattern's \\S lets through) and every control character, inside a name.
+    bad = [chr(c) for c in range(sys.maxunicode + 1)
+           if chr(c).isspace() or unicodedata.category(chr(c)) == "Cc"]
+    assert {"\x1c", "\x1d", "\x1e", "\x1f", "\x00", "\x7f", "\x85", "\u3000"} <= set(bad)
+    for c in bad:
+        (line,) = refusal({"targets": {"class_name": f"Sea{c}urchin"}})
+        assert line.startswith("targets.class_name: "), (hex(ord(c)), line)
+    for c in "\x1c\x1d\x1e\x1f\x00\x7f\x9b":  # the ones the pattern passes: named by code point
+        (line,) = refusal({"targets": {"class_name": f"Sea{c}urchin"}})
+        assert f"holds U+{ord(c):04X}, a whitespace or control character" in line
+    # Names of other scripts and punctuation stay valid, and are one label field.
+    for name in ("Seeigel_\u00e4", "\u30a6\u30cb", "sea-urchin/2", "a,b"):
+        assert parse_spec({"targets": {"class_name": name}}).targets.class_name == name
+        line = format_label_line(KittiObject(type=name, truncated=0.0, occluded=0, alpha=0.0, box2d=(0, 0, 1, 1),
+                                             dims=(1, 1, 1), location=(0, 0, 1), rotation_y=0.0))
+        assert [lab["type"] for lab in parse_label_file(line + "\n")] == [name]
 
 
 def test_shard_size_over_the_shard_work_limit_is_refused_naming_shard_size():
