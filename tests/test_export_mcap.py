@@ -199,26 +199,32 @@ def test_an_empty_split_gets_a_bag_without_messages(datasets, tmp_path):
     assert sorted({m[4] for m in messages}) == list(range(SMALL["frames"]))
 
 
-def test_distractors_are_detections_of_class_distractor(datasets, tmp_path):
-    run_export(plan_export(datasets["plain"], "mcap", FRACTIONS, distractors=True), tmp_path)
+def detection_rows(msg) -> list[tuple]:
+    """(id, class, score, cx, cy, size_x, size_y) of each Detection2D of a Detection2DArray."""
+    return [(d.id, d.results[0].hypothesis.class_id, d.results[0].hypothesis.score, d.bbox.center.position.x,
+             d.bbox.center.position.y, d.bbox.size_x, d.bbox.size_y) for d in msg.detections]
+
+
+def test_distractors_follow_the_targets_whose_detections_and_ids_stay_as_without(datasets, tmp_path):
     ds = datasets["plain"]
-    seen = 0
+    run_export(plan_export(ds, "mcap", FRACTIONS), tmp_path / "plain")
+    run_export(plan_export(ds, "mcap", FRACTIONS, distractors=True), tmp_path / "dist")
+    seen = frames = 0
     for split in SPLITS:
-        for topic, _, _, _, i, msg in read_bag(tmp_path / f"{split}.mcap")[1]:
+        plain = {m[4]: detection_rows(m[5]) for m in read_bag(tmp_path / "plain" / f"{split}.mcap")[1]
+                 if m[0] == "/detections"}
+        for topic, _, _, _, i, msg in read_bag(tmp_path / "dist" / f"{split}.mcap")[1]:
             if topic != "/detections":
                 continue
-            meta = json.loads((ds / f"meta/{i:06d}.json").read_text())
             lines = kitti.parse_label_file((ds / f"label_2/{i:06d}.txt").read_text())
-            id_of_line = {o["label_line"]: o["instance_id"] for o in meta["objects"] if o["label_line"] is not None}
-            for k, det in enumerate(msg.detections):
-                if k < len(lines):
-                    assert det.results[0].hypothesis.class_id == lines[k]["type"]
-                    assert det.id == str(id_of_line[k])
-                else:
-                    assert det.results[0].hypothesis.class_id == "distractor"
-                    assert int(det.id) in {o["instance_id"] for o in meta["objects"] if o["role"] == "distractor"}
-                    seen += 1
-    assert seen > 0
+            rows = detection_rows(msg)
+            # id = the detection's place in the array, with or without distractors: a target's is its label line
+            assert [r[0] for r in rows] == [str(k) for k in range(len(rows))]
+            assert rows[:len(lines)] == plain[i]
+            assert [r[1] for r in rows] == [line["type"] for line in lines] + ["distractor"] * (len(rows) - len(lines))
+            seen += len(rows) - len(lines)
+            frames += 1
+    assert frames == SMALL["frames"] and seen > 0
 
 
 def test_detection_box_is_the_pixel_edge_box():

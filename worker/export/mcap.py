@@ -11,7 +11,11 @@ as rosbag2 writes them), zstd chunks. Frames come in ascending index; frame i is
                                                              distortion (d empty, "plumb_bob")
   /detections               vision_msgs/msg/Detection2DArray one Detection2D per label line (then distractors):
                                                              bbox centre and size in pixel-edge coordinates of
-                                                             the KITTI box, one hypothesis (class name, 1.0)
+                                                             the KITTI box, one hypothesis (class name, 1.0);
+                                                             id "k", its 0-based place in the array: a target's
+                                                             label_2 line, then the distractors (--distractors)
+                                                             in ascending instance id, so a target's id is the
+                                                             same with or without --distractors
   /tf                       tf2_msgs/msg/TFMessage           world -> camera, meta's pose_world_from_camera
                                                              (only when the dataset has meta/)
   /camera/depth             sensor_msgs/msg/Image            "32FC1" z-depth in metres, NaN where none (only
@@ -222,7 +226,7 @@ class McapExporter:
         }, ns, seq)
 
         detections = []
-        for obj in frame.objects:
+        for k, obj in enumerate(frame.objects):  # label lines, then distractors in instance id order
             cx, cy, sx, sy = detection_box(obj.box)
             detections.append({
                 "header": _header(ns),
@@ -231,7 +235,7 @@ class McapExporter:
                                                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
                                       "covariance": [0.0] * 36}}],
                 "bbox": {"center": {"position": {"x": cx, "y": cy}, "theta": 0.0}, "size_x": sx, "size_y": sy},
-                "id": str(obj.instance_id if obj.instance_id is not None else obj.label_line),
+                "id": str(k),  # the same with or without --distractors (instance ids need masks)
             })
         self._write(split, DETECTIONS_TOPIC, {"header": _header(ns), "detections": detections}, ns, seq)
 
