@@ -25,6 +25,7 @@ DEFAULT_BOOTSTRAP = 24
 # (and it is off the grid's ends); B_inf when its sigma is at most B_INF_SIGMA_MAX (linear).
 BETA_REL_SIGMA_MAX = 0.5
 B_INF_SIGMA_MAX = 0.02
+SATURATED_SHARE_MAX = 0.01  # of the ranged pixels: above it, B_inf needs open water (see _with_range)
 
 PRIORS = (None, "jerlov")
 METHOD_RANGE = (
@@ -130,6 +131,9 @@ def _check_image(image: np.ndarray) -> np.ndarray:
         raise CalibrationError(f"image: only {usable} pixels are below saturation (255) in every channel")
     if np.percentile(img.max(axis=2), 99) < DARK_CODE:
         raise CalibrationError(f"image: too dark to estimate the water (99% of pixels below sRGB code {DARK_CODE})")
+    if (img[..., 0] == img[..., 1]).all() and (img[..., 1] == img[..., 2]).all():
+        raise CalibrationError("image: it has no colour (its three channels are equal everywhere, e.g. a greyscale "
+                               "photo): the water's colour cannot be estimated from it")
     return img
 
 
@@ -236,7 +240,14 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
     ok_d = best.beta_D_inside & (sd_d <= BETA_REL_SIGMA_MAX * best.beta_D)
     ok_b = best.beta_B_inside & (sd_b <= BETA_REL_SIGMA_MAX * best.beta_B)
     sd_inf = np.maximum(sd(binf), half_code(best.B_inf))
-    ok_inf = best.B_inf_inside & (sd_inf <= B_INF_SIGMA_MAX)
+    # B_inf is seen in open water, or is the asymptote of an identified backscatter; a value the fit clipped to 0 or
+    # 1 is a bound, not an estimate. With saturated surfaces left out, the asymptote is biased (the bright near
+    # pixels are missing from the fit, several sigma in tests): then only open water identifies it.
+    open_water = data.open_pixels >= fit.MIN_BIN_PIXELS
+    clipped = work.saturated_share > SATURATED_SHARE_MAX
+    at_bound = (best.B_inf <= 0.0) | (best.B_inf >= 1.0)
+    ok_inf = (best.B_inf_inside & (open_water | (ok_b & (not clipped))) & ~at_bound
+              & (sd_inf <= B_INF_SIGMA_MAX))
     notes = []
     for c, name in enumerate(CHANNELS):
         if not ok_d[c]:
@@ -246,9 +257,14 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
             notes.append(f"beta_B {name}: not identified (too little backscatter against noise and scene variation "
                          "in this channel)")
         if not ok_inf[c]:
-            notes.append(f"B_inf {name}: not identified (no open water and range too short for the asymptote)")
-    if data.open_pixels < fit.MIN_BIN_PIXELS:
+            notes.append(f"B_inf {name}: not identified (no open water, and the backscatter's asymptote is not "
+                         "identified" + (" or is biased by saturated pixels)" if clipped else ")"))
+    if not open_water:
         notes.append("no open water (range +inf) in view: B_inf comes from the fit's asymptote alone")
+    if clipped:
+        notes.append(f"{work.saturated_share:.1%} of the pixels with range are saturated (a channel at 255) and left "
+                     "out: the brightest surfaces are missing from the fit; expose so that under "
+                     f"{SATURATED_SHARE_MAX:.0%} clip")
     if prior is not None:
         notes.append(f"prior {prior}: stage 1 chose Jerlov type {family_type or 'none'}; off the Jerlov family this "
                      "prior biases the estimate")
@@ -332,9 +348,15 @@ def _without_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: in
              "beta_D ratios: not identified without range (they need J, which this prior-based method does not "
              "estimate)"]
     if not best.water_flat:
-        notes.append("B_inf: no flat open-water region found; the value is the flattest region's colour, a guess")
-    if not ok_ratio.all():
-        notes.append(f"beta_B ratios: not identified ({best.dark_tiles} tiles with usable dark pixels)")
+        notes.append("B_inf: not identified: no flat open-water region found (the flattest region's colour would be "
+                     "a guess)")
+    for c, name in enumerate(CHANNELS):
+        if best.water_flat and not ok_inf[c]:
+            notes.append(f"B_inf {name}: not identified (the flattest tiles disagree by more than "
+                         f"{B_INF_SIGMA_MAX} linear)")
+        if c != 1 and not ok_ratio[c]:
+            notes.append(f"beta_B ratio {name}/G: not identified ({best.dark_tiles} tiles with usable dark pixels"
+                         + (", and green's own is not" if not ok_ratio[1] else "") + ")")
     beta_B_ratio = _coefficient("beta_B_ratio", "1", best.beta_B_ratio, ratio_sd, ok_ratio,
                                 "prior: the darkest pixels of a tile have J near 0")
     return WaterEstimate(

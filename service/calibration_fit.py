@@ -148,6 +148,7 @@ class Work:
     node: np.ndarray
     node_frac: np.ndarray
     tile_pixels: tuple[np.ndarray, ...]
+    saturated_share: float = 0.0  # of the pixels with a finite range, those with a channel at 255 (left out)
 
     @staticmethod
     def build(img: np.ndarray, z: np.ndarray | None, lut: np.ndarray) -> Work:
@@ -158,7 +159,10 @@ class Work:
         rows = np.minimum(np.arange(h) * TILES // h, TILES - 1)
         cols = np.minimum(np.arange(w) * TILES // w, TILES - 1)
         tile = (rows[:, None] * TILES + cols[None, :]).reshape(-1)
-        keep = ~(img == 255).any(axis=2).reshape(-1)
+        saturated = (img == 255).any(axis=2).reshape(-1)
+        keep = ~saturated
+        ranged = np.zeros(0, bool) if z is None else np.isfinite(z).reshape(-1)
+        share = float(saturated[ranged].mean()) if ranged.any() else 0.0
         lin, rank, tile = lin.reshape(-1, 3)[keep], rank.reshape(-1, 3)[keep], tile[keep]
         # Pixels on range edges (mixed surfaces) take no part in the range fit: their range is set unknown.
         zf = None if z is None else np.where(range_edges(z), np.nan, z).reshape(-1)[keep]
@@ -178,7 +182,7 @@ class Work:
                 frac[finite] = pos - node[finite]
         order = np.argsort(tile, kind="stable")
         splits = np.searchsorted(tile[order], np.arange(1, TILES * TILES))
-        return Work(lin, rank, zf, tile, bins, edges, nodes, node, frac, tuple(np.split(order, splits)))
+        return Work(lin, rank, zf, tile, bins, edges, nodes, node, frac, tuple(np.split(order, splits)), share)
 
     def resample(self, rng: np.random.Generator) -> np.ndarray:
         """Pixel indices of TILES^2 tiles drawn with replacement (a tile bootstrap). -> (m,) int."""

@@ -65,6 +65,12 @@ def read_photo(data: bytes, name: str) -> np.ndarray:
     if any(";16" in r or ";32" in r for r in raw):
         raise CalibrationError(f"{name}: {image.mode} with 16-bit samples ({', '.join(sorted(raw))}) is not taken; "
                                "give an 8-bit sRGB photo (PNG or JPEG)")
+    # A PNM (PPM/PGM) says its largest sample value in the header: over 255, Pillow scales it down to 8 bits.
+    maxval = max((t.args[1] for t in getattr(image, "tile", None) or ()
+                  if isinstance(t.args, tuple) and len(t.args) > 1 and isinstance(t.args[1], int)), default=255)
+    if image.format in ("PPM", "PGM", "PNM") and maxval > 255:
+        raise CalibrationError(f"{name}: a {image.format} of samples up to {maxval} (16-bit) is not taken; give an "
+                               "8-bit sRGB photo (PNG or JPEG)")
     return _decode(image, name, "RGB")
 
 

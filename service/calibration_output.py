@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from service.calibration import CHANNELS, Coefficient, WaterEstimate
 from service.errors import CalibrationError
+from service.water import jerlov_veiling_light
 
 BACKSCATTER_RATIO_FILL = 0.9  # to_spec_water: beta_B = this * beta_D in a channel whose beta_B is not identified
 
 
-def _interval(values: list[float], spread: float) -> dict:
-    return {"min": [round(max(0.0, v * (1 - spread)), 6) for v in values],
-            "max": [round(max(0.0, v * (1 + spread)), 6) for v in values]}
+def _interval(values: list[float], spread: float, top: float = float("inf")) -> dict:
+    return {"min": [round(min(max(0.0, v * (1 - spread)), top), 6) for v in values],
+            "max": [round(min(max(0.0, v * (1 + spread)), top), 6) for v in values]}
 
 
 def to_spec_water(estimate: WaterEstimate, spread: float = 0.1) -> dict:
@@ -19,12 +20,15 @@ def to_spec_water(estimate: WaterEstimate, spread: float = 0.1) -> dict:
 
     With every beta_D channel identified the section gives beta_D, beta_B and B_inf explicitly (a channel whose
     beta_B is not identified gets BACKSCATTER_RATIO_FILL * its beta_D). Otherwise (no range) the betas come from the
-    nearest Jerlov type (II when none is known) with beta_jitter +-spread, and B_inf is explicit.
+    nearest Jerlov type (II when none is known) with beta_jitter +-spread, and B_inf is explicit. A channel whose
+    B_inf is not identified takes that type's default veiling light (service.water.jerlov_veiling_light), never 0
+    (which would be water without backscatter). B_inf stays within [0, 1].
     """
     if not (isinstance(spread, (int, float)) and 0 <= spread < 1):
         raise CalibrationError(f"spread: need a number in [0, 1), got {spread!r}")
-    b_inf = [v if v is not None else 0.0 for v in estimate.B_inf.value]
-    section: dict = {"enabled": True, "model": "paper", "B_inf": _interval(b_inf, spread)}
+    default = jerlov_veiling_light(estimate.nearest_jerlov or "II")
+    b_inf = [float(v) if v is not None else float(d) for v, d in zip(estimate.B_inf.value, default)]
+    section: dict = {"enabled": True, "model": "paper", "B_inf": _interval(b_inf, spread, top=1.0)}
     if all(estimate.beta_D.identified):
         bd = [float(v) for v in estimate.beta_D.value]
         bb = [v if v is not None else BACKSCATTER_RATIO_FILL * d for v, d in zip(estimate.beta_B.value, bd)]

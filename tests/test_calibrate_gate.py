@@ -20,7 +20,7 @@ from api.routes import calibrate
 
 def png() -> bytes:
     buf = io.BytesIO()
-    Image.fromarray(np.full((32, 48, 3), 90, np.uint8)).save(buf, format="PNG")
+    Image.fromarray(np.full((32, 48, 3), (70, 90, 110), np.uint8)).save(buf, format="PNG")
     return buf.getvalue()
 
 

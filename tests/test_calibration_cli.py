@@ -98,3 +98,21 @@ def test_the_jerlov_prior_is_a_choice_that_needs_a_range_map(files):
     assert r.returncode == 1 and "prior: 'jerlov' needs range_m" in r.stderr
     r = seasynth("calibrate", files / "photo.png", "--depth", files / "range.npy", "--prior", "sunny")
     assert r.returncode == 1 and "prior: need one of" in r.stderr
+
+
+def test_range_spread_takes_what_the_api_takes_up_to_below_1(files, tmp_path):
+    r = seasynth("calibrate", files / "photo.png", "--range-spread", "0.995", "--out", tmp_path / "w.yaml")
+    assert r.returncode == 0, r.stderr
+    r = seasynth("calibrate", files / "photo.png", "--range-spread", "1")
+    assert r.returncode == 2 and "Invalid value for '--range-spread'" in r.stderr
+
+
+def test_a_photo_name_with_a_line_break_keeps_the_written_yaml_valid(files, tmp_path):
+    odd = tmp_path / "site\nwater: null\n.png"
+    odd.write_bytes((files / "photo.png").read_bytes())
+    out = tmp_path / "water.yaml"
+    r = seasynth("calibrate", odd, "--out", out)
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    assert text.splitlines()[0] == "# seasynth calibrate site?water: null?.png"
+    assert set(yaml.safe_load(text)) == {"water"} and yaml.safe_load(text)["water"]["enabled"] is True

@@ -216,8 +216,8 @@ def calibrate(
                                                   "none), .npy float metres, or 32-bit float TIFF in metres "
                                                   "(.npy/.tif: NaN none, +inf open water).")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Write the spec water: section here (YAML).")] = None,
-    range_spread: Annotated[float, typer.Option("--range-spread", min=0.0, max=0.99, help="Relative half-width of "
-                                                "each coefficient's range in the spec (0: fixed water).")] = 0.1,
+    range_spread: Annotated[float, typer.Option("--range-spread", min=0.0, help="Relative half-width of each "
+                                                "coefficient's range in the spec, in [0, 1) (0: fixed water).")] = 0.1,
     seed: Annotated[int, typer.Option("--seed", help="Bootstrap seed.")] = 0,
     prior: Annotated[str, typer.Option("--prior", help="none, or jerlov (with --depth): beta_D from the Jerlov "
                                        "family, more accurate on Jerlov-like water, biased off it.")] = "none",
@@ -227,6 +227,9 @@ def calibrate(
     from service.calibration_io import estimate_files
     from service.calibration_output import describe, to_spec_water
     from service.errors import CalibrationError
+
+    if not range_spread < 1.0:  # as POST /calibrate takes it
+        raise typer.BadParameter(f"{range_spread} is not below 1", param_hint="'--range-spread'")
 
     def read(path: Path) -> bytes:
         try:
@@ -245,7 +248,11 @@ def calibrate(
         typer.echo(text, nl=False)
         return
     try:
-        out.write_text(f"# seasynth calibrate {photo.name}" + (f" --depth {depth.name}" if depth else "") + "\n"
+        def shown(name: str) -> str:  # a file name with a line break must not end the YAML comment
+            return "".join(ch if ch.isprintable() else "?" for ch in name)
+
+        out.write_text(f"# seasynth calibrate {shown(photo.name)}" + (f" --depth {shown(depth.name)}" if depth else "")
+                       + "\n"
                        + "".join(f"# {n}\n" for n in estimate.notes) + text)
     except OSError as err:
         raise CalibrationError(f"{out}: cannot write ({err.strerror or err})") from None

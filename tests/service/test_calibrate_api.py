@@ -119,3 +119,11 @@ def test_the_jerlov_prior_is_a_query_choice_that_needs_a_range_map(api, shot):
     assert r.status_code == 422 and "prior: 'jerlov' needs range_m" in r.json()["detail"]
     r = api.post("/calibrate", files=both, params={"prior": "sunny"})
     assert r.status_code == 422 and "prior" in r.json()["detail"]
+
+
+def test_prior_none_is_no_prior_as_on_the_command_line(api, shot):
+    both = {"photo": ("reef.png", shot[0], "image/png"), "depth": ("reef.npy", shot[1], "application/octet-stream")}
+    none = api.post("/calibrate", files=both, params={"prior": "none"})
+    absent = api.post("/calibrate", files=both)
+    assert none.status_code == absent.status_code == 200, none.text
+    assert none.json() == absent.json()
