@@ -227,6 +227,16 @@ def test_distractors_follow_the_targets_whose_detections_and_ids_stay_as_without
     assert frames == SMALL["frames"] and seen > 0
 
 
+def test_survey_stamps_round_the_time_of_flight_and_random_frames_keep_the_nominal_rate():
+    from service.sensors import Trajectory
+    from worker.export.mcap import stamp_ns
+
+    three = Trajectory(kind="lawnmower", rate_hz=3.0)
+    assert [stamp_ns(i, three) for i in range(4)] == [0, 333_333_333, 666_666_667, 1_000_000_000]
+    assert stamp_ns(999_999, Trajectory(kind="lawnmower", rate_hz=0.01)) == 99_999_900 * 10**9
+    assert [stamp_ns(i, Trajectory()) for i in (0, 1, 7)] == [0, 100_000_000, 700_000_000]
+
+
 def test_detection_box_is_the_pixel_edge_box():
     assert detection_box((0, 0, 0, 0)) == (0.5, 0.5, 1.0, 1.0)
     assert detection_box((3, 5, 10, 6)) == (7.0, 6.0, 8.0, 2.0)

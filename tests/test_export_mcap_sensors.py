@@ -22,7 +22,6 @@ pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
-from worker.export.mcap import FRAME_RATE_HZ  # noqa: E402
 from worker.export.mcap_sensors import DTYPE_UINT16, NOMINAL_SOUND_SPEED  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey-sonar.yaml"
@@ -44,7 +43,8 @@ def survey(tmp_path_factory):
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         messages = [(c.topic, s.name, m.log_time, d)
                     for s, c, m, d in reader.iter_decoded_messages(log_time_order=False)]
-    return spec, root / "ds", messages
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    return spec, root / "ds", messages, metadata
 
 
 def png16(path: Path) -> np.ndarray:
@@ -59,15 +59,37 @@ def check_image(msg, a: np.ndarray, frame_id: str, ns: int) -> None:
     assert np.array_equal(np.frombuffer(bytes(msg.data), "<u2").reshape(a.shape), a)
 
 
+def survey_ns(spec, i: int) -> int:
+    """A survey's frame i is flown at i / rate_hz s (worker.trajectory); the bag stamps it there, in ns."""
+    return round(i * 10**9 / spec.trajectory.rate_hz)
+
+
+def test_survey_frames_are_stamped_at_their_time_on_the_survey(survey):
+    spec, ds, messages, metadata = survey
+    assert spec.trajectory.kind == "lawnmower" and spec.trajectory.rate_hz == 2.0
+    assert {ns for _, _, ns, _ in messages} == {survey_ns(spec, i) for i in range(spec.frames)} \
+        == {round(json.loads((ds / f"nav/{i:06d}.json").read_text())["time_s"] * 1e9) for i in range(spec.frames)}
+    meta = metadata["seasynth"]
+    assert (meta["frame_rate_hz"], meta["stamp_rule"]) == (
+        "2.0", "round(frame index * 1e9 / frame_rate_hz) ns from 0: the lawnmower survey's time (trajectory.rate_hz)")
+    # /tf moves at the speed /dvl/twist and nav/ say (along the first leg, world +x), not 5x faster
+    tf = [(ns, m.transforms[0]) for t, _, ns, m in messages if t == "/tf"]
+    assert [ns for ns, _ in tf] == [survey_ns(spec, i) for i in range(spec.frames)]
+    for (ns0, a), (ns1, b) in zip(tf, tf[1:]):
+        speed = (b.transform.translation.x - a.transform.translation.x) / ((ns1 - ns0) / 1e9)
+        assert abs(speed - spec.trajectory.speed_m_s) < 1e-9
+        assert b.header.stamp.sec * 10**9 + b.header.stamp.nanosec == ns1
+
+
 def test_every_sensor_message_equals_the_dataset_files(survey):
-    spec, ds, messages = survey
+    spec, ds, messages, _ = survey
     fls, sss = spec.sensors.fls, spec.sensors.sss
     per_frame = {}
     for topic, schema, ns, msg in messages:
         per_frame.setdefault(ns, []).append((topic, schema, msg))
-    assert sorted(per_frame) == [i * 10**9 // FRAME_RATE_HZ for i in range(spec.frames)]
+    assert sorted(per_frame) == [survey_ns(spec, i) for i in range(spec.frames)]
     for i in range(spec.frames):
-        n, ns = f"{i:06d}", i * 10**9 // FRAME_RATE_HZ
+        n, ns = f"{i:06d}", survey_ns(spec, i)
         got = [(t, s) for t, s, _ in per_frame[ns] if not t.startswith(("/camera", "/detections", "/tf"))]
         assert got == list(zip(SENSOR_TOPICS, ["sensor_msgs/msg/Image"] * 2
                                + ["marine_acoustic_msgs/msg/ProjectedSonarImage", "sensor_msgs/msg/Image",

@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from service.errors import ExportError
-from service.sensors import Sensors
+from service.sensors import Sensors, Trajectory
 from service.seeds import frame_rng
 from service.spec_outputs import EXPORT_FORMATS, IMAGE_SUFFIXES, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
 from worker.export.dataset import (
@@ -101,6 +101,7 @@ class ExportInfo:
     fractions: tuple[float, float, float]  # train, val, test
     sensors: Sensors = Sensors()  # the spec's sonar and navigation sensors (their files are in Frame.sensor_files)
     image_format: str = "png"  # the frames' image_2 files (the spec's outputs.image_format: png or jpeg)
+    trajectory: Trajectory = Trajectory()  # the spec's: when each frame was taken (MCAP's stamps)
 
     @property
     def image_suffix(self) -> str:
@@ -224,7 +225,7 @@ def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] 
     info = ExportInfo(out=out, categories=plan.categories, width=ds.spec.camera.width,
                       height=ds.spec.camera.height, dataset_seed=ds.spec.seed, spec_sha256=ds.spec_sha256,
                       code_version=ds.code_version, fractions=plan.fractions, sensors=ds.spec.sensors,
-                      image_format=ds.spec.outputs.image_format)
+                      image_format=ds.spec.outputs.image_format, trajectory=ds.spec.trajectory)
     counts = dict.fromkeys(SPLITS, 0)
     with FrameReader(ds, masks=exporter.needs_masks, distractors=plan.distractors, platform=platform) as reader:
         exporter.begin(info)

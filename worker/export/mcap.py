@@ -2,8 +2,10 @@
 
 Written with the PyPI packages mcap and mcap-ros2-support (no ROS install): profile "ros2", CDR messages,
 schemas as ros2msg text (the type's .msg, then each type it uses after a line of 80 "=" and "MSG: pkg/Type",
-as rosbag2 writes them), zstd chunks. Frames come in ascending index; frame i is stamped i / FRAME_RATE_HZ s
-(from 0, the epoch), in every message's header.stamp and as the record's log and publish time. Topics:
+as rosbag2 writes them), zstd chunks. Frames come in ascending index, each stamped (from 0, the epoch) in every
+message's header.stamp and as the record's log and publish time: a `lawnmower` survey's frame i at its time on the
+survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i at i / rate_hz s); independent
+`random` frames at a nominal i / FRAME_RATE_HZ s, exactly (stamp_ns). Topics:
 
   /camera/image/compressed  sensor_msgs/msg/CompressedImage  format "png" (or "jpeg" with outputs.image_format
                             jpeg): the image_2 file's bytes as they are
@@ -24,7 +26,8 @@ as rosbag2 writes them), zstd chunks. Frames come in ascending index; frame i is
   (worker.export.mcap_sensors lists them)
 
 Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
-frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate, the split
+frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate (the survey's
+rate_hz, or FRAME_RATE_HZ), the stamp rule, the split
 and the dataset's seed, spec digest and code version. The same dataset exports to the same bytes (with the same
 mcap and mcap-ros2-support versions, which the file's header names).
 """
@@ -38,12 +41,13 @@ from typing import Any
 import numpy as np
 
 from service.errors import ExportError
+from service.sensors import Trajectory
 from worker.export import SPLITS, ExportInfo, Frame
 from worker.export.dataset import camera_pose, camera_projection, depth_metres
 from worker.export.files import make_dirs, tmp_name
 from worker.export.mcap_sensors import SENSOR_DEFS, SENSOR_TOPICS, sensor_messages
 
-FRAME_RATE_HZ = 10  # frame i is stamped i / 10 s: frames are independent scenes, so the rate is nominal
+FRAME_RATE_HZ = 10  # random frame i is stamped i / 10 s: frames are independent scenes, so the rate is nominal
 NS_PER_S = 1_000_000_000
 CAMERA_FRAME = "camera"  # optical: x right, y down, z forward (KITTI's camera axes)
 WORLD_FRAME = "world"
@@ -119,9 +123,21 @@ TOPICS = {
 }
 
 
-def stamp_ns(index: int) -> int:
-    """Frame `index`'s time in ns: index / FRAME_RATE_HZ s, exactly."""
-    return index * NS_PER_S // FRAME_RATE_HZ
+def stamp_ns(index: int, trajectory: Trajectory) -> int:
+    """Frame `index`'s time in ns: round(index * 1e9 / rate_hz) on a survey (the time worker.trajectory flies it at),
+    index / FRAME_RATE_HZ s exactly for independent `random` frames."""
+    if trajectory.kind == "random":
+        return index * NS_PER_S // FRAME_RATE_HZ
+    return round(index * NS_PER_S / trajectory.rate_hz)
+
+
+def clock_metadata(trajectory: Trajectory) -> dict[str, str]:
+    """The "seasynth" metadata's frame_rate_hz and stamp_rule, as stamp_ns stamps."""
+    if trajectory.kind == "random":
+        return {"frame_rate_hz": str(FRAME_RATE_HZ), "stamp_rule": "frame index / frame_rate_hz seconds from 0"}
+    return {"frame_rate_hz": repr(float(trajectory.rate_hz)),
+            "stamp_rule": f"round(frame index * 1e9 / frame_rate_hz) ns from 0: the {trajectory.kind} survey's "
+                          "time (trajectory.rate_hz)"}
 
 
 def detection_box(box: tuple[int, int, int, int]) -> tuple[float, float, float, float]:
@@ -208,7 +224,7 @@ class McapExporter:
                                         sequence=sequence)
 
     def add(self, frame: Frame, split: str) -> None:
-        ns, seq = stamp_ns(frame.index), frame.index
+        ns, seq = stamp_ns(frame.index, self._info.trajectory), frame.index
         try:
             image = frame.image.read_bytes()
         except OSError as err:
@@ -265,8 +281,7 @@ class McapExporter:
             bag = self._bags[split]
             bag.add_metadata("seasynth", {
                 "format": "seasynth KITTI frames as a ROS 2 bag",
-                "frame_rate_hz": str(FRAME_RATE_HZ),
-                "stamp_rule": "frame index / frame_rate_hz seconds from 0",
+                **clock_metadata(info.trajectory),
                 "split": split,
                 "split_fractions": ",".join(repr(float(f)) for f in info.fractions),
                 "frames": str(self._frames[split]),

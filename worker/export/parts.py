@@ -49,7 +49,7 @@ def part_info(spec: DatasetSpec, out: Path, code_version: str | None) -> ExportI
     return ExportInfo(out=Path(out).absolute(), categories=(spec.targets.class_name,), width=spec.camera.width,
                       height=spec.camera.height, dataset_seed=spec.seed, spec_sha256=spec_digest(spec),
                       code_version=code_version, fractions=spec.outputs.split, sensors=spec.sensors,
-                      image_format=spec.outputs.image_format)
+                      image_format=spec.outputs.image_format, trajectory=spec.trajectory)
 
 
 def write_part(spec: DatasetSpec, fmt: str, frames: range, root: Path, out: Path,
