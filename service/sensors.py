@@ -10,7 +10,16 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, Field, StrictBool, StrictFloat, StrictInt, model_validator
+from pydantic import (
+    AfterValidator,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from service.spec_types import SpecModel, Vec3
 
@@ -23,6 +32,8 @@ FLS_STEPS_PER_BEAM = 3  # render pixels (at the image centre) per min(beam width
 SSS_ANGLE_STEP_DEG = 0.1  # the SSS render's coarsest angle per pixel
 SSS_DEPRESSION_SPAN_DEG = (-5.0, 89.0)  # depressions each SSS side renders, below the sensor's horizontal
 DVL_BEAMS = 4  # Janus beams, one one-pixel ray cast each
+MAX_FLS_FAN_SIDE = 4096  # the FLS's Cartesian fan image (worker.sensors.fan) is at most this many rows
+MAX_FLS_FAN_PIXELS = 8_000_000  # and this many pixels (its lookup arrays are ~17 bytes a pixel, as the render's)
 
 
 def _range(v: tuple[float, float]) -> tuple[float, float]:
@@ -32,6 +43,23 @@ def _range(v: tuple[float, float]) -> tuple[float, float]:
 
 
 RangeM = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_range)]
+
+
+def fan_size(range_m: tuple[float, float], range_bins: int, horizontal_aperture_deg: float,
+             fan_height_px: int | None) -> tuple[int, int]:
+    """(width, height) pixels of the FLS's Cartesian fan image (worker.sensors.fan). Height: fan_height_px, else one
+    row per range bin's depth over [0, rmax] (ceil(range_bins * rmax / (rmax - rmin))), at most MAX_FLS_FAN_SIDE
+    and at most the height whose fan holds MAX_FLS_FAN_PIXELS. Width: the odd count of square pixels spanning the
+    fan's +-rmax sin(H/2) about its apex."""
+    rmin, rmax = range_m
+    s = math.sin(min(math.radians(horizontal_aperture_deg) / 2, math.pi / 2))
+    height = fan_height_px
+    if height is None:
+        # The width below is at most 2 s h + 3, so (2 s h + 3) h <= MAX_FLS_FAN_PIXELS keeps the fan in the cap.
+        fits = int((math.sqrt(9 + 8 * s * MAX_FLS_FAN_PIXELS) - 3) / (4 * s))
+        height = min(math.ceil(rmax / ((rmax - rmin) / range_bins)), MAX_FLS_FAN_SIDE, fits)
+    ds = rmax / height
+    return 2 * math.ceil(rmax * s / ds) + 1, height
 
 
 class SensorPose(SpecModel):
@@ -76,7 +104,19 @@ class FLS(SpecModel):
     speckle_looks: StrictFloat = Field(1.0, gt=0, le=1e6)  # L of the unit-mean Gamma(L, 1/L) intensity speckle
     speckle: StrictBool = True
     noise_sigma: StrictFloat = Field(0.0, ge=0, le=1)  # additive Gaussian, in output full-scale units (1 = 65535)
-    fan_height_px: StrictInt | None = Field(None, ge=8, le=4096)  # Cartesian fan image height; None: range_bins
+    fan_height_px: StrictInt | None = Field(None, ge=8, le=MAX_FLS_FAN_SIDE)  # Cartesian fan rows; None: see fan_size
+
+    @field_validator("fan_height_px")
+    @classmethod
+    def _fan_fits(cls, v: int | None, info: ValidationInfo) -> int | None:
+        d = info.data
+        if v is None or not {"range_m", "range_bins", "horizontal_aperture_deg"} <= d.keys():
+            return v  # the default height always fits; a bad field above is reported by itself
+        w, h = fan_size(d["range_m"], d["range_bins"], d["horizontal_aperture_deg"], v)
+        if w * h > MAX_FLS_FAN_PIXELS:
+            raise ValueError(f"the fan image would be {w}x{h} pixels, over {MAX_FLS_FAN_PIXELS}; lower fan_height_px "
+                             "(or leave it out: the default fits)")
+        return v
 
     @model_validator(mode="after")
     def _beam_narrower_than_fan(self) -> FLS:
@@ -98,6 +138,10 @@ class FLS(SpecModel):
         half_h = math.radians(self.horizontal_aperture_deg / 2)
         y_max = math.tan(math.radians(self.vertical_aperture_deg)) / math.cos(half_h)
         return 2 * math.ceil(f * math.tan(half_h) + 0.5), 2 * math.ceil(f * y_max + 0.5), f
+
+    def fan_size(self) -> tuple[int, int]:
+        """(width, height) of the Cartesian fan image: see the module's fan_size."""
+        return fan_size(self.range_m, self.range_bins, self.horizontal_aperture_deg, self.fan_height_px)
 
 
 class DVL(SpecModel):
@@ -186,12 +230,14 @@ class Sensors(SpecModel):
         return sum(x.enabled for x in (self.fls, self.sss, self.dvl, self.pressure, self.imu))
 
     def render_pixels(self) -> int:
-        """Pixels the enabled sensors render per frame, for the shard limits (service.spec, service.shards): the
-        FLS's one render, the SSS's two (a side each), the DVL's DVL_BEAMS one-pixel ray casts."""
+        """Pixels the enabled sensors render or image per frame, for the shard limits (service.spec,
+        service.shards): the FLS's one render and its fan image, the SSS's two renders (a side each), the DVL's
+        DVL_BEAMS one-pixel ray casts."""
         n = 0
         if self.fls.enabled:
             w, h, _ = self.fls.render_size()
-            n += w * h
+            fw, fh = self.fls.fan_size()
+            n += w * h + fw * fh
         if self.sss.enabled:
             w, h, _ = self.sss.render_size()
             n += 2 * w * h

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from service.errors import SpecError
-from service.sensors import FLS
+from service.sensors import FLS, MAX_FLS_FAN_PIXELS, MAX_FLS_FAN_SIDE, Sensors
 from service.spec import DatasetSpec, parse_spec, spec_digest
 
 
@@ -52,3 +52,25 @@ def test_the_fls_render_grid_follows_its_beams():
     # the fan's edges.
     w, h, f = FLS().render_size()
     assert (w, h) == (1454, 586) and f == pytest.approx(3 / (3.141592653589793 / 180 * 130 / 256))
+
+
+def test_the_fls_fan_image_is_bounded_and_counted_in_the_shard_pixels():
+    from worker.sensors.fan import fan_geometry
+
+    # The default keeps one row per range bin's depth over [0, rmax]: ceil(512 * 40 / 39.5) = 519.
+    assert FLS().fan_size() == (943, 519)
+    small = FLS(range_m=(0.5, 20.0), beams=64, range_bins=64, horizontal_aperture_deg=60.0)
+    assert fan_geometry(small).inside.shape == small.fan_size()[::-1]
+    # A thin range window asked one row per bin: 10240 rows and 18563 columns at 9.5-10 m in 512 bins. The default
+    # height is now capped, and the fan fills at least 99% of the cap (or reaches the cap on its rows).
+    for aperture in (1.0, 60.0, 130.0, 170.0):
+        thin = FLS(enabled=True, range_m=(9.5, 10.0), horizontal_aperture_deg=aperture, beams=64, beam_width_deg=0.9)
+        w, h = thin.fan_size()
+        assert w * h <= MAX_FLS_FAN_PIXELS and (w * h > 0.99 * MAX_FLS_FAN_PIXELS or h == MAX_FLS_FAN_SIDE)
+        rw, rh, _ = thin.render_size()
+        assert Sensors(fls=thin).render_pixels() == rw * rh + w * h
+    # An explicit height whose fan is over the cap is refused by name (4096 rows at 130 deg: 7427 x 4096).
+    with pytest.raises(SpecError) as err:
+        parse_spec({"sensors": {"fls": {"fan_height_px": 4096}}})
+    assert str(err.value).splitlines()[-1].startswith("sensors.fls.fan_height_px: the fan image would be 7427x4096")
+    assert FLS(fan_height_px=2000).fan_size() == (3627, 2000)

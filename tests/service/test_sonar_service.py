@@ -92,14 +92,17 @@ def test_sensors_that_push_a_shard_over_the_time_limit_are_refused_and_the_sugge
 
 
 def test_sensor_render_pixels_count_in_the_megapixel_limit(client: httpx.Client):
-    # 1024 beams over 130 deg, 10 deg vertical: a 5810x1132 render (6.6 megapixels), a 32x24 camera.
+    # 1024 beams over 130 deg, 10 deg vertical: a 5810x1132 render (6.6 megapixels) and a 943x519 fan image, a
+    # 32x24 camera.
     fls = {"enabled": True, "beams": 1024, "vertical_aperture_deg": 10.0}
-    w, h, _ = parse_spec({"sensors": {"fls": fls}}).sensors.fls.render_size()
-    per_shard = 100 * (32 * 24 + w * h) / 1e6
+    sonar = parse_spec({"sensors": {"fls": fls}}).sensors.fls
+    (w, h, _), (fw, fh) = sonar.render_size(), sonar.fan_size()
+    px = w * h + fw * fh
+    per_shard = 100 * (32 * 24 + px) / 1e6
     assert 100 * 32 * 24 / 1e6 < 1 and per_shard > MAX_SHARD_MEGAPIXELS
     r = client.post("/datasets", json=tiny_spec(frames=100, shard_size=100, sensors={"fls": fls}))
     assert r.status_code == 422, r.text
-    assert r.json()["errors"] == [f"(body): shard_size: 100 frames of 32x24 plus {w * h} sensor render pixels "
+    assert r.json()["errors"] == [f"(body): shard_size: 100 frames of 32x24 plus {px} sensor render pixels "
                                   f"(sensors.fls, sss, dvl) is {per_shard:.0f} megapixels per shard, over the limit "
                                   f"of {MAX_SHARD_MEGAPIXELS:.0f}; lower shard_size"]
 

@@ -28,12 +28,12 @@ class Fan:
 
 @functools.lru_cache(maxsize=8)
 def fan_geometry(fls: FLS) -> Fan:
+    """The fan image's lookup of FLS.fan_size pixels (at most MAX_FLS_FAN_PIXELS: service.sensors)."""
     rmin, rmax = fls.range_m
     dr = (rmax - rmin) / fls.range_bins
-    height = fls.fan_height_px or math.ceil(rmax / dr)
+    width, height = fls.fan_size()
     ds = rmax / height
     half = math.radians(fls.horizontal_aperture_deg) / 2
-    width = 2 * math.ceil(rmax * math.sin(min(half, math.pi / 2)) / ds) + 1
     x = (np.arange(width) - (width - 1) / 2) * ds
     y = (height - 1 - np.arange(height) + 0.5) * ds
     X, Y = np.meshgrid(x, y)
