@@ -89,6 +89,28 @@ def test_absorption_follows_francois_garrison():
     assert absorption_db_per_m(750.0, ACOUSTICS, 1000.0) < a750  # pressure lowers absorption
 
 
+@pytest.mark.parametrize("narrow", [
+    dict(beams=32, horizontal_aperture_deg=60.0, beam_width_deg=0.1, beam_pattern="gaussian"),
+    dict(beams=2, horizontal_aperture_deg=10.0, beam_width_deg=0.05, beam_pattern="sinc2"),
+    dict(beams=64, horizontal_aperture_deg=60.0, beam_width_deg=0.2, beam_pattern="gaussian"),
+    dict(beams=64, horizontal_aperture_deg=60.0, beam_width_deg=2.0, beam_pattern="sinc2"),
+])
+def test_a_uniform_sphere_fills_every_beam_with_the_stated_intensity(narrow):
+    # Every pixel 5 m away (the inside of a sphere about the sonar: normal incidence, one range bin), no TVG: each
+    # beam's echo is rho 10^(-2 alpha r/10) r^-2 exactly, its pattern normalised by its own solid angle. Beams much
+    # narrower than their spacing used to fall between the azimuth sub-bins' centres: 0/0 weights, NaN, a black image.
+    fls = FLS(enabled=True, range_m=(0.5, 20.0), range_bins=16, vertical_aperture_deg=1.0, tvg=False, speckle=False,
+              **narrow)
+    grid = fls_grid(fls)
+    assert np.isfinite(grid.W).all()
+    r, alpha = 5.0, 0.2
+    shape = (grid.height, grid.width)
+    e = fls_echo(fls, grid, np.full(shape, r, np.float32), np.zeros(shape, np.uint32), np.array([0.3]), alpha)
+    k = int((r - 0.5) / (19.5 / 16))
+    assert e.intensity[k] == pytest.approx(np.full(fls.beams, 0.3 * 10 ** (-alpha * r / 5) / r**2), rel=1e-5)
+    assert np.count_nonzero(e.intensity) == fls.beams
+
+
 def test_sphere_lands_in_its_bin_and_shadows_the_seabed_behind_it(renderer):
     fls = SMALL.model_copy(update={"beam_pattern": "gaussian"})
     radius, centre = 0.6, np.array([2.0, 10.0, 0.6])

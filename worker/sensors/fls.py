@@ -26,7 +26,8 @@ by range and beam, then noise; HoloOcean samples an octree and OceanSim casts ra
   of B_az B_el dOmega (the beam's own solid angle), so a perfect reflector filling a beam at normal incidence, all in
   one bin at 1 m, gives 10^(-2 alpha / 10) ~ 1 (full scale at gain 0 dB, no TVG). B is sinc^2 (-3 dB full width:
   beam_width_deg across azimuth, vertical_aperture_deg across elevation; cut at 4 widths) or Gaussian (cut at 2
-  widths). Azimuth is taken at the centre of one of 4 sub-bins per beam spacing.
+  widths). Azimuth is taken at the centre of one of 4 sub-bins per beam spacing, or of 3 per beam width for beams
+  narrower than 3/4 of their spacing (fine_per_beam), so every beam's pattern is sampled inside its main lobe.
 - TVG (on by default) multiplies each bin by r_c^2 10^(2 alpha r_c / 10) at the bin's centre range r_c, then gain.
 - Speckle and noise (the frame's own FLS stream): out = max(I * S + N, 0), S ~ Gamma(L, 1/L) per cell (unit mean,
   variance 1/L; L = 1 is exponential intensity, i.e. Rayleigh amplitude), N ~ Normal(0, noise_sigma), in full-scale
@@ -46,11 +47,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.sensors import FLS, SSS, Acoustics
+from service.sensors import FLS, FLS_STEPS_PER_BEAM, SSS, Acoustics
 from worker.render import View
 from worker.scene import rigid_inverse
 
-FINE_PER_BEAM = 4  # azimuth sub-bins per beam spacing
+FINE_PER_BEAM = 4  # azimuth sub-bins per beam spacing, at least (fine_per_beam)
 SINC2_HALF_POWER = 0.4428929  # np.sinc(x)^2 = 0.5 at x = this
 FULL_SCALE = 65535
 
@@ -86,6 +87,15 @@ def beam_pattern(offset_rad: np.ndarray, width_rad: float, kind: str) -> np.ndar
     raise ValueError(f"beam_pattern: unknown kind {kind!r}")
 
 
+def fine_per_beam(fls: FLS) -> int:
+    """Azimuth sub-bins per beam spacing: FINE_PER_BEAM, or FLS_STEPS_PER_BEAM per beam width (as the render's
+    pixels) where that is more. Then a sub-bin centre lies within a sixth of a beam width of every beam's axis; at 4
+    per spacing a beam narrower than 1/16 (Gaussian) or 1/32 (sinc^2) of its spacing fell between the centres, its
+    pattern cut to 0 on all of them, and its weights were 0 / 0."""
+    spacing = fls.horizontal_aperture_deg / fls.beams
+    return max(FINE_PER_BEAM, math.ceil(FLS_STEPS_PER_BEAM * spacing / fls.beam_width_deg))
+
+
 @dataclass(frozen=True)
 class FlsGrid:
     """The render grid and beamforming of one FLS configuration (a pure function of its spec; cached)."""
@@ -97,7 +107,8 @@ class FlsGrid:
     az: np.ndarray  # (h, w) float64, rad, positive to starboard (+x)
     weight: np.ndarray  # (h, w) float64: B_el * dOmega (sr), 0 outside |az| <= H/2, |el| <= V
     fine: np.ndarray  # (h, w) int64, azimuth sub-bin of each pixel
-    W: np.ndarray  # (beams * FINE_PER_BEAM, beams) float64: B_az(sub-bin centre - beam centre) / Omega_b
+    n_fine: int  # azimuth sub-bins: beams * fine_per_beam
+    W: np.ndarray  # (n_fine, beams) float64: B_az(sub-bin centre - beam centre) / Omega_b
     beam_az: np.ndarray  # (beams,) float64, rad, beam centres
     range_edges: np.ndarray  # (range_bins + 1,) float64, metres
 
@@ -118,7 +129,7 @@ def fls_grid(fls: FLS) -> FlsGrid:
     inside = (np.abs(az) <= half_h) & (np.abs(el) <= v)
     domega = 1.0 / (f * f * norm**3)
     weight = np.where(inside, beam_pattern(el, v, fls.beam_pattern) * domega, 0.0)
-    n_fine = fls.beams * FINE_PER_BEAM
+    n_fine = fls.beams * fine_per_beam(fls)
     fine = np.clip(np.floor((az + half_h) / (2 * half_h) * n_fine), 0, n_fine - 1).astype(np.int64)
     fine_az = -half_h + (np.arange(n_fine) + 0.5) * (2 * half_h / n_fine)
     beam_az = -half_h + (np.arange(fls.beams) + 0.5) * (2 * half_h / fls.beams)
@@ -127,7 +138,7 @@ def fls_grid(fls: FLS) -> FlsGrid:
     omega_beam = omega_fine @ B
     edges = np.linspace(fls.range_m[0], fls.range_m[1], fls.range_bins + 1)
     return FlsGrid(K=K, width=w, height=h, dirs=dirs.astype(np.float32), az=az, weight=weight, fine=fine,
-                   W=B / omega_beam[None, :], beam_az=beam_az, range_edges=edges)
+                   n_fine=n_fine, W=B / omega_beam[None, :], beam_az=beam_az, range_edges=edges)
 
 
 def fls_view(fls: FLS, grid: FlsGrid, world_from_sonar: np.ndarray) -> View:
@@ -231,7 +242,7 @@ def fls_echo(fls: FLS, grid: FlsGrid, range_m: np.ndarray, instance: np.ndarray,
     edges = grid.range_edges
     inrange, r, ids, half, echo = pixel_echoes(range_m, instance, grid.dirs, grid.weight, edges, reflectivity,
                                                fls.incidence_exponent, alpha_db_per_m)
-    polar = bin_echoes(echo, r, half, grid.fine[inrange], edges, fls.beams * FINE_PER_BEAM) @ grid.W
+    polar = bin_echoes(echo, r, half, grid.fine[inrange], edges, grid.n_fine) @ grid.W
     if fls.tvg:
         rc = (edges[:-1] + edges[1:]) / 2
         polar *= (rc * rc * 10 ** (alpha_db_per_m * rc / 5))[:, None]
