@@ -256,7 +256,7 @@ def test_cli_exports_mcap(datasets, tmp_path):
 
 
 def test_rotation_quaternion_round_trips_on_every_branch():
-    from worker.export.mcap import rotation_quaternion
+    from worker.export.mcap_tf import rotation_quaternion
 
     rng = np.random.default_rng(7)
     rotations = [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]),

@@ -10,11 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from service.spec import load_spec
 from worker.export import plan_export, run_export
 from worker.generate import generate
 from worker.sensors.fls import fls_grid
+from worker.trajectory import GRAVITY
 from worker.sensors.sss import sss_grid
 
 pytest.importorskip("mcap")
@@ -27,7 +29,11 @@ from worker.export.mcap_sensors import DTYPE_UINT16, NOMINAL_SOUND_SPEED  # noqa
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey-sonar.yaml"
 SMALL = {"camera.width": 32, "camera.height": 24, "frames": 4, "shard_size": 2, "sensors.fls.beams": 16,
          "sensors.fls.range_bins": 24, "sensors.fls.horizontal_aperture_deg": 60.0, "sensors.fls.beam_width_deg": 4.0,
-         "sensors.sss.enabled": True, "sensors.sss.range_bins": 16, "sensors.sss.horizontal_beam_deg": 2.0}
+         "sensors.sss.enabled": True, "sensors.sss.range_bins": 16, "sensors.sss.horizontal_beam_deg": 2.0,
+         # every sensor's pose its own: offsets, pitch and yaw that tell the sensors' frames apart
+         "sensors.sss.pose.yaw_deg": -10.0, "sensors.dvl.pose.yaw_deg": 45.0,
+         "sensors.pressure.pose.offset_m": [0.1, -0.4, 0.3],
+         "sensors.imu.pose": {"offset_m": [0.05, -0.1, -0.2], "pitch_deg": 12.0, "yaw_deg": 25.0}}
 SENSOR_TOPICS = ["/fls/image", "/fls/fan", "/fls/sonar_image", "/sss/image", "/sss/sonar_image", "/dvl/twist",
                  "/pressure", "/imu"]
 F32 = np.float32
@@ -79,6 +85,43 @@ def test_survey_frames_are_stamped_at_their_time_on_the_survey(survey):
         speed = (b.transform.translation.x - a.transform.translation.x) / ((ns1 - ns0) / 1e9)
         assert abs(speed - spec.trajectory.speed_m_s) < 1e-9
         assert b.header.stamp.sec * 10**9 + b.header.stamp.nanosec == ns1
+
+
+def test_tf_static_places_each_sensor_where_meta_and_nav_put_it(survey):
+    spec, ds, messages, _ = survey
+    assert messages[0][0] == "/tf_static"  # once a bag, before anything else, with the first frame's stamp
+    ((ns, static),) = [(ns, m) for t, _, ns, m in messages if t == "/tf_static"]
+    assert ns == 0
+    camera_from = {}
+    for t in static.transforms:
+        assert (t.header.frame_id, t.header.stamp.sec, t.header.stamp.nanosec) == ("camera", 0, 0)
+        q, tr = t.transform.rotation, t.transform.translation
+        assert q.w >= 0 and math.isclose(q.x**2 + q.y**2 + q.z**2 + q.w**2, 1.0, abs_tol=1e-12)
+        camera_from[t.child_frame_id] = np.eye(4)
+        camera_from[t.child_frame_id][:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+        camera_from[t.child_frame_id][:3, 3] = [tr.x, tr.y, tr.z]
+    assert list(camera_from) == ["fls", "sss", "dvl", "pressure", "imu"]
+    for name, T in camera_from.items():
+        pose = getattr(spec.sensors, name).pose
+        assert T[:3, 3].tolist() == list(pose.offset_m)
+        # the documented convention: pitch tilts the forward axis down (+y), then yaw turns it to starboard (+x)
+        p, y = math.radians(pose.pitch_deg), math.radians(pose.yaw_deg)
+        forward = [math.sin(y) * math.cos(p), math.sin(p), math.cos(y) * math.cos(p)]
+        assert np.abs(T[:3, 2] - forward).max() < 1e-12 and abs(T[1, 0]) < 1e-12  # x stays level
+    for i in range(spec.frames):
+        meta = json.loads((ds / f"meta/{i:06d}.json").read_text())
+        nav = json.loads((ds / f"nav/{i:06d}.json").read_text())
+        world_from_camera = np.array(meta["camera"]["pose_world_from_camera"])
+        recorded = {"fls": meta["sensors"]["fls"]["pose_world_from_sonar"],
+                    "sss": meta["sensors"]["sss"]["pose_world_from_sss"], "dvl": nav["dvl"]["pose_world_from_dvl"]}
+        for name, world_from_sensor in recorded.items():
+            assert np.abs(world_from_camera @ camera_from[name] - np.array(world_from_sensor)).max() < 1e-9, name
+        # the pressure sensor reads the depth of its own origin; the IMU, specific force in its own axes
+        z = (world_from_camera @ camera_from["pressure"])[2, 3]
+        assert abs(nav["pressure"]["surface_z_world_m"] - z - nav["pressure"]["depth_true_m"]) < 1e-9
+        r = world_from_camera[:3, :3] @ camera_from["imu"][:3, :3]
+        force = r.T @ (np.array(nav["acceleration_world_m_s2"]) - GRAVITY)
+        assert np.abs(force - nav["imu"]["specific_force_true_m_s2"]).max() < 1e-9
 
 
 def test_every_sensor_message_equals_the_dataset_files(survey):

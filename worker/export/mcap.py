@@ -18,6 +18,10 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i 
                                                              label_2 line, then the distractors (--distractors)
                                                              in ascending instance id, so a target's id is the
                                                              same with or without --distractors
+  /tf_static                tf2_msgs/msg/TFMessage           camera -> each enabled sensor's frame (fls, sss,
+                                                             dvl, pressure, imu): its sensors.*.pose
+                                                             (worker.export.mcap_tf); once a bag, before its
+                                                             first frame's messages, stamped with it
   /tf                       tf2_msgs/msg/TFMessage           world -> camera, meta's pose_world_from_camera
                                                              (only when the dataset has meta/)
   /camera/depth             sensor_msgs/msg/Image            "32FC1" z-depth in metres, NaN where none (only
@@ -27,9 +31,8 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i 
 
 Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
 frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate (the survey's
-rate_hz, or FRAME_RATE_HZ), the stamp rule, the split
-and the dataset's seed, spec digest and code version. The same dataset exports to the same bytes (with the same
-mcap and mcap-ros2-support versions, which the file's header names).
+rate_hz, or FRAME_RATE_HZ), the stamp rule, the split and the dataset's seed, spec digest and code version. The same
+dataset exports to the same bytes (with the same mcap and mcap-ros2-support versions, which the file's header names).
 """
 
 from __future__ import annotations
@@ -46,11 +49,10 @@ from worker.export import SPLITS, ExportInfo, Frame
 from worker.export.dataset import camera_pose, camera_projection, depth_metres
 from worker.export.files import make_dirs, tmp_name
 from worker.export.mcap_sensors import SENSOR_DEFS, SENSOR_TOPICS, sensor_messages
+from worker.export.mcap_tf import CAMERA_FRAME, camera_tf, sensor_tf_static
 
 FRAME_RATE_HZ = 10  # random frame i is stamped i / 10 s: frames are independent scenes, so the rate is nominal
 NS_PER_S = 1_000_000_000
-CAMERA_FRAME = "camera"  # optical: x right, y down, z forward (KITTI's camera axes)
-WORLD_FRAME = "world"
 INSTALL_HINT = "pip install -e '.[export]'"
 
 SEPARATOR = "=" * 80
@@ -111,13 +113,14 @@ def msgdef(datatype: str) -> str:
 
 
 # topic -> message type
-IMAGE_TOPIC, INFO_TOPIC, DETECTIONS_TOPIC, TF_TOPIC, DEPTH_TOPIC = (
-    "/camera/image/compressed", "/camera/camera_info", "/detections", "/tf", "/camera/depth")
+IMAGE_TOPIC, INFO_TOPIC, DETECTIONS_TOPIC, TF_TOPIC, DEPTH_TOPIC, TF_STATIC_TOPIC = (
+    "/camera/image/compressed", "/camera/camera_info", "/detections", "/tf", "/camera/depth", "/tf_static")
 TOPICS = {
     IMAGE_TOPIC: "sensor_msgs/msg/CompressedImage",
     INFO_TOPIC: "sensor_msgs/msg/CameraInfo",
     DETECTIONS_TOPIC: "vision_msgs/msg/Detection2DArray",
     TF_TOPIC: "tf2_msgs/msg/TFMessage",
+    TF_STATIC_TOPIC: "tf2_msgs/msg/TFMessage",
     DEPTH_TOPIC: "sensor_msgs/msg/Image",
     **SENSOR_TOPICS,
 }
@@ -145,29 +148,6 @@ def detection_box(box: tuple[int, int, int, int]) -> tuple[float, float, float, 
     right, bottom) of inclusive pixel indices: cx = (left + right + 1) / 2, size_x = right - left + 1."""
     left, top, right, bottom = box
     return ((left + right + 1) / 2, (top + bottom + 1) / 2, float(right - left + 1), float(bottom - top + 1))
-
-
-def rotation_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, w) unit quaternion of a rotation matrix (Shepperd's method), w >= 0."""
-    r = np.asarray(r, dtype=np.float64)
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
-    k = int(np.argmax([trace, r[0, 0], r[1, 1], r[2, 2]]))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    elif k == 1:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif k == 2:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
-    q = np.array(q) / np.linalg.norm(q)
-    if q[3] < 0:
-        q = -q
-    return tuple(float(v) + 0.0 for v in q)  # type: ignore[return-value]
 
 
 def _header(ns: int, frame_id: str = CAMERA_FRAME) -> dict:
@@ -225,6 +205,10 @@ class McapExporter:
 
     def add(self, frame: Frame, split: str) -> None:
         ns, seq = stamp_ns(frame.index, self._info.trajectory), frame.index
+        if self._frames[split] == 0:  # once a bag, with its first frame
+            static = sensor_tf_static(lambda f: _header(ns, f), self._info.sensors)
+            if static is not None:
+                self._write(split, TF_STATIC_TOPIC, static, ns, seq)
         try:
             image = frame.image.read_bytes()
         except OSError as err:
@@ -256,14 +240,7 @@ class McapExporter:
         self._write(split, DETECTIONS_TOPIC, {"header": _header(ns), "detections": detections}, ns, seq)
 
         if frame.meta is not None:
-            pose = camera_pose(frame.meta)
-            qx, qy, qz, qw = rotation_quaternion(pose[:3, :3])
-            tx, ty, tz = (float(v) for v in pose[:3, 3])
-            self._write(split, TF_TOPIC, {"transforms": [{
-                "header": _header(ns, WORLD_FRAME), "child_frame_id": CAMERA_FRAME,
-                "transform": {"translation": {"x": tx, "y": ty, "z": tz},
-                              "rotation": {"x": qx, "y": qy, "z": qz, "w": qw}},
-            }]}, ns, seq)
+            self._write(split, TF_TOPIC, camera_tf(lambda f: _header(ns, f), camera_pose(frame.meta)), ns, seq)
 
         if frame.depth is not None:
             depth = depth_metres(frame.depth, frame.width, frame.height)

@@ -2,7 +2,8 @@
 messages, with the message definitions they need.
 
 Topics, each only where the spec switches the sensor on (header.frame_id in brackets; every sensor frame has the
-camera's axes, x right/starboard, y down, z forward, placed by the sensor's pose in meta/):
+camera's axes, x right/starboard, y down, z forward, turned and placed by the sensor's spec pose: /tf_static's
+camera -> sensor transform, worker.export.mcap_tf):
 
   /fls/image        sensor_msgs/msg/Image  [fls]  "mono16": fls/N.png as it is (rows = range bins nearest first,
                                                    columns = beams port first)
