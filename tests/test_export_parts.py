@@ -84,6 +84,22 @@ def test_mcap_parts_are_one_bag_per_shard_and_split(dataset, tmp_path):
     assert names == sorted([EXPORT_RECORD] + [mcap_name(s, i) for s in SPLITS for i in range(3)])
 
 
+@pytest.mark.parametrize("fmt", ["coco", "yolo", "mcap"])
+def test_an_export_into_a_fetched_export_leaves_exactly_a_fresh_exports_files(dataset, tmp_path, fmt):
+    """`seasynth export` into a folder `seasynth fetch --format` filled replaces it: no per-shard bag stays."""
+    out = merged(dataset, fmt, 3, tmp_path)
+    run_export(plan_export(dataset, fmt), out)
+    fresh = tmp_path / "fresh"
+    run_export(plan_export(dataset, fmt), fresh)
+    got, want = tree(out), tree(fresh)
+    assert sorted(got) == sorted(want)
+    if fmt == "mcap":
+        assert sorted(got) == sorted([EXPORT_RECORD] + [f"{split}.mcap" for split in SPLITS])
+    for files in (got, want):
+        files.pop("data.yaml", None)  # YOLO's names its folder
+    assert got == want
+
+
 def test_parts_are_pure_functions_of_the_shard(dataset, tmp_path):
     spec = load_spec(EXAMPLE, {**SPEC, "outputs.instance": True})
     a, b = tmp_path / "a", tmp_path / "b"

@@ -113,9 +113,16 @@ class Exporter(Protocol):
     spans frames. Every file is written under a temporary name and renamed (worker.export.files)."""
 
     needs_masks: bool  # whether `add` reads Frame.instance and the objects' pixel counts
+    # Globs (under the export folder) of the files spanning frames that exports of this format write, an earlier or
+    # a fetched one's included (MCAP's *.mcap: {split}.mcap, and fetch --format's {split}-{shard}.mcap)
+    folder_globs: tuple[str, ...]
 
     def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
         """Relative paths (under the export folder) written for frame `name` ("000123") in `split`."""
+        ...
+
+    def folder_outputs(self) -> tuple[str, ...]:
+        """Relative paths of the files spanning frames that this export writes (matches of folder_globs)."""
         ...
 
     def begin(self, info: ExportInfo) -> None: ...
@@ -270,8 +277,18 @@ def export_generated(root: Path, *, on_frames: Callable[[int], None] | None = No
 
 
 def remove_stale(out: Path, exporter: Exporter, plan: ExportPlan) -> None:
-    """Delete files in the per-frame folders that this export did not write (an earlier export's other split,
-    frames now left out, temporary files): the folder then holds exactly this export."""
+    """Delete files in the per-frame folders, and files matching the format's folder_globs, that this export did not
+    write (an earlier export's other split, frames now left out, a fetched export's per-shard bags, temporary
+    files): the folder then holds exactly this export."""
+    keep = set(exporter.folder_outputs())
+    for pattern in exporter.folder_globs:
+        for path in sorted(out.glob(pattern)):
+            if path.is_file() and path.relative_to(out).as_posix() not in keep:
+                try:
+                    path.unlink()
+                except OSError as err:
+                    raise ExportError(f"{path}: cannot remove this file of an earlier export "
+                                      f"({err.strerror or err})") from None
     frames = plan.dataset.spec.frames
     for k, split in enumerate(SPLITS):
         for folder in sorted({Path(p).parent for p in exporter.frame_outputs(split, "000000")}):

@@ -104,6 +104,7 @@ class CocoExporter:
     """COCO "instances" files, one per split (every split has one, with no images if none fell in it)."""
 
     needs_masks = True
+    folder_globs = ("annotations/instances_*.json",)
 
     def __init__(self) -> None:
         self._info: ExportInfo | None = None
@@ -112,6 +113,9 @@ class CocoExporter:
 
     def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
         return (f"images/{split}/{name}{self._info.image_suffix}",)
+
+    def folder_outputs(self) -> tuple[str, ...]:
+        return tuple(f"annotations/instances_{split}.json" for split in SPLITS)
 
     def index_path(self, split: str) -> Path:
         return self._info.out / "annotations" / f"instances_{split}.json"

@@ -167,6 +167,7 @@ class McapExporter:
     """Every split gets its bag, with no messages if no frame fell in it."""
 
     needs_masks = False  # boxes come from label_2 (distractors' from the masks, which the reader adds then)
+    folder_globs = ("*.mcap",)  # this export's bags, an earlier one's, and fetch --format mcap's per-shard bags
 
     def __init__(self) -> None:
         self._writer_class = _require_mcap()  # here, so a missing package stops the export before it starts
@@ -178,6 +179,9 @@ class McapExporter:
 
     def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
         return ()  # no per-frame files: every frame goes into OUT/{split}.mcap
+
+    def folder_outputs(self) -> tuple[str, ...]:
+        return tuple(f"{split}.mcap" for split in SPLITS)
 
     def bag_path(self, split: str) -> Path:
         return self._info.out / f"{split}.mcap"

@@ -44,12 +44,16 @@ class YoloExporter:
     """Every split has its image and label folders, empty if no frame fell in it."""
 
     needs_masks = False  # boxes come from label_2 (distractors' from the masks, which the reader adds then)
+    folder_globs = ("data.yaml",)
 
     def __init__(self) -> None:
         self._info: ExportInfo | None = None
 
     def frame_outputs(self, split: str, name: str) -> tuple[str, ...]:
         return (f"images/{split}/{name}{self._info.image_suffix}", f"labels/{split}/{name}.txt")
+
+    def folder_outputs(self) -> tuple[str, ...]:
+        return ("data.yaml",)
 
     def begin(self, info: ExportInfo) -> None:
         self._info = info
