@@ -32,17 +32,18 @@ FLS_STEPS_PER_BEAM = 3  # render pixels (at the image centre) per min(beam width
 SSS_ANGLE_STEP_DEG = 0.1  # the SSS render's coarsest angle per pixel
 SSS_DEPRESSION_SPAN_DEG = (-5.0, 89.0)  # depressions each SSS side renders, below the sensor's horizontal
 DVL_BEAMS = 4  # Janus beams, one one-pixel ray cast each
+MAX_FLS_RANGE_M = 500.0  # as the SSS's: long-range imaging sonars reach a few hundred metres at low frequency
 MAX_FLS_FAN_SIDE = 4096  # the FLS's Cartesian fan image (worker.sensors.fan) is at most this many rows
 MAX_FLS_FAN_PIXELS = 8_000_000  # and this many pixels (its lookup arrays are ~17 bytes a pixel, as the render's)
 
 
-def _range(v: tuple[float, float]) -> tuple[float, float]:
-    if not 0 < v[0] < v[1]:
-        raise ValueError(f"need 0 < min < max, got [{v[0]}, {v[1]}]")
+def _fls_range(v: tuple[float, float]) -> tuple[float, float]:
+    if not 0 < v[0] < v[1] <= MAX_FLS_RANGE_M:
+        raise ValueError(f"need 0 < min < max <= {MAX_FLS_RANGE_M:g} m, got [{v[0]}, {v[1]}]")
     return v
 
 
-RangeM = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_range)]
+FlsRangeM = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(_fls_range)]
 
 
 def fan_size(range_m: tuple[float, float], range_bins: int, horizontal_aperture_deg: float,
@@ -85,7 +86,7 @@ class FLS(SpecModel):
 
     enabled: StrictBool = False
     pose: SensorPose = SensorPose()
-    range_m: RangeM = (0.5, 40.0)
+    range_m: FlsRangeM = (0.5, 40.0)
     horizontal_aperture_deg: StrictFloat = Field(130.0, ge=1, le=170)
     vertical_aperture_deg: StrictFloat = Field(20.0, ge=1, le=60)
     beams: StrictInt = Field(256, ge=2, le=MAX_BEAMS)

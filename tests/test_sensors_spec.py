@@ -25,6 +25,7 @@ def test_every_sensor_is_off_by_default_and_leaves_the_digest_alone():
     [
         ({"sensors": {"fls": {"range_m": [5.0, 1.0]}}}, "sensors.fls.range_m"),
         ({"sensors": {"fls": {"range_m": [0.0, 1.0]}}}, "sensors.fls.range_m"),
+        ({"sensors": {"fls": {"range_m": [0.5, 501.0]}}}, "sensors.fls.range_m"),
         ({"sensors": {"fls": {"beams": 1}}}, "sensors.fls.beams"),
         ({"sensors": {"fls": {"beam_pattern": "box"}}}, "sensors.fls.beam_pattern"),
         ({"sensors": {"fls": {"beam_width_deg": 131.0, "horizontal_aperture_deg": 130.0}}}, "sensors.fls"),

@@ -101,14 +101,60 @@ def test_a_uniform_sphere_fills_every_beam_with_the_stated_intensity(narrow):
     # narrower than their spacing used to fall between the azimuth sub-bins' centres: 0/0 weights, NaN, a black image.
     fls = FLS(enabled=True, range_m=(0.5, 20.0), range_bins=16, vertical_aperture_deg=1.0, tvg=False, speckle=False,
               **narrow)
-    grid = fls_grid(fls)
-    assert np.isfinite(grid.W).all()
+    assert np.isfinite(fls_grid(fls).W).all()
     r, alpha = 5.0, 0.2
-    shape = (grid.height, grid.width)
-    e = fls_echo(fls, grid, np.full(shape, r, np.float32), np.zeros(shape, np.uint32), np.array([0.3]), alpha)
+    e = uniform_sphere(fls, r, alpha)
     k = int((r - 0.5) / (19.5 / 16))
     assert e.intensity[k] == pytest.approx(np.full(fls.beams, 0.3 * 10 ** (-alpha * r / 5) / r**2), rel=1e-5)
     assert np.count_nonzero(e.intensity) == fls.beams
+
+
+def uniform_sphere(fls: FLS, r: float, alpha: float, range_m: np.ndarray | None = None):
+    """fls_echo of a render whose every pixel sees the seabed (rho 0.3) r metres away (the inside of a sphere about
+    the sonar: normal incidence), or at range_m (h, w) float32 metres."""
+    grid = fls_grid(fls)
+    shape = (grid.height, grid.width)
+    ranges = np.full(shape, r, np.float32) if range_m is None else range_m
+    return fls_echo(fls, grid, ranges, np.zeros(shape, np.uint32), np.array([0.3]), alpha)
+
+
+TVG_LONG = FLS(enabled=True, range_m=(0.5, 500.0), range_bins=64, beams=16, horizontal_aperture_deg=30.0,
+               beam_width_deg=2.0, vertical_aperture_deg=5.0, speckle=False, noise_sigma=0.01)
+
+
+@pytest.mark.parametrize("frequency_khz", [750.0, 3000.0])
+def test_tvg_restores_a_uniform_sphere_at_any_range_and_keeps_the_noise(frequency_khz):
+    # At a bin centre TVG undoes r^-2 and absorption exactly: every beam of that bin reads rho. At 3 MHz in -2 C
+    # water (alpha 4.9 dB/m) the bins' gain 10^(alpha r / 5) overflowed past ~62 m and inf * 0 made every empty bin
+    # NaN, which the 16-bit codes turned to 0, noise and all.
+    fls = TVG_LONG.model_copy(update={"frequency_khz": frequency_khz})
+    alpha = absorption_db_per_m(frequency_khz, Acoustics(temperature_c=-2.0), 0.0)
+    edges = fls_grid(fls).range_edges
+    k = 57
+    e = uniform_sphere(fls, (edges[k] + edges[k + 1]) / 2, alpha)
+    assert np.isfinite(e.intensity).all()
+    assert e.intensity[k] == pytest.approx(np.full(fls.beams, 0.3), rel=1e-5)
+    assert np.count_nonzero(e.intensity) == fls.beams
+    codes = to_uint16(speckle_and_noise(e.intensity, fls, np.random.default_rng(0)))
+    empty = np.delete(codes, k, axis=0)
+    assert np.mean(empty > 0) == pytest.approx(0.5, abs=0.1)  # max(N(0, sigma), 0) > 0 half the time
+
+
+def test_tvg_folded_into_the_bins_equals_the_plain_gain(monkeypatch):
+    # A seabed-like ramp of ranges (footprints spread pixels over several bins) at 750 kHz, where the plain gain is
+    # sound: the folded TVG (log space, per pixel and bin) gives the same bins to rounding.
+    import worker.sensors.fls as fls_module
+
+    fls = TVG_LONG.model_copy(update={"range_m": (0.5, 40.0)})
+    grid = fls_grid(fls)
+    ramp = np.linspace(1.0, 39.0, grid.height, dtype=np.float32)[:, None].repeat(grid.width, 1)
+    alpha = absorption_db_per_m(fls.frequency_khz, ACOUSTICS, DEPTH_M)
+    plain = uniform_sphere(fls, 0.0, alpha, ramp).intensity
+    monkeypatch.setattr(fls_module, "TVG_PLAIN_MAX_DECADES", 0.0)
+    folded = uniform_sphere(fls, 0.0, alpha, ramp).intensity
+    assert np.count_nonzero(plain) > fls.beams * 30
+    assert np.array_equal(folded > 0, plain > 0)
+    assert np.allclose(folded, plain, rtol=1e-9, atol=0.0)
 
 
 def test_sphere_lands_in_its_bin_and_shadows_the_seabed_behind_it(renderer):

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 from PIL import Image
 
@@ -16,7 +17,8 @@ from worker.generate import generate, reproduce
 from worker.pipeline import to_render_mesh
 from worker.render import DrawItem
 from worker.scene import look_at_pose
-from worker.sensors.sss import sss_frame, waterfall
+from worker.sensors.fls import absorption_db_per_m
+from worker.sensors.sss import side_echo, sss_frame, sss_grid, waterfall
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SONAR = SSS(enabled=True, range_m=15.0, range_bins=128, speckle=False)  # bins of 0.117 m
@@ -125,3 +127,19 @@ def test_speckle_draws_come_from_the_sss_stream(renderer):
     n, gap = SONAR.range_bins, int(ALTITUDE / DR)
     for row in (a, c):  # speckle multiplies: the nadir gap stays exactly 0 on both sides
         assert np.all(row[0, n - gap: n + gap] == 0)
+
+
+@pytest.mark.parametrize("frequency_khz", [900.0, 3000.0])
+def test_tvg_restores_a_uniform_sphere_at_long_range_and_high_frequency(frequency_khz):
+    # Every pixel sees the seabed (rho 0.3) at one bin's centre range: TVG undoes r^-2 and absorption exactly, so
+    # that bin reads rho and every other 0. At 3 MHz in -2 C water (alpha 4.9 dB/m) the plain gain 10^(alpha r / 5)
+    # overflowed past ~62 m: inf * 0 = NaN in every empty bin.
+    sss = SSS(enabled=True, range_m=500.0, range_bins=64, frequency_khz=frequency_khz, speckle=False)
+    grid = sss_grid(sss)
+    alpha = absorption_db_per_m(frequency_khz, Acoustics(temperature_c=-2.0), 0.0)
+    k = 57
+    shape = (grid.height, grid.width)
+    ranges = np.full(shape, (grid.edges[k] + grid.edges[k + 1]) / 2, np.float32)
+    line, _ = side_echo(sss, grid, ranges, np.zeros(shape, np.uint32), np.array([0.3]), alpha)
+    assert np.isfinite(line).all()
+    assert line[k] == pytest.approx(0.3, rel=1e-5) and np.count_nonzero(line) == 1

@@ -29,6 +29,9 @@ by range and beam, then noise; HoloOcean samples an octree and OceanSim casts ra
   widths). Azimuth is taken at the centre of one of 4 sub-bins per beam spacing, or of 3 per beam width for beams
   narrower than 3/4 of their spacing (fine_per_beam), so every beam's pattern is sampled inside its main lobe.
 - TVG (on by default) multiplies each bin by r_c^2 10^(2 alpha r_c / 10) at the bin's centre range r_c, then gain.
+  Where alpha r / 5 passes TVG_PLAIN_MAX_DECADES within the range window (high frequencies at long range) that
+  gain and the echoes' loss leave float64's range, so each pixel's share of a bin takes (r_c / r)^2
+  10^(alpha (r_c - r) / 5) instead, in log space (folds_tvg): the same law, finite.
 - Speckle and noise (the frame's own FLS stream): out = max(I * S + N, 0), S ~ Gamma(L, 1/L) per cell (unit mean,
   variance 1/L; L = 1 is exponential intensity, i.e. Rayleigh amplitude), N ~ Normal(0, noise_sigma), in full-scale
   units; then 16-bit codes round(min(out, 1) * 65535). Shadows with noise_sigma 0 are exactly 0.
@@ -52,6 +55,8 @@ from worker.render import View
 from worker.scene import rigid_inverse
 
 FINE_PER_BEAM = 4  # azimuth sub-bins per beam spacing, at least (fine_per_beam)
+TVG_PLAIN_MAX_DECADES = 100.0  # alpha r / 5 at the last bin edge up to which TVG multiplies the bins (folds_tvg)
+TVG_MAX_DECADES = 200.0  # a folded TVG share's cap (log10): any share near it is full scale many times over
 SINC2_HALF_POWER = 0.4428929  # np.sinc(x)^2 = 0.5 at x = this
 FULL_SCALE = 65535
 
@@ -184,11 +189,22 @@ def surface_terms(range_m: np.ndarray, instance: np.ndarray, dirs: np.ndarray) -
     return np.where(hit, cos, np.float32(0.0)), np.where(hit, half, np.float32(0.0))
 
 
+def folds_tvg(tvg: bool, alpha_db_per_m: float, edges: np.ndarray) -> bool:
+    """Whether TVG is folded into the binning (bin_echoes' tvg_alpha_db_per_m) instead of multiplying the bins: where
+    alpha r / 5 at the last bin edge passes TVG_PLAIN_MAX_DECADES, the echoes' 10^(-alpha r / 5) nears float64's
+    underflow and the bins' gain 10^(alpha r / 5) its overflow (past ~308 decades it is inf, and inf times an
+    empty bin's 0 is NaN)."""
+    return tvg and alpha_db_per_m * float(edges[-1]) / 5 > TVG_PLAIN_MAX_DECADES
+
+
 def bin_echoes(echo: np.ndarray, range_m: np.ndarray, half: np.ndarray, fine: np.ndarray, edges: np.ndarray,
-               n_fine: int) -> np.ndarray:
+               n_fine: int, tvg_alpha_db_per_m: float | None = None) -> np.ndarray:
     """(range_bins, n_fine) float64: each pixel's echo spread uniformly over [r - half, r + half] and split over the
     range bins it overlaps (all in its bin where half is 0). Pixels with echo 0 add nothing (empty bins stay 0).
-    echo, range_m (metres), half (metres): (k,) float64; fine: (k,) int64 azimuth sub-bins; edges: (bins + 1,) m."""
+    echo, range_m (metres), half (metres): (k,) float64; fine: (k,) int64 azimuth sub-bins; edges: (bins + 1,) m.
+    With tvg_alpha_db_per_m (dB/m), echo is without its two-way loss r^-2 10^(-alpha r / 5) and each share of bin
+    centre r_c takes TVG over that loss, (r_c / r)^2 10^(alpha (r_c - r) / 5), in log space and at most
+    10^TVG_MAX_DECADES: finite at any range (folds_tvg)."""
     nb = len(edges) - 1
     dr = edges[1] - edges[0]
     keep = echo > 0
@@ -205,7 +221,12 @@ def bin_echoes(echo: np.ndarray, range_m: np.ndarray, half: np.ndarray, fine: np
     overlap = np.minimum(r[rep] + hw[rep], bin_hi) - np.maximum(r[rep] - hw[rep], bin_lo)
     frac = np.where(width > 0, np.clip(overlap, 0.0, None) / np.where(width > 0, width, 1.0), 1.0)
     ok = (j >= 0) & (j < nb)
-    flat = np.bincount(j[ok] * n_fine + fi[rep][ok], weights=(e[rep] * frac)[ok], minlength=nb * n_fine)
+    share = (e[rep] * frac)[ok]
+    if tvg_alpha_db_per_m is not None:
+        rc, rp, lit = ((edges[:-1] + edges[1:]) / 2)[j[ok]], r[rep][ok], share > 0
+        lg = np.log10(np.where(lit, share, 1.0)) + 2 * np.log10(rc / rp) + tvg_alpha_db_per_m * (rc - rp) / 5
+        share = np.where(lit, 10 ** np.minimum(lg, TVG_MAX_DECADES), 0.0)
+    flat = np.bincount(j[ok] * n_fine + fi[rep][ok], weights=share, minlength=nb * n_fine)
     return flat.reshape(nb, n_fine)
 
 
@@ -217,9 +238,10 @@ class FlsEcho:
 
 
 def pixel_echoes(range_m: np.ndarray, instance: np.ndarray, dirs: np.ndarray, weight: np.ndarray,
-                 edges: np.ndarray, reflectivity: np.ndarray, exponent: float, alpha_db_per_m: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each rendered pixel's echo before binning, for either sonar: rho cos^n(theta) weight 10^(-2 alpha r/10) r^-2.
+                 edges: np.ndarray, reflectivity: np.ndarray, exponent: float, alpha_db_per_m: float,
+                 loss: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each rendered pixel's echo before binning, for either sonar: rho cos^n(theta) weight 10^(-2 alpha r/10) r^-2
+    (without the last two factors, the two-way loss, when not `loss`: a folded TVG applies them, see bin_echoes).
 
     range_m (h, w) float32 metres, +inf where no hit; instance (h, w) uint32; dirs and weight: the render grid's
     ray directions and per-pixel weights; edges: range-bin edges (m); reflectivity (max id + 1,) float64 per
@@ -230,8 +252,10 @@ def pixel_echoes(range_m: np.ndarray, instance: np.ndarray, dirs: np.ndarray, we
     r = range_m[inrange].astype(np.float64)
     ids = instance[inrange]
     c = cos[inrange].astype(np.float64)
-    echo = (reflectivity[np.minimum(ids, len(reflectivity) - 1)] * (c if exponent == 1 else c**exponent)
-            * weight[inrange] * 10 ** (-alpha_db_per_m * r / 5) / (r * r))
+    rho = reflectivity[np.minimum(ids, len(reflectivity) - 1)]
+    echo = rho * (c if exponent == 1 else c**exponent) * weight[inrange]
+    if loss:
+        echo = echo * 10 ** (-alpha_db_per_m * r / 5) / (r * r)
     return inrange, r, ids, half[inrange].astype(np.float64), echo
 
 
@@ -240,10 +264,12 @@ def fls_echo(fls: FLS, grid: FlsGrid, range_m: np.ndarray, instance: np.ndarray,
     """The noiseless polar image of one ping from the rendered geometry (range_m (h, w) float32 metres, +inf where
     no hit; instance (h, w) uint32) and reflectivity (max id + 1,) float64 per instance id (0 = seabed)."""
     edges = grid.range_edges
+    fold = folds_tvg(fls.tvg, alpha_db_per_m, edges)
     inrange, r, ids, half, echo = pixel_echoes(range_m, instance, grid.dirs, grid.weight, edges, reflectivity,
-                                               fls.incidence_exponent, alpha_db_per_m)
-    polar = bin_echoes(echo, r, half, grid.fine[inrange], edges, grid.n_fine) @ grid.W
-    if fls.tvg:
+                                               fls.incidence_exponent, alpha_db_per_m, loss=not fold)
+    polar = bin_echoes(echo, r, half, grid.fine[inrange], edges, grid.n_fine, alpha_db_per_m if fold else None)
+    polar = polar @ grid.W
+    if fls.tvg and not fold:
         rc = (edges[:-1] + edges[1:]) / 2
         polar *= (rc * rc * 10 ** (alpha_db_per_m * rc / 5))[:, None]
     polar *= 10 ** (fls.gain_db / 10)

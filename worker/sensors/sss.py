@@ -9,8 +9,8 @@ The model is the FLS's per-pixel echo (worker.sensors.fls, which states it) with
 - Each pixel's echo is rho cos^n(theta) B_h(along) B_v(depression - depression_deg) dOmega r^-2 10^(-2 alpha r/10),
   spread over its range footprint into slant-range bins [0, range_m) and divided by the beam's solid angle
   sum(B_h B_v dOmega): B_v is cut where the render ends (-5 and 89 deg), so sidelobes past them are lost.
-- TVG, gain, speckle Gamma(L, 1/L) and additive Normal(0, sigma) clipped at 0, 16-bit codes: as the FLS, from the
-  frame's own SSS stream.
+- TVG (folded into the binning at long range and high frequency), gain, speckle Gamma(L, 1/L) and additive
+  Normal(0, sigma) clipped at 0, 16-bit codes: as the FLS, from the frame's own SSS stream.
 - Row layout (sss/{frame}.png, (1, 2 bins) uint16): port bins far to near, then starboard near to far, so that
   stacking frames' rows (waterfall) gives the usual display with nadir in the middle.
 Not modelled: the vehicle's motion during a ping, multipath (surface and seabed), layback of a towfish, refraction.
@@ -33,6 +33,7 @@ from worker.sensors.fls import (
     absorption_db_per_m,
     beam_pattern,
     bin_echoes,
+    folds_tvg,
     pixel_echoes,
     speckle_and_noise,
     to_uint16,
@@ -94,10 +95,11 @@ def side_echo(sss: SSS, grid: SssGrid, range_m: np.ndarray, instance: np.ndarray
     """(range_bins,) float64 noiseless intensity of one side after TVG and gain, and instance id -> (first, last)
     slant-range bin its pixel centres fall in. range_m, instance: (h, w) as rendered (float32 m, +inf; uint32)."""
     edges = grid.edges
+    fold = folds_tvg(sss.tvg, alpha_db_per_m, edges)
     _, r, ids, half, echo = pixel_echoes(range_m, instance, grid.dirs, grid.weight, edges, reflectivity,
-                                         sss.incidence_exponent, alpha_db_per_m)
-    line = bin_echoes(echo, r, half, np.zeros(len(r), np.int64), edges, 1)[:, 0]
-    if sss.tvg:
+                                         sss.incidence_exponent, alpha_db_per_m, loss=not fold)
+    line = bin_echoes(echo, r, half, np.zeros(len(r), np.int64), edges, 1, alpha_db_per_m if fold else None)[:, 0]
+    if sss.tvg and not fold:
         rc = (edges[:-1] + edges[1:]) / 2
         line = line * rc * rc * 10 ** (alpha_db_per_m * rc / 5)
     line = line * 10 ** (sss.gain_db / 10)
