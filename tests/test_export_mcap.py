@@ -100,6 +100,7 @@ def check_bags(ds: Path, out: Path, *, depth: bool) -> int:
         assert facts["profile"] == "ros2"
         meta = facts["metadata"]["seasynth"]
         assert (meta["frame_rate_hz"], meta["split"], meta["frames"]) == (str(FRAME_RATE_HZ), split, str(len(want)))
+        assert json.loads(meta["categories"]) == [class_name]
         assert facts["encodings"] == ({(t, "cdr", "ros2msg") for t in topics} if want else set())
         # Frames in ascending index, each with one message per topic, in the topics' order.
         assert [(m[0], m[1]) for m in messages] == [(t, s) for _ in want for t, s in topics.items()]
@@ -235,6 +236,19 @@ def test_survey_stamps_round_the_time_of_flight_and_random_frames_keep_the_nomin
     assert [stamp_ns(i, three) for i in range(4)] == [0, 333_333_333, 666_666_667, 1_000_000_000]
     assert stamp_ns(999_999, Trajectory(kind="lawnmower", rate_hz=0.01)) == 99_999_900 * 10**9
     assert [stamp_ns(i, Trajectory()) for i in (0, 1, 7)] == [0, 100_000_000, 700_000_000]
+
+
+def test_metadata_lists_the_categories_as_json_whatever_their_characters(tmp_path):
+    from worker.export import ExportInfo
+    from worker.export.mcap import McapExporter
+
+    exporter = McapExporter()
+    exporter.begin(ExportInfo(out=tmp_path, categories=("Sea,urchin", "distractor"), width=8, height=8,
+                              dataset_seed=0, spec_sha256="0" * 64, code_version="x", fractions=(1.0, 0.0, 0.0)))
+    exporter.finish()
+    for split in SPLITS:
+        meta = read_bag(tmp_path / f"{split}.mcap")[0]["metadata"]["seasynth"]
+        assert json.loads(meta["categories"]) == ["Sea,urchin", "distractor"]
 
 
 def test_detection_box_is_the_pixel_edge_box():

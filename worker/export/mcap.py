@@ -31,12 +31,14 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i 
 
 Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
 frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate (the survey's
-rate_hz, or FRAME_RATE_HZ), the stamp rule, the split and the dataset's seed, spec digest and code version. The same
+rate_hz, or FRAME_RATE_HZ), the stamp rule, the split, the categories (a JSON list of class names, the target's
+then "distractor" with --distractors) and the dataset's seed, spec digest and code version. The same
 dataset exports to the same bytes (with the same mcap and mcap-ros2-support versions, which the file's header names).
 """
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -266,7 +268,7 @@ class McapExporter:
                 "split": split,
                 "split_fractions": ",".join(repr(float(f)) for f in info.fractions),
                 "frames": str(self._frames[split]),
-                "categories": ",".join(info.categories),
+                "categories": json.dumps(list(info.categories)),  # a JSON list: a class name may hold a comma
                 "dataset_seed": str(info.dataset_seed),
                 "spec_sha256": info.spec_sha256,
                 "code_version": str(info.code_version),
