@@ -458,3 +458,13 @@ def test_cli_refuses_a_folder_that_is_not_an_export(datasets, tmp_path):
     r = seasynth("export", datasets["masks"], "--format", "coco", "--out", tmp_path / "out")
     assert r.returncode == 1 and "holds no seasynth export" in r.stderr
     assert tree(tmp_path / "out") == {"notes.txt": b"mine"}
+
+
+def test_cli_refuses_another_formats_folder_before_any_work(datasets, tmp_path):
+    out = tmp_path / "out"
+    run_export(plan_export(datasets["plain"], "yolo", FRACTIONS), out)
+    before = tree(out)
+    r = seasynth("export", datasets["plain"], "--format", "coco", "--out", out)
+    assert r.returncode == 1
+    assert (r.stdout, r.stderr) == ("", f"error: {out}: holds a 'yolo' export, not 'coco'; choose another folder\n")
+    assert tree(out) == before

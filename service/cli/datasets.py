@@ -131,9 +131,11 @@ def export(
                                               "(class 'distractor').")] = False,
     gl: PlatformOpt = "egl",
 ) -> None:
-    """Convert a local dataset to COCO or YOLO, split into train/val/test. COCO's masks come from instance/, or
-    are re-rendered (and checked against the dataset's images) when the dataset has none."""
+    """Convert a local dataset to COCO, YOLO or MCAP (one ROS 2 bag per split), split into train/val/test. COCO's
+    masks come from instance/, or are re-rendered (and checked against the dataset's images) when the dataset has
+    none."""
     from worker.export import FORMATS, parse_split, plan_export, run_export
+    from worker.export.files import check_export_folder
 
     if fmt not in FORMATS:
         raise bad_option(ctx, "fmt", f"{fmt!r} is not one of {', '.join(FORMATS)}")
@@ -141,6 +143,7 @@ def export(
         fractions = None if split is None else parse_split(split)
     except SeasynthError as err:
         raise bad_option(ctx, "split", str(err)) from None
+    check_export_folder(out, fmt)  # before any work or progress bar
     plan = plan_export(dataset, fmt, fractions, partial=partial, distractors=distractors)
     if plan.skipped:
         typer.echo(f"{dataset}: {plan.skipped} incomplete frame(s) skipped (--partial)")

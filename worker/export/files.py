@@ -64,32 +64,40 @@ def json_bytes(value: object) -> bytes:
     return (json.dumps(value, indent=1, sort_keys=True) + "\n").encode()
 
 
-def open_export_folder(out: Path, fmt: str) -> None:
-    """Check `out` may receive a `fmt` export, mark it unfinished, and delete temporary files a crash left.
-
-    `out` must be absent, empty, or hold an earlier export of the same format (which this one replaces).
-    """
+def check_export_folder(out: Path, fmt: str) -> None:
+    """ExportError unless `out` may receive a `fmt` export: absent, empty, or holding an earlier export of the same
+    format (which the export replaces). Reads only, so a command can ask before it starts work."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ExportError(f"{out}: exists and is not a folder")
+    if not out.exists():
+        return
     record = out / EXPORT_RECORD
     try:
-        out.mkdir(parents=True, exist_ok=True)
         empty = next(out.iterdir(), None) is None
     except OSError as err:
-        raise ExportError(f"{out}: cannot create or list the export folder ({err.strerror or err})") from None
-    if not empty:
-        if not record.is_file():
-            raise ExportError(f"{out}: folder is not empty and holds no seasynth export ({EXPORT_RECORD}); "
-                              "choose a new or empty folder")
-        try:
-            old = json.loads(record.read_text())
-        except (OSError, ValueError) as err:
-            raise ExportError(f"{record}: unreadable ({err})") from None
-        if not isinstance(old, dict) or old.get("format") != fmt:
-            got = old.get("format") if isinstance(old, dict) else None
-            raise ExportError(f"{out}: holds a {got!r} export, not {fmt!r}; choose another folder")
-    write_atomic(record, json_bytes({"format": fmt, "state": "incomplete"}))
+        raise ExportError(f"{out}: cannot list the export folder ({err.strerror or err})") from None
+    if empty:
+        return
+    if not record.is_file():
+        raise ExportError(f"{out}: folder is not empty and holds no seasynth export ({EXPORT_RECORD}); "
+                          "choose a new or empty folder")
+    try:
+        old = json.loads(record.read_text())
+    except (OSError, ValueError) as err:
+        raise ExportError(f"{record}: unreadable ({err})") from None
+    if not isinstance(old, dict) or old.get("format") != fmt:
+        got = old.get("format") if isinstance(old, dict) else None
+        raise ExportError(f"{out}: holds a {got!r} export, not {fmt!r}; choose another folder")
+
+
+def open_export_folder(out: Path, fmt: str) -> None:
+    """Check `out` may receive a `fmt` export (check_export_folder), mark it unfinished, and delete temporary files
+    a crash left."""
+    out = Path(out)
+    check_export_folder(out, fmt)
+    make_dirs(out)
+    write_atomic(out / EXPORT_RECORD, json_bytes({"format": fmt, "state": "incomplete"}))
     try:
         for p in out.rglob(TMP_GLOB):
             p.unlink()
