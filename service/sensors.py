@@ -147,7 +147,8 @@ class FLS(SpecModel):
 
 class DVL(SpecModel):
     """A Doppler velocity log: four Janus beams at `beam_angle_deg` from its downward axis, 45 deg apart from the
-    vehicle's axes (Teledyne Pathfinder/Workhorse layout). Velocity in the vehicle frame (m/s), noise Gaussian."""
+    vehicle's axes (Teledyne Pathfinder/Workhorse layout). Velocity in the vehicle frame (m/s), noise Gaussian;
+    measured beam ranges are clipped at 0 m (worker.sensors.nav)."""
 
     enabled: StrictBool = False
     pose: SensorPose = SensorPose()

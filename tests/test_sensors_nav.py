@@ -71,6 +71,24 @@ def test_dvl_janus_ranges_on_a_flat_seabed_are_altitude_over_cos_beam_angle(rend
     assert np.allclose(cast(renderer, seabed_items(), np.array([0, 0, 2.0]), np.array([[0, 0, -1.0]]), 10), 2.0)
 
 
+def test_noisy_dvl_ranges_are_never_negative(renderer):
+    # A level DVL 0.3 m above a flat seabed (slant ranges 0.346 m) with range_sigma_m 0.5: each measured range is
+    # max(r + n, 0) for the record's own draws n, so ranges the noise took below 0 read exactly 0 (they were
+    # negative before), and the others r + n.
+    dvl = DVL(enabled=True, pose=SensorPose(pitch_deg=-30.0), range_sigma_m=0.5, velocity_sigma_m_s=0.0)
+    scene = SimpleNamespace(world_from_cam=level_vehicle(0.3, pitch_deg=30.0))
+    r = 0.3 / math.cos(math.radians(30))
+    clipped = kept = 0
+    for seed in range(8):
+        rec = dvl_record(spec_with(dvl=dvl), scene, None, seabed_items(), renderer, np.random.default_rng(seed))
+        n = np.random.default_rng(seed).normal(0.0, 0.5, 4)
+        assert rec["beam_ranges_true_m"] == pytest.approx([r] * 4, abs=1e-5)
+        assert rec["beam_ranges_m"] == pytest.approx(np.maximum(np.array(rec["beam_ranges_true_m"]) + n, 0.0), abs=0)
+        clipped += int(np.sum(r + n < 0))
+        kept += int(np.sum(r + n > 0))
+    assert clipped >= 4 and kept >= 4
+
+
 def test_pressure_is_hydrostatic_with_the_stated_noise():
     scene = SimpleNamespace(world_from_cam=level_vehicle(1.5))
     quiet = spec_with(pressure=SimpleNamespace(pose=SensorPose(offset_m=(0.0, 0.5, 0.0)), sigma_pa=0.0))

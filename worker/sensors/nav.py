@@ -6,7 +6,8 @@ Models, stated so they can be checked:
 - DVL: beams k = 0..3 at beam_angle_deg from the sensor's +y axis (its boresight, "down" when mounted level),
   azimuths 45, 135, 225, 315 deg from its +z (forward) axis towards +x (Janus "X" layout). Each beam's slant range is
   the first hit of one ray cast on the GPU against the frame's geometry (terrain and objects), null past max_range_m;
-  + Normal(0, range_sigma_m). Velocity: the sensor's own velocity in its frame, v_s = R_ws^T (v + omega x lever),
+  measured: max(r + Normal(0, range_sigma_m), 0), as a range is never negative (the clip biases ranges within a few
+  sigma of 0 upwards). Velocity: the sensor's own velocity in its frame, v_s = R_ws^T (v + omega x lever),
   + Normal(0, velocity_sigma_m_s) per axis; null without bottom lock (fewer than 3 beams in range) or trajectory.
 - Pressure: absolute p = P_ATM + RHO g d at the sensor's depth d below the surface (water.depth_m's draw: the
   physical model's, else the frame's nav stream), RHO = 1025 kg/m^3 constant, + Normal(0, sigma_pa).
@@ -77,7 +78,7 @@ def dvl_record(spec: DatasetSpec, scene: Scene, state: VehicleState | None, item
         "pose_world_from_dvl": T.tolist(),
         "beam_directions_dvl": janus_directions(d.beam_angle_deg).tolist(),
         "beam_ranges_true_m": [float(r) if math.isfinite(r) else None for r in ranges],
-        "beam_ranges_m": [float(r + n) if math.isfinite(r) else None for r, n in zip(ranges, range_noise)],
+        "beam_ranges_m": [max(float(r + n), 0.0) if math.isfinite(r) else None for r, n in zip(ranges, range_noise)],
         "bottom_lock": lock,
         "velocity_dvl_true_m_s": _vec(true_v),
         "velocity_dvl_m_s": _vec(measured_v),
