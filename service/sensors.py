@@ -227,6 +227,10 @@ class Sensors(SpecModel):
     def any_nav(self) -> bool:
         return self.dvl.enabled or self.pressure.enabled or self.imu.enabled
 
+    def enabled_poses(self) -> dict[str, SensorPose]:
+        """Each enabled sensor's pose on the vehicle, by its field name (fls, sss, dvl, pressure, imu)."""
+        return {name: s.pose for name in ("fls", "sss", "dvl", "pressure", "imu") if (s := getattr(self, name)).enabled}
+
     @property
     def enabled_count(self) -> int:
         return sum(x.enabled for x in (self.fls, self.sss, self.dvl, self.pressure, self.imu))

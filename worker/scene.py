@@ -17,10 +17,12 @@ from worker.assets.terrain import Terrain
 from worker.light import PhysicalLight
 from worker.light.build import sample_physical
 from worker.render import Lighting, WaterParams
+from worker.sensors import world_from_sensor
 
 PLACEMENT_TRIES = 24  # per object, before it is left out
 CAMERA_TRIES = 64  # per frame, before the frame is refused
-CAMERA_CLEARANCE_M = 0.05  # the camera keeps at least this far above the terrain and outside objects
+CAMERA_CLEARANCE_M = 0.05  # the camera, and each enabled sensor, keeps at least this far above the terrain and
+# outside objects
 
 
 class SceneError(SeasynthError):
@@ -326,9 +328,12 @@ def _draw_camera(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, 
     for tries in range(1, CAMERA_TRIES + 1):
         eye = uniform3(rng, ws.camera.min, ws.camera.max)
         if _camera_clear(eye, look_at, terrain, spheres, spec.camera.clip[0]):
-            return look_at_pose(eye, look_at), look_at, look_id, tries
-    raise SceneError(f"workspaces.camera: no camera position outside the terrain and objects after {CAMERA_TRIES} "
-                     "draws")
+            T = look_at_pose(eye, look_at)
+            if _sensor_inside(T, spec, terrain, spheres) is None:
+                return T, look_at, look_id, tries
+    also = " with every enabled sensor (sensors.*.pose) outside them too" if spec.sensors.enabled_poses() else ""
+    raise SceneError(f"workspaces.camera: no camera position outside the terrain and objects{also} after "
+                     f"{CAMERA_TRIES} draws")
 
 
 def _bounding_sphere(p: Placed) -> tuple[np.ndarray, float]:
@@ -341,8 +346,22 @@ def _bounding_sphere(p: Placed) -> tuple[np.ndarray, float]:
 
 def _camera_clear(eye, look_at, terrain: Terrain, spheres, near: float) -> bool:
     """The camera is above the terrain, outside every object's bounding sphere and not on its look-at point."""
-    if np.linalg.norm(look_at - eye) < 1e-3:
-        return False
+    return bool(np.linalg.norm(look_at - eye) >= 1e-3) and _clear(eye, terrain, spheres, near)
+
+
+def _sensor_inside(world_from_vehicle: np.ndarray, spec: DatasetSpec, terrain: Terrain,
+                   spheres) -> tuple[str, np.ndarray] | None:
+    """(name, world position (3,)) of the first enabled sensor that is not as clear of the terrain and objects as
+    the camera must be, with the vehicle at world_from_vehicle (4, 4); None when every one is."""
+    for name, pose in spec.sensors.enabled_poses().items():
+        p = world_from_sensor(world_from_vehicle, pose)[:3, 3]
+        if not _clear(p, terrain, spheres, spec.camera.clip[0]):
+            return name, p
+    return None
+
+
+def _clear(eye, terrain: Terrain, spheres, near: float) -> bool:
+    """eye (3,) world is CAMERA_CLEARANCE_M + near above the terrain and outside every object's bounding sphere."""
     ground = float(terrain.height_at(eye[None, :2])[0])
     if math.isfinite(ground) and eye[2] < ground + CAMERA_CLEARANCE_M + near:
         return False
@@ -351,7 +370,7 @@ def _camera_clear(eye, look_at, terrain: Terrain, spheres, near: float) -> bool:
 
 def on_trajectory(scene: Scene, spec: DatasetSpec, index: int) -> Scene:
     """The scene seen from the trajectory's vehicle pose at frame `index` (worker.trajectory), which must lie above
-    the terrain and outside every object."""
+    the terrain and outside every object, as must each enabled sensor."""
     import dataclasses
 
     from worker.trajectory import vehicle_state
@@ -363,4 +382,9 @@ def on_trajectory(scene: Scene, spec: DatasetSpec, index: int) -> Scene:
     if not _camera_clear(eye, eye + T[:3, 2], scene.terrain, spheres, spec.camera.clip[0]):
         raise SceneError(f"trajectory: frame {index}'s vehicle position {eye.round(3).tolist()} is inside the terrain "
                          "or an object; raise trajectory.altitude_m")
+    inside = _sensor_inside(T, spec, scene.terrain, spheres)
+    if inside is not None:
+        name, p = inside
+        raise SceneError(f"sensors.{name}.pose.offset_m: at frame {index} the {name} sits at {p.round(3).tolist()}, "
+                         "inside the terrain or an object; raise trajectory.altitude_m or move the sensor")
     return dataclasses.replace(scene, world_from_cam=T, look_at=eye + T[:3, 2], look_at_instance=None, camera_tries=0)
