@@ -186,13 +186,16 @@ class PathTracerCost:
 
 
 def fit_cost(spp_low: int, s_low: float, spp_high: int, s_high: float) -> PathTracerCost:
-    """The line through two timed renders (spp_high > spp_low); neither part below zero."""
+    """The line through two timed renders (spp_high > spp_low), where both its parts are positive. Otherwise the
+    longer render's own rate and no fixed part (a line through it, never above it): a longer render timed no slower,
+    or one slower per sample than the shorter (large frames render in several calls of MAX_SAMPLES_PER_CALL)."""
     if spp_high <= spp_low:
         raise ValueError(f"fit_cost: spp_high ({spp_high}) must exceed spp_low ({spp_low})")
     per = (s_high - s_low) / (spp_high - spp_low)
-    if per <= 0.0:  # the longer render timed no slower: its own rate per sample, the rest fixed
-        per = s_high / spp_high
-    return PathTracerCost(max(s_low - per * spp_low, 0.0), per)
+    fixed = s_low - per * spp_low
+    if per <= 0.0 or fixed < 0.0:
+        return PathTracerCost(0.0, s_high / spp_high)
+    return PathTracerCost(fixed, per)
 
 
 def path_tracer_cost(pts, timing_spp: int) -> tuple[PathTracerCost, float]:
@@ -255,8 +258,9 @@ def stored_reference(references: Path | None, name: str, pts):
 def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: str | None, platform: str,
         references: Path | None = None, timing_spp: int = 64, size: tuple[int, int] = (WIDTH, HEIGHT)) -> dict:
     """Scores every configuration. Its reference is the stored one in `references` when there is one for this exact
-    scene, else two renders of `spp` here. The path tracer's seconds per frame are always measured here, with
-    `timing_spp` samples per pixel (a stored reference's own host and seconds are recorded beside them)."""
+    scene, else two renders of `spp` here. The path tracer's cost is always measured here (path_tracer_cost: a
+    warm-up, then `timing_spp` and 4x `timing_spp` samples per pixel; a stored reference's own host and seconds are
+    recorded beside them)."""
     from bench.reference import render_reference
     from bench.throughput import machine_description
     from worker.srgb import encode_srgb8

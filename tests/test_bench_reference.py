@@ -91,12 +91,13 @@ def test_the_path_tracers_cost_is_a_fixed_part_and_a_part_per_sample():
     # 1,230 samples cost the fixed part once, not once per 64 samples as scaling the short render would count it
     assert cost.seconds(1230) == pytest.approx(cost.fixed_s + 1230 * cost.s_per_spp)
     assert cost.seconds(1230) < 2.4 * 1230 / 64 - 10
-    # noise never makes a part negative: a longer render timed faster charges its rate per sample, a line through
-    # the origin's far side no fixed part
-    flat = fit_cost(64, 2.4, 256, 2.3)
-    assert (flat.fixed_s, flat.s_per_spp) == pytest.approx((2.4 - 64 * 2.3 / 256, 2.3 / 256))
-    steep = fit_cost(64, 1.0, 256, 8.0)
-    assert (steep.fixed_s, steep.s_per_spp) == pytest.approx((0.0, 7.0 / 192))
+    # where the line's parts would not both be positive (a longer render timed no slower, or slower per sample than
+    # the shorter: large frames render in several calls), the longer render's own rate and no fixed part, a line
+    # through it and never above either timed render
+    for low, high in ((2.4, 2.3), (1.0, 8.0), (24.81, 113.9)):
+        c = fit_cost(64, low, 256, high)
+        assert (c.fixed_s, c.s_per_spp) == pytest.approx((0.0, high / 256))
+        assert c.seconds(256) == pytest.approx(high)
     with pytest.raises(ValueError, match="spp_high"):
         fit_cost(64, 1.0, 64, 2.0)
 
@@ -123,3 +124,9 @@ def test_the_stored_references_at_other_sizes_are_of_the_scenes_and_tables_commi
         assert table["references"][name]["scene_sha256"] == ref.scene_sha256
         assert {r["spec_sha256"] for r in table["rows"] if r["config"] == name} == {
             spec_digest(fidelity.config_spec(text, size))}
+    for r in table["rows"]:  # the equal-error columns follow from the row's own cost line
+        assert r["path_tracer_equal_error_s"] == pytest.approx(
+            r["path_tracer_fixed_s"] + r["path_tracer_ms_per_spp"] / 1e3 * r["path_tracer_equal_error_spp"],
+            rel=0.01, abs=0.1)
+        assert r["speedup_equal_error"] * r["ms_per_frame"] / 1e3 == pytest.approx(r["path_tracer_equal_error_s"],
+                                                                                  rel=0.01, abs=0.06)

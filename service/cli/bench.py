@@ -59,9 +59,7 @@ def bench_scale(
     with CPU and GPU utilisation."""
     from bench.scale import run
 
-    sizes = [tuple(_ints(r.lower(), "x", "--resolution", "WIDTHxHEIGHT")) for r in (resolution or ["640x480"])]
-    if any(len(s) != 2 for s in sizes):
-        raise typer.BadParameter("give WIDTHxHEIGHT, e.g. 1920x1080", param_hint="'--resolution'")
+    sizes = [_size(r) for r in (resolution or ["640x480"])]
     modes = tuple(m.strip() for m in mode.split(","))
     if not modes or set(modes) - {"cli", "service"}:
         raise typer.BadParameter(f"{mode!r}: give cli, service or cli,service", param_hint="'--mode'")
@@ -70,6 +68,19 @@ def bench_scale(
     run(spec, resolutions=sizes, workers=_ints(workers, ",", "--workers", "counts"), frames_per_worker=frames_per_worker,
         preset=preset, out=out, platform=gl, machine=machine, modes=modes,
         gpu_counts=None if gpus is None else _ints(gpus, ",", "--gpus", "counts"), storage=storage)
+
+
+def _size(text: str) -> tuple[int, int]:
+    """--resolution's WIDTHxHEIGHT, each side within what the spec's camera takes; a usage error otherwise."""
+    from service.spec_scene import MAX_SIDE, MIN_SIDE
+
+    size = _ints(text.lower(), "x", "--resolution", "WIDTHxHEIGHT")
+    if len(size) != 2:
+        raise typer.BadParameter(f"{text!r}: give WIDTHxHEIGHT, e.g. 1920x1080", param_hint="'--resolution'")
+    if not all(MIN_SIDE <= side <= MAX_SIDE for side in size):
+        raise typer.BadParameter(f"{text!r}: each side must be {MIN_SIDE}..{MAX_SIDE} pixels",
+                                 param_hint="'--resolution'")
+    return size[0], size[1]
 
 
 def _ints(text: str, sep: str, option: str, what: str) -> list[int]:
@@ -130,8 +141,9 @@ def bench_fidelity(
     )] = Path("bench/results/cpu/fidelity-references"),
     export_scenes: Annotated[Optional[Path], typer.Option("--export-scenes", help="Only write each configuration's "
                              "path-tracer scene (NAME.scene.npz) here, for python -m bench.reference.")] = None,
-    timing_spp: Annotated[int, typer.Option("--timing-spp", min=1, help="Samples per pixel of the path tracer's "
-                                            "timed render on this machine.")] = 64,
+    timing_spp: Annotated[int, typer.Option("--timing-spp", min=1, help="Samples per pixel of the shorter of the "
+                                            "path tracer's two timed renders on this machine (the other has 4x; "
+                                            "a warm-up of this many comes first).")] = 64,
     repeats: Annotated[int, typer.Option("--repeats", min=1)] = 5,
     machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
     resolution: Annotated[str, typer.Option("--resolution", help="WIDTHxHEIGHT of the frames and references "
@@ -151,17 +163,15 @@ def bench_fidelity(
                                      param_hint="--config")
         chosen[name] = text or CONFIGS[name]
         parse_config(chosen[name])
-    size = _ints(resolution.lower(), "x", "--resolution", "WIDTHxHEIGHT")
-    if len(size) != 2:
-        raise typer.BadParameter("give WIDTHxHEIGHT, e.g. 320x240", param_hint="'--resolution'")
+    size = _size(resolution)
     if export_scenes is not None:
-        for path in export(export_scenes, configs=chosen, platform=gl, size=(size[0], size[1])):
+        for path in export(export_scenes, configs=chosen, platform=gl, size=size):
             typer.echo(str(path))
         return
     if out is None:
         raise typer.BadParameter("give --out (or --export-scenes)", param_hint="--out")
     run(out, configs=chosen, spp=spp, repeats=repeats, machine=machine, platform=gl, references=references,
-        timing_spp=timing_spp, size=(size[0], size[1]))
+        timing_spp=timing_spp, size=size)
 
 
 @bench_app.command("calibration")
