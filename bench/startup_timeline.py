@@ -1,5 +1,6 @@
 """Where a local generate's start-up goes: a fresh `seasynth generate` (a new interpreter, the fork server, every
-render process) with each render process noting its events (worker.local_pool.Timeline), summarised per run:
+render process) with each render process noting its events (`--timeline`, worker.local_pool.Timeline), summarised
+per run:
 
     python -m bench.startup_timeline SPEC OUT_DIR --resolution 1280x720 --workers 24 --frames 3000 [--rounds 2]
 
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -27,12 +27,12 @@ STAGES = ("sampling", "render", "formation", "ids", "labels", "encode")
 
 def run_once(spec: Path, width: int, height: int, workers: int, frames: int, timeline: Path, gl: str) -> dict:
     timeline.unlink(missing_ok=True)
-    env = {**os.environ, "SEASYNTH_POOL_TIMELINE": str(timeline)}
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.time()
         subprocess.run([sys.executable, "-m", "service.cli", "generate", str(spec), "--out", f"{tmp}/out",
                         "--width", str(width), "--height", str(height), "--frames", str(frames),
-                        "--workers", str(workers), "--gl", gl], env=env, check=True, stdout=subprocess.DEVNULL)
+                        "--workers", str(workers), "--gl", gl, "--timeline", str(timeline)], check=True,
+                       stdout=subprocess.DEVNULL)
         wall = time.time() - t0
     return summarise([json.loads(line) for line in timeline.read_text().splitlines()], t0, wall, frames)
 

@@ -96,11 +96,10 @@ def test_workers_and_resume_give_identical_files(full, tmp_path):
     assert tree(two) == tree(out)
 
 
-def test_the_pool_timeline_notes_each_process_and_frame_and_changes_no_file(full, tmp_path, monkeypatch):
+def test_the_pool_timeline_notes_each_process_and_frame_and_changes_no_file(full, tmp_path):
     out, spec = full
     timeline = tmp_path / "timeline.jsonl"
-    monkeypatch.setenv("SEASYNTH_POOL_TIMELINE", str(timeline))
-    generate(spec, tmp_path / "two", workers=2)
+    generate(spec, tmp_path / "two", workers=2, timeline=timeline)
     assert tree(tmp_path / "two") == tree(out)
     events = [json.loads(line) for line in timeline.read_text().splitlines()]
     assert [e["event"] for e in events if e["worker"] == -1] == ["pool", "started"]

@@ -165,10 +165,12 @@ def generate(
     on_frames: Callable[[int], None] | None = None,
     platform: str = "egl",
     gpus: GpuChoice | None = None,
+    timeline: Path | None = None,
 ) -> GenerateReport:
     """Render every frame of `spec` into `out`. Files are the same whatever `workers`, `gpus` or resuming."""
     todo = open_dataset(spec, out, mode)
-    return render_frames(spec, out, todo, workers=workers, on_frames=on_frames, platform=platform, gpus=gpus)
+    return render_frames(spec, out, todo, workers=workers, on_frames=on_frames, platform=platform, gpus=gpus,
+                         timeline=timeline)
 
 
 def auto_workers(frames_to_render: int, gpus: int = 0) -> int:
@@ -193,9 +195,11 @@ def render_frames(
     on_frames: Callable[[int], None] | None = None,
     platform: str = "egl",
     gpus: GpuChoice | None = None,
+    timeline: Path | None = None,
 ) -> GenerateReport:
     """Render `todo` into an opened dataset folder, then mark the dataset complete. Render process k uses the
-    k-th of the `gpus` devices, round robin (None: EGL's default device).
+    k-th of the `gpus` devices, round robin (None: EGL's default device). timeline: with several processes, a file
+    each notes its start-up and frames to (worker.local_pool.Timeline), for benchmarks.
 
     The record pins the GL renderer of the first frame rendered; another renderer is refused before it writes.
     """
@@ -213,7 +217,7 @@ def render_frames(
             raise OutputError(wrong_renderer(out, pinned, renderer))
 
     skipped = spec.frames - len(todo)
-    renderer = _run(spec, out, todo, workers, on_frames or (lambda n: None), platform, gpus, pinned, pin)
+    renderer = _run(spec, out, todo, workers, on_frames or (lambda n: None), platform, gpus, pinned, pin, timeline)
     write_record(out, spec, complete=True, renderer=pinned, files=files)
     return GenerateReport(spec.frames, len(todo), skipped, renderer)
 
@@ -239,7 +243,7 @@ def reproduce(spec: DatasetSpec, index: int, out: Path, platform: str = "egl") -
     return list(files)
 
 
-def _run(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> str:
+def _run(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, timeline=None) -> str:
     if not todo:
         return ""
     if workers == 1:
@@ -253,4 +257,5 @@ def _run(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> st
             return session.renderer_name
     from worker.local_pool import run_pool
 
-    return run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin)
+    return run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin,
+                    None if timeline is None else str(timeline))

@@ -18,18 +18,20 @@ from worker.pipeline import RenderSession
 from worker.pool_start import pool_context, sigint_blocked_for_children
 
 
-def run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin) -> str:
+def run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, timeline: str | None = None) -> str:
     """Render `todo` with `workers` processes sharing terrain variants through a temporary folder (none where no
-    temporary folder can be made: each process then keeps its own)."""
+    temporary folder can be made: each process then keeps its own). timeline: a file each process notes its events
+    to (Timeline), or None."""
     try:
         folder = tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True)
     except OSError:
-        return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, None)
+        return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, None, timeline)
     with folder as variants:
-        return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants)
+        return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants, timeline)
 
 
-def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants: str | None) -> str:
+def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, variants: str | None,
+                 timeline: str | None) -> str:
     """Each render process has a pipe of its own: the parent hands it a chunk once it has named its renderer (and the
     dataset's pin accepted it: no frame of another renderer is written), and the next when it reports the chunk's
     frames. Pipes hold no named semaphore (a multiprocessing queue does, and with the fork server the
@@ -43,7 +45,7 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
     pipes = [ctx.Pipe() for _ in range(workers)]
     # Daemonic: should this process exit on an unforeseen path, its workers are stopped, not waited for.
     procs = [ctx.Process(target=_pool_main, args=(payload, str(out), child, platform, gpus, k, pinned, env,
-                                                  variants), daemon=True)
+                                                  variants, timeline), daemon=True)
              for k, (_, child) in enumerate(pipes)]
     conns = [parent for parent, _ in pipes]
     renderer, finished, given = "", 0, 0
@@ -56,7 +58,7 @@ def _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pi
             raise _last_word(conns[k]) or _lost(procs[k]) from None
         given += 1
 
-    note = Timeline.of(env, -1)  # the parent's own events: worker -1
+    note = Timeline(timeline, -1)  # the parent's own events: worker -1
     try:
         note("pool")
         with sigint_blocked_for_children():
@@ -128,11 +130,11 @@ def _ignore_sigint() -> None:
 
 
 def _pool_main(payload: str, out: str, conn, platform: str, gpus: GpuChoice | None, k: int, pinned: str | None,
-               env: dict[str, str], variants: str | None) -> None:
+               env: dict[str, str], variants: str | None, timeline: str | None) -> None:
     _ignore_sigint()
     os.environ.clear()
     os.environ.update(env)  # before OpenGL is imported: it reads PYOPENGL_PLATFORM once
-    note = Timeline.of(env, k)
+    note = Timeline(timeline, k)
     note("start")
     spec = DatasetSpec.model_validate_json(payload)
     try:
@@ -156,18 +158,16 @@ def _pool_main(payload: str, out: str, conn, platform: str, gpus: GpuChoice | No
 
 
 class Timeline:
-    """Where a render process's time goes, for benchmarks: with SEASYNTH_POOL_TIMELINE set to a file, each process
+    """Where a render process's time goes, for benchmarks (`seasynth generate --timeline FILE`): each process
     appends a JSON line per event (its start, its renderer open, each stage of its first frames, each frame
-    written) with the wall-clock time. Off (a no-op) otherwise."""
+    written) with the wall-clock time; the parent (worker -1) notes when it asked for the processes. A no-op with no
+    file. The command checks the file can be written before it starts; a write failing later (a full disk) is
+    dropped rather than stopping a frame."""
 
     STAGED_FRAMES = 2  # frames of each process whose stages are noted
 
     def __init__(self, path: str | None, worker: int) -> None:
         self.path, self.worker, self.frames = path, worker, 0
-
-    @classmethod
-    def of(cls, env: dict[str, str], worker: int) -> Timeline:
-        return cls(env.get("SEASYNTH_POOL_TIMELINE") or None, worker)
 
     def __call__(self, event: str, frame: int | None = None) -> None:
         if self.path is None:

@@ -21,7 +21,7 @@ from service.cli import (
     load_overridden,
     progress,
 )
-from service.errors import SeasynthError, SpecError
+from service.errors import OutputError, SeasynthError, SpecError
 
 
 @app.command()
@@ -42,6 +42,9 @@ def generate(
                                                 "on the k-th round robin: auto (every GPU EGL finds; none: the "
                                                 "default device), a count N (the first N), or EGL device indices "
                                                 "0,1 (one: 1,). Frames are the same on any GPU of one model.")] = None,
+    timeline: Annotated[Optional[Path], typer.Option(
+        "--timeline", help="With several workers, append each render process's start-up and frame events to this "
+        "file as JSON lines (for benchmarks: python -m bench.startup_timeline).")] = None,
 ) -> None:
     """Generate a dataset locally (no servers): image_2/, label_2/, calib/, meta/ and optional outputs. The spec's
     outputs.coco, yolo and mcap are then exported into OUT/export/{format}/ with outputs.split (COCO without
@@ -58,6 +61,13 @@ def generate(
     from worker.generate import auto_workers, open_dataset, render_frames
     from worker.render.devices import check_devices
 
+    if timeline is not None:  # a file the render processes cannot write would lose their notes silently
+        try:
+            with timeline.open("a", encoding="utf-8"):
+                pass
+        except OSError as err:
+            raise OutputError(f"{timeline}: cannot write the timeline ({err.strerror or err})") from None
+
     check_devices(gl, choice)  # a device this machine lacks is refused before OUT is made
     todo = open_dataset(s, out, "resume" if resume else "overwrite" if overwrite else "new")
     if count is None:
@@ -71,7 +81,7 @@ def generate(
         with progress(len(todo), "frames") as bar:
             task = bar.add_task("render", total=len(todo))
             report = render_frames(s, out, todo, workers=workers, on_frames=lambda n: bar.advance(task, n),
-                                   platform=gl, gpus=choice)
+                                   platform=gl, gpus=choice, timeline=timeline)
     except KeyboardInterrupt:
         raise Interrupted(f"{out}: the frames written so far are complete; the same command with --resume "
                           "renders the rest") from None
