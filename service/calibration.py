@@ -257,8 +257,14 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
             notes.append(f"beta_B {name}: not identified (too little backscatter against noise and scene variation "
                          "in this channel)")
         if not ok_inf[c]:
-            notes.append(f"B_inf {name}: not identified (no open water, and the backscatter's asymptote is not "
-                         "identified" + (" or is biased by saturated pixels)" if clipped else ")"))
+            if at_bound[c]:
+                why = f"the fit clipped it to {0 if best.B_inf[c] <= 0.0 else 1}"
+            elif open_water or (ok_b[c] and not clipped):
+                why = f"its sigma is over {B_INF_SIGMA_MAX} or its profile leaves the grid"
+            else:
+                why = ("no open water, and the backscatter's asymptote is not identified"
+                       + (" or is biased by saturated pixels" if clipped else ""))
+            notes.append(f"B_inf {name}: not identified ({why})")
     if not open_water:
         notes.append("no open water (range +inf) in view: B_inf comes from the fit's asymptote alone")
     if clipped:
