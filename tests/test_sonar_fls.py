@@ -125,7 +125,7 @@ TVG_LONG = FLS(enabled=True, range_m=(0.5, 500.0), range_bins=64, beams=16, hori
 @pytest.mark.parametrize("frequency_khz", [750.0, 3000.0])
 def test_tvg_restores_a_uniform_sphere_at_any_range_and_keeps_the_noise(frequency_khz):
     # At a bin centre TVG undoes r^-2 and absorption exactly: every beam of that bin reads rho. At 3 MHz in -2 C
-    # water (alpha 4.9 dB/m) the bins' gain 10^(alpha r / 5) overflowed past ~62 m and inf * 0 made every empty bin
+    # water (alpha 4.9 dB/m) the bins' gain 10^(alpha r / 5) overflowed past ~310 m and inf * 0 made every empty bin
     # NaN, which the 16-bit codes turned to 0, noise and all.
     fls = TVG_LONG.model_copy(update={"frequency_khz": frequency_khz})
     alpha = absorption_db_per_m(frequency_khz, Acoustics(temperature_c=-2.0), 0.0)

@@ -133,7 +133,7 @@ def test_speckle_draws_come_from_the_sss_stream(renderer):
 def test_tvg_restores_a_uniform_sphere_at_long_range_and_high_frequency(frequency_khz):
     # Every pixel sees the seabed (rho 0.3) at one bin's centre range: TVG undoes r^-2 and absorption exactly, so
     # that bin reads rho and every other 0. At 3 MHz in -2 C water (alpha 4.9 dB/m) the plain gain 10^(alpha r / 5)
-    # overflowed past ~62 m: inf * 0 = NaN in every empty bin.
+    # overflowed past ~310 m: inf * 0 = NaN in every empty bin.
     sss = SSS(enabled=True, range_m=500.0, range_bins=64, frequency_khz=frequency_khz, speckle=False)
     grid = sss_grid(sss)
     alpha = absorption_db_per_m(frequency_khz, Acoustics(temperature_c=-2.0), 0.0)
