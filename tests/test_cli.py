@@ -73,6 +73,14 @@ def test_undecodable_texture_is_refused_before_the_output_folder_is_made(tmp_pat
     assert not (tmp_path / "out").exists()
 
 
+def test_a_timeline_that_cannot_be_written_is_refused_before_the_output_folder_is_made(tmp_path):
+    r = seasynth("generate", EXAMPLE, "--out", tmp_path / "out", "--workers", "2", "--frames", "2",
+                 "--timeline", tmp_path / "no-such-folder" / "t.jsonl")
+    assert r.returncode == 1, r.stderr
+    assert r.stderr.startswith(f"error: {tmp_path / 'no-such-folder' / 't.jsonl'}: cannot write the timeline")
+    assert "Traceback" not in r.stderr and not (tmp_path / "out").exists()
+
+
 def test_unreadable_mesh_is_refused_before_the_output_folder_is_made(tmp_path):
     (tmp_path / "urchin.ply").write_bytes(b"ply\nformat garbage\n\x00\x01\x02")
     spec = spec_file(tmp_path, lambda d: d["targets"].update(assets=[{"path": "urchin.ply"}]))
