@@ -71,7 +71,8 @@ def test_a_sensor_part_of_a_dataset_without_that_sensor_is_a_404_naming_the_file
 def test_sensors_that_push_a_shard_over_the_time_limit_are_refused_and_the_suggested_size_fits(infra: Stack):
     soft = infra.settings().task_soft_time_limit_s
     camera_only = tiny_spec(frames=400, shard_size=400)
-    spec = {**camera_only, "sensors": {"fls": {"enabled": True}}}  # the FLS at its defaults: 1454x586 render
+    spec = {**camera_only, "sensors": {"fls": {"enabled": True}}}  # the FLS at its defaults: 1454x586 render and
+    # a 943x519 fan image
     cost = lambda s, n=None: spec_shard_seconds(parse_spec(s), n)  # noqa: E731
     assert cost(camera_only) < soft / 2 < soft < cost(spec)
     with unserved_api(infra) as client:
@@ -81,7 +82,8 @@ def test_sensors_that_push_a_shard_over_the_time_limit_are_refused_and_the_sugge
         (line,) = r.json()["errors"]
         head = (f"shard_size: 400 frames of 32x24 at quality 'draft' (up to 4 objects, 16 terrain cells a side, "
                 f"{len(parse_spec(spec).terrain.styles)} terrains, 0 of clean/range/depth/instance/coco/yolo/mcap, "
-                f"1 sensors rendering {1454 * 586} pixels) are estimated at {cost(spec):.0f} s per shard, over the "
+                f"1 sensors rendering {1454 * 586 + 943 * 519} pixels) are estimated at {cost(spec):.0f} s per shard, "
+                "over the "
                 f"limit of {soft} s (the soft task time limit, SEASYNTH_TASK_TIME_LIMIT_S); use shard_size <= ")
         assert line.startswith(head), line
         fits = int(line[len(head):])
