@@ -233,7 +233,7 @@ class Sensors(SpecModel):
 
     @property
     def enabled_count(self) -> int:
-        return sum(x.enabled for x in (self.fls, self.sss, self.dvl, self.pressure, self.imu))
+        return len(self.enabled_poses())
 
     def render_pixels(self) -> int:
         """Pixels the enabled sensors render or image per frame, for the shard limits (service.spec,

@@ -20,7 +20,6 @@ from worker.sensors import vehicle_from_sensor
 
 CAMERA_FRAME = "camera"  # optical: x right, y down, z forward (KITTI's camera axes)
 WORLD_FRAME = "world"
-SENSOR_FRAMES = ("fls", "sss", "dvl", "pressure", "imu")  # each sensor's frame_id: its section under sensors:
 
 
 def rotation_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
@@ -61,7 +60,8 @@ def camera_tf(header: Callable[[str], dict], world_from_camera: np.ndarray) -> d
 
 
 def sensor_tf_static(header: Callable[[str], dict], sensors: Sensors) -> dict | None:
-    """/tf_static: camera -> each enabled sensor, in SENSOR_FRAMES order; None with every sensor off."""
-    transforms = [transform_stamped(header(CAMERA_FRAME), name, vehicle_from_sensor(getattr(sensors, name).pose))
-                  for name in SENSOR_FRAMES if getattr(sensors, name).enabled]
+    """/tf_static: camera -> each enabled sensor, whose frame_id is its section's name under sensors: (in
+    Sensors.enabled_poses' order); None with every sensor off."""
+    transforms = [transform_stamped(header(CAMERA_FRAME), name, vehicle_from_sensor(pose))
+                  for name, pose in sensors.enabled_poses().items()]
     return {"transforms": transforms} if transforms else None
