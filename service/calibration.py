@@ -246,8 +246,8 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
     open_water = data.open_pixels >= fit.MIN_BIN_PIXELS
     clipped = work.saturated_share > SATURATED_SHARE_MAX
     at_bound = (best.B_inf <= 0.0) | (best.B_inf >= 1.0)
-    ok_inf = (best.B_inf_inside & (open_water | (ok_b & (not clipped))) & ~at_bound
-              & (sd_inf <= B_INF_SIGMA_MAX))
+    seen = open_water | (ok_b & (not clipped))  # (3,): in open water, or as an identified, unbiased asymptote
+    ok_inf = best.B_inf_inside & seen & ~at_bound & (sd_inf <= B_INF_SIGMA_MAX)
     notes = []
     for c, name in enumerate(CHANNELS):
         if not ok_d[c]:
@@ -259,7 +259,7 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
         if not ok_inf[c]:
             if at_bound[c]:
                 why = f"the fit clipped it to {0 if best.B_inf[c] <= 0.0 else 1}"
-            elif open_water or (ok_b[c] and not clipped):
+            elif seen[c]:
                 why = f"its sigma is over {B_INF_SIGMA_MAX} or its profile leaves the grid"
             else:
                 why = ("no open water, and the backscatter's asymptote is not identified"
