@@ -23,7 +23,9 @@ import numpy as np
 from bench.accuracy import EXAMPLE, psnr_db, write_results
 from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
-WIDTH, HEIGHT = 160, 120
+# The table's frame size: the references at 320x240 are converged past every row's error, and seasynth's fixed
+# cost per frame no longer dominates its time (at 160x120: bench/results/cpu/fidelity-resolution/160x120/).
+WIDTH, HEIGHT = 320, 240
 # Block PSNR: linear radiance averaged over BLOCK x BLOCK pixels, then 8-bit sRGB. A path-traced reference of
 # multiply scattered lamp light converges slowly per pixel (its noise floor stays near 26 dB at 1.4e5 samples a pixel
 # in turbid water), while its 8 x 8 block means are converged far beyond what is scored: the light model's error at

@@ -102,7 +102,7 @@ def test_the_path_tracers_cost_is_a_fixed_part_and_a_part_per_sample():
         fit_cost(64, 1.0, 64, 2.0)
 
 
-@pytest.mark.parametrize(("size", "names"), [((320, 240), None), ((640, 480), ("clear-lamps",))])
+@pytest.mark.parametrize(("size", "names"), [((160, 120), None), ((640, 480), ("clear-lamps",))])
 def test_the_stored_references_at_other_sizes_are_of_the_scenes_and_tables_committed(tmp_path, size, names):
     import json
     from pathlib import Path
@@ -130,3 +130,25 @@ def test_the_stored_references_at_other_sizes_are_of_the_scenes_and_tables_commi
             rel=0.01, abs=0.1)
         assert r["speedup_equal_error"] * r["ms_per_frame"] / 1e3 == pytest.approx(r["path_tracer_equal_error_s"],
                                                                                   rel=0.01, abs=0.06)
+
+
+def test_references_rendered_apart_merge_by_name_into_one_folder_even_in_place(tmp_path):
+    from bench.reference_merge import main, merge_folders
+
+    for folder, value, spp, seed in (("stored", 1.0, 100, 0), ("gpu0", 4.0, 300, 1), ("gpu1", 2.0, 100, 2)):
+        (tmp_path / folder).mkdir()
+        save_reference(ref(value, spp, [seed]), tmp_path / folder / "turbid.ref.npz")
+    save_reference(ref(7.0, 10, [5], digest="other"), tmp_path / "gpu1" / "clear.ref.npz")
+    main([str(tmp_path / "stored"), *(str(tmp_path / f) for f in ("stored", "gpu0", "gpu1"))])
+    back = load_reference(tmp_path / "stored" / "turbid.ref.npz")
+    assert back.spp == 500 and back.seed_bases == (0, 1, 2) and back.seconds == 6.0
+    np.testing.assert_allclose(back.halves[0], (100 * 1.0 + 300 * 4.0 + 100 * 2.0) / 500)
+    assert load_reference(tmp_path / "stored" / "clear.ref.npz").spp == 10  # a name in one folder only is copied
+    assert sorted(p.name for p in (tmp_path / "stored").iterdir()) == ["clear.ref.npz", "turbid.ref.npz"]
+    # A render that reuses a seed base is refused naming its file, and nothing is written.
+    save_reference(ref(9.0, 100, [1]), tmp_path / "gpu1" / "turbid.ref.npz")
+    with pytest.raises(ValueError, match="gpu1/turbid.ref.npz: merge: both used seed bases"):
+        merge_folders(tmp_path / "merged", [tmp_path / "gpu0", tmp_path / "gpu1"])
+    assert not (tmp_path / "merged").exists()
+    with pytest.raises(SystemExit, match="not a folder"):
+        main([str(tmp_path / "x"), str(tmp_path / "missing")])

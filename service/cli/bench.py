@@ -147,8 +147,8 @@ def bench_fidelity(
     repeats: Annotated[int, typer.Option("--repeats", min=1)] = 5,
     machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
     resolution: Annotated[str, typer.Option("--resolution", help="WIDTHxHEIGHT of the frames and references "
-                                            "(other than the table's 160x120: references NAME-WxH.ref.npz).")]
-    = "160x120",
+                                            "(other than the table's 320x240: references NAME-WxH.ref.npz).")]
+    = "320x240",
     gl: PlatformOpt = "egl",
 ) -> None:
     """seasynth's frames against a volumetric path tracer of the same scene: PSNR, MAE, time, per term."""
