@@ -262,6 +262,20 @@ def test_missing_packages_are_named_with_the_install_command(datasets, tmp_path,
         plan_export(datasets["plain"], "mcap", FRACTIONS)
 
 
+def test_a_writer_without_the_channel_table_is_refused_before_any_work(datasets, tmp_path, monkeypatch):
+    """Channels are registered with their QoS through mcap_ros2's Writer's channel table: a version without it is
+    refused up front (naming the install command), not written without QoS."""
+    import mcap_ros2.writer
+
+    class Other:
+        def __init__(self, output):
+            self._writer = object()
+
+    monkeypatch.setattr(mcap_ros2.writer, "Writer", Other)
+    with pytest.raises(ExportError, match=r"no channel table .* pip install -e '\.\[export\]'"):
+        plan_export(datasets["plain"], "mcap", FRACTIONS)
+
+
 def test_cli_exports_mcap(datasets, tmp_path):
     r = seasynth("export", datasets["plain"], "--format", "mcap", "--out", tmp_path / "cli", "--split", "0.5,0.25,0.25")
     assert r.returncode == 0, r.stderr

@@ -186,3 +186,21 @@ def test_every_sensor_message_equals_the_dataset_files(survey):
         assert list(imu.orientation_covariance) == [-1.0] + [0.0] * 8
         assert list(imu.angular_velocity_covariance) == list(np.diag([1e-4**2] * 3).ravel())
         assert list(imu.linear_acceleration_covariance) == list(np.diag([1e-3**2] * 3).ravel())
+
+
+def test_every_channel_offers_its_qos_and_tf_static_is_latched(survey):
+    """rosbag2 plays each topic with the channel's offered_qos_profiles: /tf_static must be transient local (a
+    listener joining after its one message still gets it), the others volatile, all reliable."""
+    import yaml
+
+    _, _, messages, _ = survey
+    with open(survey[1].parent / "out" / "train.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    channels = {c.topic: c for c in summary.channels.values()}
+    assert set(channels) == {t for t, *_ in messages}
+    assert {"/tf_static", "/tf", "/camera/image/compressed", *SENSOR_TOPICS} <= set(channels)
+    for topic, channel in channels.items():
+        (qos,) = yaml.safe_load(channel.metadata["offered_qos_profiles"])
+        assert qos["reliability"] == 1 and qos["history"] == 3, topic  # reliable; history as rosbag2 records it
+        assert qos["durability"] == (1 if topic == "/tf_static" else 2), topic  # transient local / volatile
+        assert qos["deadline"] == {"sec": 9223372036, "nsec": 854775807}, topic  # rmw's infinite duration

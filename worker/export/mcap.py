@@ -29,7 +29,8 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i 
   /fls/..., /sss/..., /dvl/twist, /pressure, /imu: the sonar and navigation sensors the spec switches on
   (worker.export.mcap_sensors lists them)
 
-Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
+Each channel carries the ROS 2 profile's offered_qos_profiles (offered_qos): reliable, and /tf_static transient
+local, so `ros2 bag play` latches it as a static broadcaster does. Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
 frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate (the survey's
 rate_hz, or FRAME_RATE_HZ), the stamp rule, the split, the categories (a JSON list of class names, the target's
 then "distractor" with --distractors) and the dataset's seed, spec digest and code version. The same
@@ -39,6 +40,7 @@ dataset exports to the same bytes (with the same mcap and mcap-ros2-support vers
 from __future__ import annotations
 
 import json
+from io import BytesIO
 import os
 from pathlib import Path
 from typing import Any
@@ -128,6 +130,22 @@ TOPICS = {
 }
 
 
+# The ROS 2 profile's channel metadata: offered_qos_profiles, a YAML list of the QoS the topic was offered with, as
+# rosbag2 writes it (rmw enums as integers; infinite durations as rmw's). `ros2 bag play` offers each topic with it:
+# /tf_static must be transient-local (latched), or a listener that subscribes after its one message never gets it.
+_QOS = ("- history: 3\n  depth: 0\n  reliability: 1\n  durability: {durability}\n"
+        "  deadline:\n    sec: 9223372036\n    nsec: 854775807\n"
+        "  lifespan:\n    sec: 9223372036\n    nsec: 854775807\n  liveliness: 1\n"
+        "  liveliness_lease_duration:\n    sec: 9223372036\n    nsec: 854775807\n"
+        "  avoid_ros_namespace_conventions: false")
+TRANSIENT_LOCAL, VOLATILE = 1, 2  # rmw_qos_durability_policy_e
+
+
+def offered_qos(topic: str) -> dict[str, str]:
+    """A channel's metadata: reliable, latched (transient local) for /tf_static, volatile for every other topic."""
+    return {"offered_qos_profiles": _QOS.format(durability=TRANSIENT_LOCAL if topic == TF_STATIC_TOPIC else VOLATILE)}
+
+
 def stamp_ns(index: int, trajectory: Trajectory) -> int:
     """Frame `index`'s time in ns: round(index * 1e9 / rate_hz) on a survey (the time worker.trajectory flies it at),
     index / FRAME_RATE_HZ s exactly for independent `random` frames."""
@@ -162,7 +180,20 @@ def _require_mcap() -> Any:
     except ImportError as err:
         raise ExportError(f"the mcap format needs the packages mcap and mcap-ros2-support ({err}); install them "
                           f"with: {INSTALL_HINT}") from None
+    with BytesIO() as probe:  # the channel table _write fills (see _channel): refuse a writer without it up front
+        w = Writer(probe)
+        if not (hasattr(w, "_writer") and isinstance(getattr(w, "_channel_ids", None), dict)):
+            raise ExportError("the mcap format: this mcap-ros2-support's Writer has no channel table to register "
+                              f"channels with their QoS; install a supported one with: {INSTALL_HINT}")
     return Writer
+
+
+def _channel(bag: Any, topic: str, schema: Any) -> None:
+    """Register topic's channel with its offered_qos_profiles before its first message: mcap_ros2's Writer would
+    register it on that message with no metadata (its writer and topic -> channel table: mcap-ros2-support 0.5-0.6,
+    checked by _require_mcap)."""
+    bag._channel_ids[topic] = bag._writer.register_channel(topic=topic, message_encoding="cdr", schema_id=schema.id,
+                                                           metadata=offered_qos(topic))
 
 
 class McapExporter:
@@ -206,6 +237,7 @@ class McapExporter:
         schemas = self._schemas[split]
         if topic not in schemas:
             schemas[topic] = self._bags[split].register_msgdef(TOPICS[topic], msgdef(TOPICS[topic]))
+            _channel(self._bags[split], topic, schemas[topic])
         self._bags[split].write_message(topic, schemas[topic], message, log_time=ns, publish_time=ns,
                                         sequence=sequence)
 
