@@ -209,29 +209,20 @@ _AB_NOTE = ("not identified: absorption and scattering are not separable from be
             "(B_inf also carries the unknown illumination); nearest_jerlov names a type whose a, b fit the betas")
 
 
-def _fit(data: fit.RangeData, prior: str | None) -> tuple[fit.RangeFit, str]:
-    """Stage 1 (free, or under the prior) then stage 2; the Jerlov type chosen under the prior, else ""."""
-    if prior is None:
-        first, name = fit.fit_range(data), ""
-    else:
-        first, name = refine.fit_range_family(data, {t: jerlov_beta(t) for t in JERLOV_TYPES})
-    return refine.refine_beta_D(data, first), name
-
-
 def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
                 prior: str | None) -> WaterEstimate:
     data = work.range_data()
     if data.bins < fit.MIN_BINS:
         raise CalibrationError(f"range_m: only {data.finite_pixels} pixels have a usable finite range, in "
                                f"{data.bins} bins; need {fit.MIN_BINS} bins of {fit.MIN_BIN_PIXELS} pixels")
-    best, family_type = _fit(data, prior)
-    samples = [_fit(work.range_data(work.resample(rng)), prior)[0] for _ in range(reps)]
+    best, family_type = refine.fit_two_stage(data, prior)
+    samples = [refine.fit_two_stage(work.range_data(work.resample(rng)), prior)[0] for _ in range(reps)]
     bd = np.array([s.beta_D for s in samples])  # (reps, 3)
     bb = np.array([s.beta_B for s in samples])
     binf = np.array([s.B_inf for s in samples])
     sd = lambda a: np.std(a, axis=0, ddof=1)  # noqa: E731
-    jk_d, jk_b = _range_jackknife(data, prior)
-    dr_d, dr_b = _drift_sensitivity(data, prior, best)
+    jk_d, jk_b = refine.range_jackknife(data, prior)
+    dr_d, dr_b = refine.drift_sensitivity(data, prior, best)
     # sigma: the largest of the tile bootstrap's spread, the fit's own profile width (which sees degeneracy), the
     # range jackknife's spread (which sees J's statistics changing with range, the prior's failure) and the drift
     # sensitivity (how far a drift of J's mean with range that the data cannot rule out moves the fit).
@@ -295,31 +286,6 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
         bootstrap=reps,
         seed=seed,
     )
-
-
-JACKKNIFE_BLOCKS = 4  # the range jackknife leaves out each quarter of the range bins (contiguous in range) in turn
-
-
-def _range_jackknife(data: fit.RangeData, prior: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """Jackknife sigma (3,) of beta_D and beta_B over JACKKNIFE_BLOCKS contiguous blocks of range bins: fits that
-    disagree when one range interval is left out show that J's statistics change with range (the prior fails)."""
-    block = np.arange(data.bins) * JACKKNIFE_BLOCKS // data.bins
-    fits = [_fit(data.keep_bins(block != b), prior)[0] for b in range(JACKKNIFE_BLOCKS)]
-    n = JACKKNIFE_BLOCKS
-    jk = lambda a: np.sqrt((n - 1) / n * ((a - a.mean(axis=0)) ** 2).sum(axis=0))  # noqa: E731
-    return jk(np.array([f.beta_D for f in fits])), jk(np.array([f.beta_B for f in fits]))
-
-
-DRIFT_BOUND = 0.1  # the drift sensitivity refits as if J's mean changed by +-10% from the near to the far end
-
-
-def _drift_sensitivity(data: fit.RangeData, prior: str | None, best: fit.RangeFit) -> tuple[np.ndarray, np.ndarray]:
-    """(3,) each: the largest change of beta_D and beta_B when the fit assumes that J's mean grows or falls by
-    DRIFT_BOUND (log-linear in ln z) across the range instead of staying constant. Where the backscatter or the
-    attenuation is small beside such a drift, the data cannot tell them apart, and this says by how much."""
-    fits = [_fit(data.with_drift(sign * np.log1p(DRIFT_BOUND)), prior)[0] for sign in (-1.0, 1.0)]
-    return (np.max([np.abs(f.beta_D - best.beta_D) for f in fits], axis=0),
-            np.max([np.abs(f.beta_B - best.beta_B) for f in fits], axis=0))
 
 
 def _ratios(best: np.ndarray, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

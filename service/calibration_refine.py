@@ -1,5 +1,6 @@
-"""Second-stage fits behind service.calibration: beta_D refined with the backscatter taken off, and the first stage
-under a stated Jerlov-family prior. Free functions on service.calibration_fit's records."""
+"""Second-stage fits behind service.calibration: beta_D refined with the backscatter taken off, the first stage under
+a stated Jerlov-family prior, the two stages together, and the refits that size their uncertainty (a range jackknife
+and a drift sensitivity). Free functions on service.calibration_fit's records."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from service.calibration_fit import (
     fit_range,
     grid_sse,
 )
+from service.water import JERLOV_TYPES, jerlov_beta
 
 
 PRIOR_SCALE = np.geomspace(0.25, 4.0, 97)  # family prior: beta_D = s * a member's beta, s on this grid (3% steps)
@@ -108,3 +110,37 @@ def refine_beta_D(data: RangeData, rf: RangeFit) -> RangeFit:
         bd[c] = fine[int(np.argmin(((r - r.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)))]
     return RangeFit(bd, rf.beta_B, rf.B_inf, rf.beta_D_sigma, rf.beta_B_sigma, inside, rf.beta_B_inside,
                     rf.B_inf_inside)
+
+
+def fit_two_stage(data: RangeData, prior: str | None) -> tuple[RangeFit, str]:
+    """Stage 1 (free, or under the prior) then stage 2; the Jerlov type chosen under the prior, else ""."""
+    if prior is None:
+        first, name = fit_range(data), ""
+    else:
+        first, name = fit_range_family(data, {t: jerlov_beta(t) for t in JERLOV_TYPES})
+    return refine_beta_D(data, first), name
+
+
+JACKKNIFE_BLOCKS = 4  # the range jackknife leaves out each quarter of the range bins (contiguous in range) in turn
+
+
+def range_jackknife(data: RangeData, prior: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """Jackknife sigma (3,) of beta_D and beta_B over JACKKNIFE_BLOCKS contiguous blocks of range bins: fits that
+    disagree when one range interval is left out show that J's statistics change with range (the prior fails)."""
+    block = np.arange(data.bins) * JACKKNIFE_BLOCKS // data.bins
+    fits = [fit_two_stage(data.keep_bins(block != b), prior)[0] for b in range(JACKKNIFE_BLOCKS)]
+    n = JACKKNIFE_BLOCKS
+    jk = lambda a: np.sqrt((n - 1) / n * ((a - a.mean(axis=0)) ** 2).sum(axis=0))  # noqa: E731
+    return jk(np.array([f.beta_D for f in fits])), jk(np.array([f.beta_B for f in fits]))
+
+
+DRIFT_BOUND = 0.1  # the drift sensitivity refits as if J's mean changed by +-10% from the near to the far end
+
+
+def drift_sensitivity(data: RangeData, prior: str | None, best: RangeFit) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) each: the largest change of beta_D and beta_B when the fit assumes that J's mean grows or falls by
+    DRIFT_BOUND (log-linear in ln z) across the range instead of staying constant. Where the backscatter or the
+    attenuation is small beside such a drift, the data cannot tell them apart, and this says by how much."""
+    fits = [fit_two_stage(data.with_drift(sign * np.log1p(DRIFT_BOUND)), prior)[0] for sign in (-1.0, 1.0)]
+    return (np.max([np.abs(f.beta_D - best.beta_D) for f in fits], axis=0),
+            np.max([np.abs(f.beta_B - best.beta_B) for f in fits], axis=0))
