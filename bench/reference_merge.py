@@ -34,8 +34,11 @@ def merge_folders(out: Path, folders: list[Path]) -> dict[str, Reference]:
     for name, ref in merged.items():
         target = out / f"{name}{REF_SUFFIX}"
         tmp = target.with_name(target.name + ".tmp.npz")
-        save_reference(ref, tmp)
-        tmp.replace(target)
+        try:
+            save_reference(ref, tmp)
+            tmp.replace(target)
+        finally:
+            tmp.unlink(missing_ok=True)
     return merged
 
 

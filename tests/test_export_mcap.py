@@ -262,7 +262,7 @@ def test_missing_packages_are_named_with_the_install_command(datasets, tmp_path,
         plan_export(datasets["plain"], "mcap", FRACTIONS)
 
 
-def test_a_writer_without_the_channel_table_is_refused_before_any_work(datasets, tmp_path, monkeypatch):
+def test_a_writer_without_the_channel_table_is_refused_before_any_work(datasets, monkeypatch):
     """Channels are registered with their QoS through mcap_ros2's Writer's channel table: a version without it is
     refused up front (naming the install command), not written without QoS."""
     import mcap_ros2.writer

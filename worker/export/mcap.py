@@ -30,8 +30,9 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i 
   (worker.export.mcap_sensors lists them)
 
 Each channel carries the ROS 2 profile's offered_qos_profiles (offered_qos): reliable, and /tf_static transient
-local, so `ros2 bag play` latches it as a static broadcaster does. Header frame_id is "camera" (tf's is "world"): KITTI's camera axes (x right, y down, z forward) are ROS's optical
-frame convention, so "camera" is an optical frame. A metadata record "seasynth" gives the frame rate (the survey's
+local, so `ros2 bag play` latches it as a static broadcaster does. Header frame_id is "camera" (tf's is "world"):
+KITTI's camera axes (x right, y down, z forward) are ROS's optical frame convention, so "camera" is an optical
+frame. A metadata record "seasynth" gives the frame rate (the survey's
 rate_hz, or FRAME_RATE_HZ), the stamp rule, the split, the categories (a JSON list of class names, the target's
 then "distractor" with --distractors) and the dataset's seed, spec digest and code version. The same
 dataset exports to the same bytes (with the same mcap and mcap-ros2-support versions, which the file's header names).
@@ -40,8 +41,8 @@ dataset exports to the same bytes (with the same mcap and mcap-ros2-support vers
 from __future__ import annotations
 
 import json
-from io import BytesIO
 import os
+from io import BytesIO
 from pathlib import Path
 from typing import Any
 
