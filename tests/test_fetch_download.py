@@ -17,7 +17,8 @@ import httpx
 import pytest
 
 from service.errors import Unavailable
-from service.fetch import STATE_DIR, _download_all, _fetch, fetch_shard, get_manifest_page
+from service.fetch import STATE_DIR, _download_all, _fetch, fetch_shard
+from service.fetch_manifest import get_manifest_page
 
 
 class Store(http.server.ThreadingHTTPServer):
