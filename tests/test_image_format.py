@@ -83,15 +83,17 @@ def test_exports_carry_the_jpeg_files(datasets):
         assert exported.read_bytes() == (datasets["jpeg"] / "image_2" / exported.name).read_bytes()
     assert len(list((root / "yolo/images").rglob("*.jpg"))) == 4
 
-    from mcap_ros2.reader import read_ros2_messages
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
 
     formats, frames = set(), 0
     for bag in sorted((root / "mcap").glob("*.mcap")):
-        for m in read_ros2_messages(str(bag), topics=["/camera/image/compressed"]):
-            formats.add(m.ros_msg.format)
-            frames += 1
-            assert bytes(m.ros_msg.data) in {(datasets["jpeg"] / f"image_2/{i:06d}.jpg").read_bytes()
-                                             for i in range(4)}
+        with open(bag, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            for _, _, _, msg in reader.iter_decoded_messages(topics=["/camera/image/compressed"]):
+                formats.add(msg.format)
+                frames += 1
+                assert bytes(msg.data) in {(datasets["jpeg"] / f"image_2/{i:06d}.jpg").read_bytes() for i in range(4)}
     assert formats == {"jpeg"} and frames == 4
 
 
