@@ -94,3 +94,24 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
                 abs=0.02), (name, r["terms"])
         assert all(f"| {name} | {r['water']} | {r['light']} | {r['depth_m']} | {r['preset']} | {r['terms']} | "
                    f"{r['psnr_db']} |" in table for r in mine)
+
+
+@pytest.mark.parametrize("machine", ["cpu", "gpu"])
+def test_committed_scale_tables_have_every_column_and_count_every_frame(machine):
+    """bench/results/{cpu,gpu}/scale: rows through the CLI and the service, each with the columns the README quotes;
+    a row's rates follow from its frames and seconds, a service row stored every frame, and the table opens with the
+    JSON's rows."""
+    from bench import scale
+
+    result = json.loads((RESULTS / machine / "scale.json").read_text())
+    keys = {"mode", "width", "height", "preset", "workers", "gpus", "frames", "wall_fps", "steady_fps", "gpu_util",
+            "cpu_util", "first_frame_s", "wall_s"}
+    rows = result["rows"]
+    assert {r["mode"] for r in rows} == {"cli", "service"} and all(keys <= set(r) for r in rows)
+    for r in rows:
+        assert r["wall_fps"] == pytest.approx(r["frames"] / r["wall_s"], rel=0.01), r
+        assert 0 < r["first_frame_s"] < r["wall_s"] and r["steady_fps"] > 0, r
+        if r["mode"] == "service":
+            assert r["frames_stored"] == r["frames"], r
+    assert (RESULTS / machine / "scale.md").read_text().startswith(scale.format_table(result) + "\n")  # notes may follow
+    assert (machine == "gpu") == all(r["gpus"] >= 1 for r in rows)  # the CPU table renders without a GPU
