@@ -113,5 +113,6 @@ def test_committed_scale_tables_have_every_column_and_count_every_frame(machine)
         assert 0 < r["first_frame_s"] < r["wall_s"] and r["steady_fps"] > 0, r
         if r["mode"] == "service":
             assert r["frames_stored"] == r["frames"], r
-    assert (RESULTS / machine / "scale.md").read_text().startswith(scale.format_table(result) + "\n")  # notes may follow
+    table = (RESULTS / machine / "scale.md").read_text()
+    assert table.startswith(scale.format_table(result) + "\n")  # notes may follow the table
     assert (machine == "gpu") == all(r["gpus"] >= 1 for r in rows)  # the CPU table renders without a GPU
