@@ -140,10 +140,11 @@ def with_overrides(spec: DatasetSpec, overrides: dict, frames: int) -> DatasetSp
     return DatasetSpec.model_validate(apply_overrides(spec.model_dump(mode="json"), {**overrides, "frames": frames}))
 
 
-def run(spec_path: Path, *, frames: int, width: int, height: int, out: Path | None, platform: str) -> dict:
+def run(spec_path: Path, *, frames: int, width: int, height: int, out: Path | None, platform: str,
+        preset: str = "default") -> dict:
     from worker.pipeline import RenderSession
 
-    base = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": "default"})
+    base = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": preset})
     spec = base.model_copy(update={"frames": frames})
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -176,7 +177,7 @@ def run(spec_path: Path, *, frames: int, width: int, height: int, out: Path | No
         "gl_renderer": renderer_name,
         "spec": str(spec_path),
         "resolution": [width, height],
-        "preset": "default",
+        "preset": preset,
         "triangles_median": triangles,
         "stage_median_ms": {k: round(v * 1e3, 2) for k, v in stages.items()},
         "generate_ms_per_frame": round(per_frame * 1e3, 2),

@@ -116,3 +116,18 @@ def test_committed_scale_tables_have_every_column_and_count_every_frame(machine)
     table = (RESULTS / machine / "scale.md").read_text()
     assert table.startswith(scale.format_table(result) + "\n")  # notes may follow the table
     assert (machine == "gpu") == all(r["gpus"] >= 1 for r in rows)  # the CPU table renders without a GPU
+
+
+def test_committed_preset_throughput_puts_defaults_extra_time_in_the_render():
+    """bench/results/cpu/throughput-presets: the same example, size and machine at `draft` and `default`; what the
+    README says of them holds: the render stage is where `default` spends its extra time."""
+    runs = {p: json.loads((RESULTS / "cpu" / "throughput-presets" / p / "throughput.json").read_text())
+            for p in ("draft", "default")}
+    assert {p: r["preset"] for p, r in runs.items()} == {"draft": "draft", "default": "default"}
+    assert runs["draft"]["resolution"] == runs["default"]["resolution"] == [640, 480]
+    assert runs["draft"]["spec"] == runs["default"]["spec"] and runs["draft"]["machine"] == runs["default"]["machine"]
+    extra = {k: runs["default"]["stage_median_ms"][k] - v for k, v in runs["draft"]["stage_median_ms"].items()}
+    assert max(extra, key=extra.get) == "render" and extra["render"] > sum(v for k, v in extra.items() if k != "render")
+    for p, r in runs.items():
+        assert r["ratio_generate_to_stock_render"] == pytest.approx(
+            r["generate_ms_per_frame"] / r["stock_pyrender_render_ms"], abs=0.002), p

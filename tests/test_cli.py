@@ -35,8 +35,11 @@ def seasynth(*args: str | Path, cwd: Path | None = None) -> subprocess.Completed
         (("generate", EXAMPLE, "--out", "OUT", "--bogus"), "Usage: ", "Error: No such option: --bogus"),
         (("generate", EXAMPLE), "Usage: ", "Error: Missing option '--out'"),
         (("reproduce", EXAMPLE, "--out", "OUT"), "Usage: ", "Error: Missing option '--frame'"),
+        (("bench", "throughput", "--preset", "ultra", "--out", "OUT"), "Usage: ",
+         "Invalid value for '--preset': 'ultra': give one of draft, fast, default, high"),
     ],
-    ids=["no-args", "workers-0", "workers-word", "unknown-option", "missing-out", "missing-frame"],
+    ids=["no-args", "workers-0", "workers-word", "unknown-option", "missing-out", "missing-frame",
+         "throughput-preset"],
 )
 def test_usage_errors_exit_2_with_usage_and_no_traceback(tmp_path, args, usage, error):
     r = seasynth(*args, cwd=tmp_path)

@@ -17,12 +17,16 @@ def bench_throughput(
     width: Annotated[int, typer.Option("--width")] = 640,
     height: Annotated[int, typer.Option("--height")] = 480,
     out: Annotated[Optional[Path], typer.Option("--out", help="Also write the table and JSON here.")] = None,
+    preset: Annotated[str, typer.Option("--preset", help="Quality preset of every frame timed.")] = "default",
     gl: PlatformOpt = "egl",
 ) -> None:
     """Per-stage times, steady-state seconds per frame, and the ratio to stock pyrender, in one run."""
     from bench.throughput import run
+    from worker.pipeline import PRESETS
 
-    run(spec, frames=frames, width=width, height=height, out=out, platform=gl)
+    if preset not in PRESETS:
+        raise typer.BadParameter(f"{preset!r}: give one of {', '.join(PRESETS)}", param_hint="'--preset'")
+    run(spec, frames=frames, width=width, height=height, out=out, platform=gl, preset=preset)
 
 
 @bench_app.command("playground")
