@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Optional, get_args
 
 import typer
 
@@ -22,10 +22,10 @@ def bench_throughput(
 ) -> None:
     """Per-stage times, steady-state seconds per frame, and the ratio to stock pyrender, in one run."""
     from bench.throughput import run
-    from worker.pipeline import PRESETS
+    from service.spec import Quality
 
-    if preset not in PRESETS:
-        raise typer.BadParameter(f"{preset!r}: give one of {', '.join(PRESETS)}", param_hint="'--preset'")
+    if preset not in get_args(Quality):
+        raise typer.BadParameter(f"{preset!r}: give one of {', '.join(get_args(Quality))}", param_hint="'--preset'")
     run(spec, frames=frames, width=width, height=height, out=out, platform=gl, preset=preset)
 
 
