@@ -21,6 +21,7 @@ import hashlib
 import json
 import time
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -136,7 +137,7 @@ def budget_spp(scene: PTScene, seconds: float, variant: str, lamp_housing_m: flo
     return per_call * max(1, calls)
 
 
-def save_reference(ref: Reference, path: Path) -> None:
+def save_reference(ref: Reference, path: Path | BinaryIO) -> None:
     meta = {"spp": ref.spp, "variant": ref.variant, "seconds": ref.seconds, "host": ref.host,
             "scene_sha256": ref.scene_sha256, "seed_bases": list(ref.seed_bases), "lamp_housing_m": ref.lamp_housing_m}
     np.savez_compressed(path, half0=ref.halves[0], half1=ref.halves[1], meta=np.array(json.dumps(meta)))

@@ -4,7 +4,7 @@
 
 Every NAME.ref.npz found in the IN folders is merged (bench.reference.merge: same scene digest and lamp housing,
 distinct seed bases, halves weighted by their samples) into OUT/NAME.ref.npz. OUT may be one of the INs: a stored
-reference grows in place. Needs numpy only.
+reference grows in place. Needs numpy (and the standard library) only.
 """
 
 from __future__ import annotations
@@ -14,11 +14,14 @@ import json
 from pathlib import Path
 
 from bench.reference import REF_SUFFIX, Reference, load_reference, merge, save_reference
+from service.errors import OutputError
+from service.files import atomic_path
 
 
 def merge_folders(out: Path, folders: list[Path]) -> dict[str, Reference]:
     """The merged reference of each name found in `folders` (in the order given, files sorted by name), written
-    to `out`. Raises ValueError naming the file that cannot be merged; nothing is written then."""
+    to `out`. Raises ValueError naming the file that cannot be merged (nothing is written then), OutputError naming
+    a file that cannot be written."""
     merged: dict[str, Reference] = {}
     for folder in folders:
         if not folder.is_dir():
@@ -31,14 +34,9 @@ def merge_folders(out: Path, folders: list[Path]) -> dict[str, Reference]:
             except ValueError as exc:
                 raise ValueError(f"{path}: {exc}") from None
     out.mkdir(parents=True, exist_ok=True)
-    for name, ref in merged.items():
-        target = out / f"{name}{REF_SUFFIX}"
-        tmp = target.with_name(target.name + ".tmp.npz")
-        try:
-            save_reference(ref, tmp)
-            tmp.replace(target)
-        finally:
-            tmp.unlink(missing_ok=True)
+    for name, ref in merged.items():  # each file whole, or not at all (service.files: stdlib only)
+        with atomic_path(out / f"{name}{REF_SUFFIX}") as tmp, open(tmp, "wb") as f:
+            save_reference(ref, f)
     return merged
 
 
@@ -49,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     try:
         merged = merge_folders(args.out, args.inputs)
-    except ValueError as exc:
+    except (ValueError, OutputError) as exc:
         raise SystemExit(str(exc)) from None
     for name, ref in merged.items():
         print(json.dumps({"config": name, "spp": ref.spp, "seconds": round(ref.seconds, 1),
