@@ -27,7 +27,8 @@ BETA_REL_SIGMA_MAX = 0.5
 B_INF_SIGMA_MAX = 0.02
 SATURATED_SHARE_MAX = 0.01  # of the ranged pixels: above it, B_inf needs open water (see _with_range)
 
-PRIORS = (None, "jerlov")
+PRIORS = ("jerlov", "none")  # with range; None: DEFAULT_PRIOR with range, none without (that method has its own)
+DEFAULT_PRIOR = "jerlov"
 METHOD_RANGE = (
     "range: pixels binned by range (16 equal-count bins; pixels on range edges left out); stage 1: each bin split "
     "per channel into 2 equal-count groups (darker and brighter half by their 8 neighbours' mean); each group's mean "
@@ -42,8 +43,12 @@ METHOD_RANGE = (
     "10% from the nearest to the farthest range); a beta is identified when its sigma is at most half its value and its profile "
     "interval is inside the grid"
 )
-METHOD_JERLOV = ("; prior jerlov: in stage 1, beta_D = s * jerlov_beta(type) for one Jerlov type and one scale s in "
-                 "[0.25, 4] shared by the channels (stage 2 then refits beta_D per channel freely)")
+METHOD_JERLOV = ("; prior jerlov (the default with range): in stage 1, beta_D = s * jerlov_beta(type) for one Jerlov "
+                 "type and one scale s in [0.25, 4], and beta_B = r * beta_D for one ratio r in [0.5, 2], both shared "
+                 "by the channels (the water the generator renders: a type, a jitter, one backscatter_ratio); stage 2 "
+                 "then refits beta_D per channel freely; where the photo rejects the prior (its SSE, scaled by each "
+                 "channel's free-fit residual variance, above the free fit's by more than chi-square(4)'s 0.1% point, "
+                 "18.5) stage 1 is the free fit")
 METHOD_NO_RANGE = (
     "no range: B_inf is the median colour of the flattest 5% of image tiles (prior: open water is the flattest "
     "region); beta_B ratios to green from each tile's darkest pixels, -ln(1 - I_c / B_inf_c) per channel (prior: "
@@ -165,8 +170,10 @@ def estimate_water(
     out (saturated). range_m: (h, w) float, metres along the line of sight (not z-depth); +inf marks open water
     (no surface: the pixel shows B_inf); NaN, 0 and negatives mark no measurement. None: estimate without range.
     seed: the bootstrap's generator seed (same inputs and seed, same estimate). bootstrap: resamples of image tiles.
-    prior: None, or "jerlov" (with range only): stage 1 takes beta_D from the Jerlov family (a type times a scale);
-    more accurate on Jerlov waters, biased off the family (see the bench's off-family rows).
+    prior: "jerlov" (range only; the default with range): stage 1 takes beta_D from the Jerlov family (a type times a
+    scale) and beta_B as one ratio times beta_D, shared by the channels; more accurate on such water, biased off it
+    (see the bench's off-family rows). "none": stage 1 fits each channel's beta_D and beta_B freely. None: "jerlov"
+    with range; without range neither applies (that method states its own priors).
     Raises CalibrationError naming the input at fault (too small, too dark, no usable range or water).
     """
     img = _check_image(image_srgb8)
@@ -175,9 +182,9 @@ def estimate_water(
         raise CalibrationError(f"bootstrap: need an integer >= 2, got {bootstrap!r}")
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise CalibrationError(f"seed: need an integer >= 0, got {seed!r}")
-    if prior not in PRIORS:
-        raise CalibrationError(f"prior: need one of {PRIORS}, got {prior!r}")
-    if prior is not None and z is None:
+    if prior is not None and prior not in PRIORS:
+        raise CalibrationError(f"prior: need one of {PRIORS} (or None: the default), got {prior!r}")
+    if prior == "jerlov" and z is None:
         raise CalibrationError(f"prior: {prior!r} needs range_m (it constrains the range fit)")
     if not isinstance(max_pixels, (int, np.integer)) or max_pixels < MIN_SIDE * MIN_SIDE:
         raise CalibrationError(f"max_pixels: need an integer >= {MIN_SIDE * MIN_SIDE}, got {max_pixels!r}")
@@ -189,7 +196,8 @@ def estimate_water(
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xCA11]))
     if z is None:
         return _without_range(work, rng, bootstrap, seed)
-    return _with_range(work, rng, bootstrap, seed, prior)
+    chosen = DEFAULT_PRIOR if prior is None else prior
+    return _with_range(work, rng, bootstrap, seed, None if chosen == "none" else chosen)
 
 
 def _coefficient(name: str, unit: str, values: np.ndarray, sigmas: np.ndarray, ok: np.ndarray,
@@ -262,9 +270,13 @@ def _with_range(work: fit.Work, rng: np.random.Generator, reps: int, seed: int,
         notes.append(f"{work.saturated_share:.1%} of the pixels with range are saturated (a channel at 255) and left "
                      "out: the brightest surfaces are missing from the fit; expose so that under "
                      f"{SATURATED_SHARE_MAX:.0%} clip")
-    if prior is not None:
-        notes.append(f"prior {prior}: stage 1 chose Jerlov type {family_type or 'none'}; off the Jerlov family this "
-                     "prior biases the estimate")
+    if prior is not None and family_type:
+        notes.append(f"prior {prior}: stage 1 chose Jerlov type {family_type}; off the Jerlov family (or with a "
+                     "backscatter ratio that differs by channel) this prior biases the estimate; prior none fits each "
+                     "channel freely")
+    elif prior is not None:
+        notes.append(f"prior {prior}: not used: this photo rejects it (its fit is worse than each channel's free fit "
+                     "by more than chance allows), or no channel varies with range; stage 1 is the free fit")
     ratio_d, ratio_d_sd = _ratios(best.beta_D, bd)
     ratio_b, ratio_b_sd = _ratios(best.beta_B, bb)
     beta_D = _coefficient("beta_D", "1/m", best.beta_D, sd_d, ok_d)

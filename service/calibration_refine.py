@@ -1,6 +1,6 @@
-"""Second-stage fits behind service.calibration: beta_D refined with the backscatter taken off, the first stage under
-a stated Jerlov-family prior, the two stages together, and the refits that size their uncertainty (a range jackknife
-and a drift sensitivity). Free functions on service.calibration_fit's records."""
+"""Second-stage fits behind service.calibration: beta_D refined with the backscatter taken off, the two stages
+together (stage 1 free, or under the Jerlov-family prior of service.calibration_family), and the refits that size
+their uncertainty (a range jackknife and a drift sensitivity). Free functions on service.calibration_fit's records."""
 
 from __future__ import annotations
 
@@ -9,73 +9,13 @@ import numpy as np
 from service.calibration_fit import (
     BETA_GRID,
     FINE_POINTS,
-    FLAT_SPREAD,
-    GROUPS,
-    MIN_BIN_PIXELS,
     MIN_BINS,
     RangeData,
     RangeFit,
     fit_range,
-    grid_sse,
 )
+from service.calibration_family import fit_range_family
 from service.water import JERLOV_TYPES, jerlov_beta
-
-
-PRIOR_SCALE = np.geomspace(0.25, 4.0, 97)  # family prior: beta_D = s * a member's beta, s on this grid (3% steps)
-
-
-def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[RangeFit, str]:
-    """The first stage under a stated prior: beta_D = s * family[type] (one type and one scale s in PRIOR_SCALE for
-    all channels), beta_B_c / beta_D_c within calibration_fit.BACKSCATTER_PRIOR per channel. family: type name ->
-    (3,) beta, 1/m. Each channel's SSE is scaled by its own free fit's residual variance, so the channels weigh
-    alike. Returns the fit (sigma: the scale's profile width where the scaled SSE <= min + 4, the same relative sigma
-    for every channel) and the type ("" when no channel varies with range: then the free fit)."""
-    has_open = data.open_pixels >= MIN_BIN_PIXELS
-    rows = data.y[0].size
-    w2 = float(rows) if has_open else 0.0
-    ch = [c for c in range(3) if data.y[c].shape[1] > 0 and np.ptp(data.y[c]) >= FLAT_SPREAD]
-    if not ch:  # nothing varies with range: the free fit says so (not identified)
-        return fit_range(data), ""
-    free = {}
-    for c in ch:
-        y = data.y[c]
-        sse = grid_sse(y, data.h[c], data.z_nodes, BETA_GRID, BETA_GRID, float(data.open_mean[c]), w2, data.drift)[0]
-        low = float(sse.min())
-        free[c] = (low, max(low / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2))
-    # Per channel, every member's scaled grid in one least-squares pass (the backscatter's side of the fit is the
-    # same for all of them): (members, scales) each of beta_D, the best beta_B, its B_inf and the scaled excess SSE.
-    names, n = list(family), PRIOR_SCALE.size
-    rows = np.arange(len(names) * n)
-    per_channel = {}
-    for c in ch:
-        bd = np.concatenate([PRIOR_SCALE * family[name][c] for name in names])
-        sse, B = grid_sse(data.y[c], data.h[c], data.z_nodes, bd, BETA_GRID, float(data.open_mean[c]), w2, data.drift)
-        j = np.argmin(sse, axis=1)
-        per_channel[c] = tuple(a.reshape(len(names), n) for a in (
-            bd, BETA_GRID[j], B[rows, j], (sse[rows, j] - free[c][0]) / free[c][1]))
-    best = (np.inf, "", 0, None)
-    totals = {}
-    for m, name in enumerate(names):
-        total = np.zeros(n)
-        for c in ch:
-            total += per_channel[c][3][m]
-        totals[name] = total
-        k = int(np.argmin(total))
-        if total[k] < best[0]:
-            best = (float(total[k]), name, k, [(c, *(a[m] for a in per_channel[c][:3])) for c in ch])
-    score, name, k, per = best
-    bd, bb, binf = np.zeros(3), np.zeros(3), data.open_mean.astype(np.float64).copy()
-    for c, bdc, bbc, Bc in per:
-        bd[c], bb[c], binf[c] = bdc[k], bbc[k], Bc[k]
-    for c in set(range(3)) - set(ch):
-        bd[c] = PRIOR_SCALE[k] * family[name][c]
-        bb[c] = bd[c]
-    ok = np.flatnonzero(totals[name] <= score + 4.0)
-    rel = float(np.log(PRIOR_SCALE[ok[-1]] / PRIOR_SCALE[ok[0]]) / 4)
-    inside = bool(ok[0] > 0 and ok[-1] < PRIOR_SCALE.size - 1)
-    in_ch = np.isin(np.arange(3), ch)
-    return RangeFit(bd, bb, binf, rel * bd, rel * bb, in_ch & inside, in_ch & inside,
-                    np.full(3, has_open) | (in_ch & inside)), name
 
 
 REFINE_MIN_DIRECT = 0.004  # linear: a bin whose direct signal (mean minus backscatter) is below this is left out

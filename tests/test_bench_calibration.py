@@ -17,15 +17,15 @@ def test_bench_rows_summary_and_files_on_a_tiny_run(tmp_path):
     result = calibration.run(tmp_path, scenes=["seabed-forward"], waters=["3C"], frames=1, width=96, height=72,
                              machine="test")
     rows = result["rows"]
-    # One frame, one water and its off-family copy: each noise level with range (with and without the prior) and
-    # without range.
+    # One frame, one water and its off-family copy: each noise level with range (the default, the Jerlov prior, and
+    # the free fit, prior "none") and without range.
     assert sorted((r["water"], r["noise"], r["with_range"], str(r["prior"])) for r in rows) == sorted(
         (w, n, wr, str(p)) for w in ("3C", "3C~") for n in calibration.NOISE
-        for wr, p in ((True, None), (True, "jerlov"), (False, None)))
+        for wr, p in ((True, None), (True, "none"), (False, None)))
     for r in rows:
         want = jerlov_beta("3C") if r["water"] == "3C" else calibration.water_beta("3C~")
         assert r["truth"]["beta_D"] == want.tolist()
-        assert r["truth"]["beta_B"] == (calibration.BACKSCATTER_RATIO * want).tolist()
+        assert r["truth"]["beta_B"] == (calibration.water_backscatter_ratio(r["water"]) * want).tolist()
         if r["with_range"]:
             # The frame shows open water: B_inf within the 0.02 target in every channel.
             assert all(e is not None and e <= calibration.TARGET_B_INF_ABS for e in r["errors"]["B_inf_abs"])
@@ -36,12 +36,12 @@ def test_bench_rows_summary_and_files_on_a_tiny_run(tmp_path):
         json.dumps(result))
     table = (tmp_path / "calibration.md").read_text()
     assert "| all | all | yes | all | B_inf |" in table and "| seabed-forward | all | no | all | beta_B ratio |" in table
-    assert "| all | 3C | yes | all | beta_D |" in table and "| all | all~ | yes+jerlov | all | beta_D |" in table
+    assert "| all | 3C | yes | all | beta_D |" in table and "| all | all~ | yes, free | all | beta_D |" in table
     assert "| all | 3C~ | yes | all | beta_D |" in table
     assert set(result["targets_met"]) == {f"{q} {c}" for q in ("B_inf", "beta_D", "beta_B") for c in "RGB"}
     assert all(result["targets_met"][f"B_inf {c}"] for c in "RGB")
-    assert set(result["targets_met_other"]) == {"default, off-family waters", "jerlov prior, Jerlov waters",
-                                                "jerlov prior, off-family waters"}
+    assert set(result["targets_met_other"]) == {"default, off-family waters", "free fit (prior none), Jerlov waters",
+                                                "free fit (prior none), off-family waters"}
     (clean,) = result["clean_frames"]
     assert (clean["scene"], clean["frame"]) == ("seabed-forward", 0) and np.isfinite(clean["apparent_beta"]).all()
     assert set(result["floor"]) == {"3C", "3C~"} and "## The scenes against the estimator's prior" in table
@@ -66,6 +66,16 @@ def test_off_family_waters_are_seeded_and_15_to_25_percent_off_their_type():
     assert (calibration.water_beta("3C") == jerlov_beta("3C")).all()
 
 
+def test_off_family_waters_have_a_backscatter_ratio_that_differs_by_channel():
+    """0.9 (1 +- 10-20%) per channel with both signs present: no single ratio (the default prior's) holds them."""
+    for w in calibration.WATERS:
+        ratio = calibration.water_backscatter_ratio(w + "~") / calibration.BACKSCATTER_RATIO
+        assert ((abs(ratio - 1) >= 0.1) & (abs(ratio - 1) <= 0.2)).all()
+        assert ratio.max() > 1 > ratio.min()
+        assert (calibration.water_backscatter_ratio(w + "~") == calibration.water_backscatter_ratio(w + "~")).all()
+    assert (calibration.water_backscatter_ratio("3C") == calibration.BACKSCATTER_RATIO).all()
+
+
 def test_summarise_takes_median_and_p90_over_identified_estimates_only():
     def row(err):
         return {"with_range": True, "noise": 0.0, "scene": "s", "water": "3C", "prior": None,
@@ -86,7 +96,10 @@ def test_committed_table_is_this_bench_on_every_scene_and_water():
     assert result["waters"] == list(calibration.WATERS) and result["noise"] == list(calibration.NOISE)
     assert result["off_family_beta_D"] == {w + "~": calibration.water_beta(w + "~").round(4).tolist()
                                            for w in calibration.WATERS}
-    # Per frame: each water and its off-family copy, each noise level, three estimates (range, range + prior, none).
+    assert result["off_family_backscatter_ratio"] == {
+        w + "~": calibration.water_backscatter_ratio(w + "~").round(4).tolist() for w in calibration.WATERS}
+    # Per frame: each water and its off-family copy, each noise level, three estimates (range: the default
+    # and the free fit; no range).
     n = len(calibration.SCENES) * result["frames_per_scene"] * len(calibration.WATERS) * 2 * len(calibration.NOISE) * 3
     assert len(result["rows"]) == n
     assert len(result["clean_frames"]) == len(calibration.SCENES) * result["frames_per_scene"]

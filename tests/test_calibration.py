@@ -107,23 +107,28 @@ def test_when_j_changes_with_range_the_sigmas_cover_the_errors_and_beta_b_is_not
     assert e.beta_B.identified == (False,) * 3
 
 
+@pytest.mark.parametrize("prior", ["none", None])
 @pytest.mark.parametrize("drift", [-0.08, 0.08])
-def test_when_backscatter_is_a_sliver_of_a_bright_drifting_scene_its_sigma_covers_the_error(drift):
+def test_when_backscatter_is_a_sliver_of_a_bright_drifting_scene_its_sigma_covers_the_error(drift, prior):
     """Bright J (up to 0.9) drifting by a few percent along range, and a red B_inf of 0.01 (backscatter about 1% of
-    the signal): red's beta_B cannot be told from the drift; the drift sensitivity's sigma says so, so every
-    identified beta is within 2 sigma of the truth and red's beta_B is not claimed to better than 40%."""
+    the signal): every identified beta is within 2 sigma of the truth. Fitted freely, red's beta_B cannot be told
+    from the drift: the drift sensitivity's sigma says so (not claimed to better than 40%). Under the default prior
+    (one beta_B / beta_D ratio for all channels, which this water has) green's and blue's backscatter give red's."""
     J, z = seabed()
     along = np.where(np.isfinite(z), z, 15.0) / 15.0
     J = 1.5 * J * (1 + drift * along)[..., None]
     b_inf = np.array([0.01, 0.15, 0.23])
-    e = estimate_water(encode_srgb8(haze(J, z, BETA_D, BETA_B, b_inf, np.float64)), z)
+    e = estimate_water(encode_srgb8(haze(J, z, BETA_D, BETA_B, b_inf, np.float64)), z, prior=prior)
     assert_no_nan(e)
     assert all(e.beta_D.identified)
     for got, want in ((e.beta_D, BETA_D), (e.beta_B, BETA_B)):
         for v, s, w in zip(got.value, got.sigma, want):
             if v is not None:
                 assert abs(v - w) <= 2 * s, got.name
-    assert not e.beta_B.identified[0] or e.beta_B.sigma[0] >= 0.4 * e.beta_B.value[0]
+    if prior == "none":
+        assert not e.beta_B.identified[0] or e.beta_B.sigma[0] >= 0.4 * e.beta_B.value[0]
+    else:
+        assert all(e.beta_B.identified) and rel(e.beta_B.value, BETA_B).max() < 0.05
 
 
 def test_without_range_gives_b_inf_and_says_absolute_beta_is_not_identified():
@@ -203,13 +208,26 @@ def test_a_prior_without_range_is_refused_naming_prior():
         estimate_water(image, None, prior="jerlov")
 
 
-def test_the_jerlov_prior_recovers_a_jerlov_water_and_names_its_type():
+def test_the_jerlov_prior_is_the_default_recovers_a_jerlov_water_and_names_its_type():
     image, z = photo()
     e = estimate_water(image, z, prior="jerlov")
     assert_no_nan(e)
     assert all(e.beta_D.identified) and rel(e.beta_D.value, BETA_D).max() <= 0.08
+    assert all(e.beta_B.identified) and rel(e.beta_B.value, BETA_B).max() <= 0.08
     assert any("prior jerlov: stage 1 chose Jerlov type 3C" in n for n in e.notes)
-    assert "prior jerlov" in e.method and "prior jerlov" not in estimate_water(image, z).method
+    assert e.as_dict() == estimate_water(image, z).as_dict()  # the default with range
+    assert "prior jerlov" in e.method and "prior jerlov" not in estimate_water(image, z, prior="none").method
+
+
+def test_a_water_off_the_prior_is_fitted_freely_and_says_so():
+    """beta_B / beta_D of 0.5, 0.9 and 1.6 in red, green and blue: no single ratio fits, the photo rejects the
+    default prior, stage 1 is the free fit (the same betas as prior none) and a note says why."""
+    J, z = seabed()
+    image = encode_srgb8(haze(J, z, BETA_D, BETA_D * np.array([0.5, 0.9, 1.6]), B_INF, np.float64))
+    e = estimate_water(image, z)
+    assert any("prior jerlov: not used: this photo rejects it" in n for n in e.notes)
+    free = estimate_water(image, z, prior="none")
+    assert e.beta_D.value == free.beta_D.value and e.beta_B.value == free.beta_B.value
 
 
 @pytest.mark.parametrize("log_drift", [0.0, np.log(1.1), -np.log(1.1)])

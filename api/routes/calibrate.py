@@ -42,8 +42,9 @@ async def calibrate(
     range_spread: Annotated[float, Query(ge=0.0, lt=1.0, description="Relative half-width of each coefficient's "
                                          "range in the answered water section (0: fixed water)")] = 0.1,
     prior: Annotated[Literal["jerlov", "none"] | None, Query(
-        description="jerlov (with a range map): beta_D from the Jerlov family, more accurate on Jerlov-like water, "
-                    "biased off it; none (or absent): no prior")] = None,
+        description="With a range map: jerlov (the default when absent: beta_D from the Jerlov family and one "
+                    "beta_B/beta_D ratio for all channels, the water the generator renders; biased off it) or none "
+                    "(each channel fitted freely)")] = None,
 ) -> CalibrationPublic:
     """Estimate the water of an underwater photo (multipart field `photo`, 8-bit sRGB PNG or JPEG), optionally with a
     range map of the same size (field `depth`; its file name's suffix gives the format: .png 16-bit millimetres,
@@ -54,7 +55,7 @@ async def calibrate(
 
     def run() -> CalibrationPublic:
         estimate = estimate_files(photo_bytes, photo.filename or "photo", depth_bytes,
-                                  (depth and depth.filename) or "depth", prior=None if prior == "none" else prior)
+                                  (depth and depth.filename) or "depth", prior=prior)
         return CalibrationPublic(estimate=estimate_public(estimate), water=to_spec_water(estimate, spread=range_spread))
 
     return await GATE.run(uuid.uuid4().hex, run)  # a fresh client token: calibrations queue, none supersedes another

@@ -232,8 +232,10 @@ def calibrate(
     range_spread: Annotated[float, typer.Option("--range-spread", min=0.0, help="Relative half-width of each "
                                                 "coefficient's range in the spec, in [0, 1) (0: fixed water).")] = 0.1,
     seed: Annotated[int, typer.Option("--seed", help="Bootstrap seed.")] = 0,
-    prior: Annotated[str, typer.Option("--prior", help="none, or jerlov (with --depth): beta_D from the Jerlov "
-                                       "family, more accurate on Jerlov-like water, biased off it.")] = "none",
+    prior: Annotated[Optional[str], typer.Option("--prior", help="With --depth: jerlov (the default: beta_D from the "
+                                                 "Jerlov family and one beta_B/beta_D ratio for all channels, the "
+                                                 "water the generator renders; biased off it) or none (each channel "
+                                                 "fitted freely).")] = None,
 ) -> None:
     """Estimate the water (beta_D, beta_B, B_inf with uncertainties) of a real photo, with or without a range map,
     and write it as a spec water: section."""
@@ -251,7 +253,7 @@ def calibrate(
             raise CalibrationError(f"{path}: cannot read ({err.strerror or err})") from None
 
     estimate = estimate_files(read(photo), str(photo), None if depth is None else read(depth), str(depth), seed=seed,
-                              prior=None if prior == "none" else prior)
+                              prior=prior)
     water = to_spec_water(estimate, spread=range_spread)
     typer.echo(describe(estimate))
     import yaml

@@ -121,9 +121,15 @@ def test_the_jerlov_prior_is_a_query_choice_that_needs_a_range_map(api, shot):
     assert r.status_code == 422 and "prior" in r.json()["detail"]
 
 
-def test_prior_none_is_no_prior_as_on_the_command_line(api, shot):
+def test_the_jerlov_prior_is_the_default_with_range_and_none_is_the_free_fit(api, shot):
+    """As on the command line: no prior given is the Jerlov prior (with a range map); prior=none fits each channel
+    freely, and says nothing of the prior."""
     both = {"photo": ("reef.png", shot[0], "image/png"), "depth": ("reef.npy", shot[1], "application/octet-stream")}
-    none = api.post("/calibrate", files=both, params={"prior": "none"})
+    jerlov = api.post("/calibrate", files=both, params={"prior": "jerlov"})
     absent = api.post("/calibrate", files=both)
-    assert none.status_code == absent.status_code == 200, none.text
-    assert none.json() == absent.json()
+    none = api.post("/calibrate", files=both, params={"prior": "none"})
+    assert jerlov.status_code == absent.status_code == none.status_code == 200, none.text
+    assert absent.json() == jerlov.json() != none.json()
+    assert "prior jerlov" in absent.json()["estimate"]["method"]
+    assert "prior jerlov" not in none.json()["estimate"]["method"]
+    assert not any("jerlov" in n for n in none.json()["estimate"]["notes"])
