@@ -183,7 +183,7 @@ def estimate_water(
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise CalibrationError(f"seed: need an integer >= 0, got {seed!r}")
     if prior is not None and prior not in PRIORS:
-        raise CalibrationError(f"prior: need one of {PRIORS} (or None: the default), got {prior!r}")
+        raise CalibrationError(f"prior: need 'jerlov' or 'none' (or none given: the default), got {prior!r}")
     if prior == "jerlov" and z is None:
         raise CalibrationError(f"prior: {prior!r} needs range_m (it constrains the range fit)")
     if not isinstance(max_pixels, (int, np.integer)) or max_pixels < MIN_SIDE * MIN_SIDE:

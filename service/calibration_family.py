@@ -66,7 +66,8 @@ def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[Ra
     Returns the fit and the type; "" and the free fit where no channel varies with range (the free fit says so) or
     where the data reject the prior (scaled excess over the free fit above PRIOR_REJECT). sigma:
     the first pass's profile widths where the scaled SSE <= min + 4 (beta_D: the scale's; beta_B: the scale's and
-    the ratio's in quadrature), the same relative sigma for every channel; inside: both profiles inside their grids."""
+    the ratio's in quadrature), the same relative sigma for every channel; inside: the scale's profile inside its
+    grid (beta_B: the ratio's too)."""
     has_open = data.open_pixels >= MIN_BIN_PIXELS
     rows = data.y[0].size
     w2 = float(rows) if has_open else 0.0

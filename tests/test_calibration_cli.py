@@ -97,7 +97,7 @@ def test_the_jerlov_prior_is_a_choice_that_needs_a_range_map(files):
     r = seasynth("calibrate", files / "photo.png", "--prior", "jerlov")
     assert r.returncode == 1 and "prior: 'jerlov' needs range_m" in r.stderr
     r = seasynth("calibrate", files / "photo.png", "--depth", files / "range.npy", "--prior", "sunny")
-    assert r.returncode == 1 and "prior: need one of" in r.stderr
+    assert r.returncode == 1 and "prior: need 'jerlov' or 'none'" in r.stderr
 
 
 def test_range_spread_takes_what_the_api_takes_up_to_below_1(files, tmp_path):

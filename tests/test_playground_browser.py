@@ -15,8 +15,11 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 import yaml
+from PIL import Image
+from selenium.webdriver.support.ui import Select
 
 from browser import chromium, playground_server, prefix_proxy, set_value, wait
 from service.spec import parse_spec
@@ -182,6 +185,39 @@ def test_a_photo_uploaded_to_the_calibration_gives_an_estimate_the_spec_takes(pa
     wait(lambda: yaml.safe_load(driver.find_element("id", "spec-yaml").get_attribute("value")) == page_spec(driver),
          30, "the YAML of the spec with it")
     parse_spec(page_spec(driver))
+
+
+def test_a_photo_with_its_range_map_is_estimated_under_the_prior_chosen_on_the_page(page, tmp_path):
+    """A seabed through Jerlov 3C with its range map (.npy, metres): the default prior names the Jerlov type it
+    chose, prior none does not, and the page shows the betas POST /calibrate answers for the same choice."""
+    from worker.formation import haze
+    from worker.srgb import encode_srgb8
+
+    driver, base, _ = page
+    h, w = 72, 96
+    rows = np.arange(h)[:, None] * np.ones((1, w))
+    z = np.where(rows < h // 4, np.inf, 1.0 + 14.0 * ((h - 1 - rows) / (h - 1 - h // 4)) ** 2)
+    J = np.repeat(np.repeat(np.random.default_rng(3).uniform(0.0, 0.6, (h // 3, w // 3, 3)), 3, 0), 3, 1)
+    bd = np.array([0.34, 0.20, 0.22])
+    photo, depth = tmp_path / "seabed.png", tmp_path / "seabed.npy"
+    Image.fromarray(encode_srgb8(haze(J, z, bd, 0.9 * bd, np.array([0.05, 0.15, 0.23]), np.float64))).save(photo)
+    np.save(depth, z)
+    driver.find_element("id", "calib-photo").send_keys(str(photo))
+    driver.find_element("id", "calib-depth").send_keys(str(depth))
+    for prior in ("none", ""):
+        Select(driver.find_element("id", "calib-prior")).select_by_value(prior)
+        driver.execute_script("document.getElementById('calib-result').textContent = '';")
+        driver.find_element("id", "calib-run").click()
+        wait(lambda: driver.find_elements("id", "calib-beta_D-R"), 60, "the estimate")
+        notes = driver.find_element("id", "calib-notes").text
+        with photo.open("rb") as f, depth.open("rb") as d:
+            want = httpx.post(base + "/calibrate", params={"prior": prior} if prior else None, timeout=60,
+                              files={"photo": ("seabed.png", f, "image/png"),
+                                     "depth": ("seabed.npy", d, "application/octet-stream")}).json()["estimate"]
+        assert ("prior jerlov: stage 1 chose Jerlov type" in notes) == (prior == "")
+        for k, ch in enumerate("RGB"):
+            shown = driver.find_element("id", f"calib-beta_D-{ch}").text
+            assert want["beta_D"][k] is not None and shown.startswith(f"{want['beta_D'][k]:.3f}"), (prior, shown)
 
 
 def yaml_box(driver) -> str:

@@ -332,7 +332,8 @@ async function calibrate() {
   form.append("photo", photo);
   if ($("calib-depth").files[0]) form.append("depth", $("calib-depth").files[0]);
   $("calib-result").textContent = "estimating…";
-  const r = await call("POST", "calibrate", form);
+  const prior = $("calib-prior").value;  // "" : the default prior
+  const r = await call("POST", prior ? `calibrate?prior=${encodeURIComponent(prior)}` : "calibrate", form);
   if (r.status !== 200) { $("calib-result").textContent = r.data ? r.data.detail : `error ${r.status}`; return; }
   calibWater = r.data.water;
   $("calib-result").innerHTML = calibrationTable(r.data);
