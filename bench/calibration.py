@@ -32,10 +32,10 @@ SCENES: dict[str, dict] = {
     },
     "urchins": {},
 }
-# The clean frames are lit as the paper's model lights them (in air: J does not change with range), the
-# estimator's own assumption. Under the physical model J falls with depth as the sun's light does; on those frames
-# (0.5.0, the same bench otherwise) the with-range beta_D medians were 0.081 / 0.142 / 0.134 (R / G / B).
-CLEAN_LIGHT = {"water.model": "paper"}
+# The table's clean frames are lit as the paper's model lights them (in air: J does not change with range), the
+# estimator's own assumption. Under the physical model (--light physical; its table apart) J falls with depth as the
+# sun's light does.
+LIGHTS = ("paper", "physical")  # the clean frames' light model (water.model); the table's is the first
 WATERS = ("I", "II", "3C", "5C", "9C")
 OFF_FAMILY = "~"  # "3C~": 3C's beta_D with each channel scaled by 1 +- U(0.15, 0.25) (seeded per type): no Jerlov type
 OFF_FAMILY_SPREAD = (0.15, 0.25)
@@ -48,10 +48,10 @@ TARGET_B_INF_ABS = 0.02
 TARGET_BETA_REL = 0.10
 
 
-def scene_spec(name: str, width: int, height: int) -> DatasetSpec:
+def scene_spec(name: str, width: int, height: int, light: str = LIGHTS[0]) -> DatasetSpec:
     base = read_spec_file(EXAMPLE)
     overrides = {"frames": FRAMES, "camera.width": width, "camera.height": height, "quality": "fast",
-                 "outputs.clean": True, "outputs.range": True, **CLEAN_LIGHT, **SCENES[name]}
+                 "outputs.clean": True, "outputs.range": True, "water.model": light, **SCENES[name]}
     return DatasetSpec.model_validate(apply_overrides(base, overrides))
 
 
@@ -159,7 +159,7 @@ def summarise(rows: list[dict], with_range: bool, noise: float | None, scene: st
 
 
 def run(out: Path | None, *, scenes=None, waters=None, frames: int = FRAMES, width: int = WIDTH,
-        height: int = HEIGHT, machine: str | None = None, platform: str = "egl") -> dict:
+        height: int = HEIGHT, machine: str | None = None, platform: str = "egl", light: str = LIGHTS[0]) -> dict:
     import time
 
     from bench.throughput import machine_description
@@ -168,6 +168,8 @@ def run(out: Path | None, *, scenes=None, waters=None, frames: int = FRAMES, wid
 
     scenes, waters = scenes or list(SCENES), waters or list(WATERS)
     photos = [*waters, *(w + OFF_FAMILY for w in waters)]
+    if light not in LIGHTS:
+        raise SystemExit(f"unknown light {light!r}; known: {', '.join(LIGHTS)}")
     for name in scenes:
         if name not in SCENES:
             raise SystemExit(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
@@ -175,7 +177,7 @@ def run(out: Path | None, *, scenes=None, waters=None, frames: int = FRAMES, wid
     with RenderSession(platform=platform) as session:
         renderer = session.renderer_name
         for scene in scenes:
-            spec = scene_spec(scene, width, height)
+            spec = scene_spec(scene, width, height, light)
             for index in range(frames):
                 J, range_m = clean_and_range(session, spec, index)
                 finite = range_m[np.isfinite(range_m)]
@@ -211,7 +213,8 @@ def run(out: Path | None, *, scenes=None, waters=None, frames: int = FRAMES, wid
         "off_family_beta_D": {w + OFF_FAMILY: water_beta(w + OFF_FAMILY).round(4).tolist() for w in waters},
         "off_family_backscatter_ratio": {w + OFF_FAMILY: water_backscatter_ratio(w + OFF_FAMILY).round(4).tolist()
                                          for w in waters},
-        "bootstrap": BOOTSTRAP, "scene_spec_sha256": {s: spec_digest(scene_spec(s, width, height)) for s in scenes},
+        "bootstrap": BOOTSTRAP, "clean_light": light,
+        "scene_spec_sha256": {s: spec_digest(scene_spec(s, width, height, light)) for s in scenes},
         "seconds_per_estimate": {{None: "with_range", "none": "with_range_free_fit", "no_range": "without_range"}[k]:
                                  round(float(np.median(v)), 3) for k, v in seconds.items() if v},
         "targets": {"B_inf_abs_median": TARGET_B_INF_ABS, "beta_rel_median": TARGET_BETA_REL},
@@ -262,6 +265,9 @@ def format_table(result: dict) -> str:
         "",
         f"machine: {result['machine']}  ",
         f"GL renderer: {result['gl_renderer']}  ",
+        f"clean frames lit by the {result.get('clean_light', LIGHTS[0])} model"
+        + (" (in air: J does not change with range)" if result.get("clean_light", LIGHTS[0]) == "paper" else
+           " (J falls with depth as the sun's light does, which the estimator's prior excludes)") + "  ",
         f"frames: {result['frames_per_scene']} per scene ({', '.join(result['scene_spec_sha256'])}); waters: Jerlov "
         f"{', '.join(result['waters'])} (beta_B = {result['backscatter_ratio']} beta_D) and off-family waters (type~: "
         "each channel's beta_D scaled by 1 +- 15-25%, seeded: "

@@ -91,6 +91,7 @@ def test_summarise_takes_median_and_p90_over_identified_estimates_only():
 def test_committed_table_is_this_bench_on_every_scene_and_water():
     result = json.loads((RESULTS / "calibration.json").read_text())
     # Re-run `seasynth bench calibration --out bench/results/cpu` when a scene (or the example) changes.
+    assert result["clean_light"] == "paper"
     assert result["scene_spec_sha256"] == {s: spec_digest(calibration.scene_spec(s, *result["resolution"]))
                                            for s in calibration.SCENES}
     assert result["waters"] == list(calibration.WATERS) and result["noise"] == list(calibration.NOISE)
@@ -116,3 +117,17 @@ def test_committed_table_meets_the_targets_with_range_as_the_readme_says():
     assert not off["beta_D B"] and not off["beta_B R"]
     free = result["targets_met_other"]["free fit (prior none), Jerlov waters"]
     assert not free["beta_D B"] and not free["beta_B G"]
+
+
+def test_committed_physical_light_table_is_this_bench_on_physically_lit_frames():
+    """`seasynth bench calibration --light physical --out bench/results/cpu/calibration-physical`: the same waters on
+    clean frames whose J falls with depth (the physical model's sun), the README's robustness figures."""
+    folder = RESULTS / "calibration-physical"
+    result = json.loads((folder / "calibration.json").read_text())
+    assert result["clean_light"] == "physical"
+    assert result["scene_spec_sha256"] == {
+        s: spec_digest(calibration.scene_spec(s, *result["resolution"], "physical")) for s in calibration.SCENES}
+    assert result["scene_spec_sha256"] != json.loads((RESULTS / "calibration.json").read_text())["scene_spec_sha256"]
+    assert len(result["rows"]) == len(calibration.SCENES) * result["frames_per_scene"] * len(
+        calibration.WATERS) * 2 * len(calibration.NOISE) * 3
+    assert (folder / "calibration.md").read_text() == calibration.format_table(result) + "\n"

@@ -188,11 +188,14 @@ def bench_calibration(
     height: Annotated[int, typer.Option("--height", min=16)] = 120,
     machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
     gl: PlatformOpt = "egl",
+    light: Annotated[str, typer.Option("--light", help="The clean frames' light model: paper (the table's: J does "
+                                       "not change with range) or physical (J falls with depth).")] = "paper",
 ) -> None:
     """Water calibration against known water: seasynth's clean frames hazed with Jerlov types, estimated back."""
     from bench.calibration import run
 
-    run(out, scenes=scene, waters=water, frames=frames, width=width, height=height, machine=machine, platform=gl)
+    run(out, scenes=scene, waters=water, frames=frames, width=width, height=height, machine=machine, platform=gl,
+        light=light)
 
 
 @bench_app.command("blender")
