@@ -260,13 +260,14 @@ def _cell(d: dict) -> str:
 
 
 def format_table(result: dict) -> str:
+    light = result.get("clean_light", LIGHTS[0])
     lines = [
         f"# Water calibration accuracy ({result['resolution'][0]}x{result['resolution'][1]})",
         "",
         f"machine: {result['machine']}  ",
         f"GL renderer: {result['gl_renderer']}  ",
-        f"clean frames lit by the {result.get('clean_light', LIGHTS[0])} model"
-        + (" (in air: J does not change with range)" if result.get("clean_light", LIGHTS[0]) == "paper" else
+        f"clean frames lit by the {light} model"
+        + (" (in air: J does not change with range)" if light == "paper" else
            " (J falls with depth as the sun's light does, which the estimator's prior excludes)") + "  ",
         f"frames: {result['frames_per_scene']} per scene ({', '.join(result['scene_spec_sha256'])}); waters: Jerlov "
         f"{', '.join(result['waters'])} (beta_B = {result['backscatter_ratio']} beta_D) and off-family waters (type~: "

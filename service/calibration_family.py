@@ -11,12 +11,13 @@ from service.calibration_fit import (
     BACKSCATTER_PRIOR,
     BETA_GRID,
     FLAT_SPREAD,
-    GROUPS,
     MIN_BIN_PIXELS,
     RangeData,
     RangeFit,
     fit_range,
     grid_sse,
+    profile_width,
+    residual_variance,
 )
 
 PRIOR_SCALE = np.geomspace(0.25, 4.0, 97)  # beta_D = s * a member's beta, s on this grid (3% steps)
@@ -49,13 +50,6 @@ def pair_sse(y: np.ndarray, h: np.ndarray, nodes: np.ndarray, bd: np.ndarray, bb
     return np.maximum(yy - 2 * B * uy + B**2 * uu + w2 * (y_inf - B) ** 2, 0.0), B
 
 
-def _profile_width(total: np.ndarray, grid: np.ndarray, threshold: float) -> tuple[float, bool]:
-    """(1-sigma relative width, inside) of a profile over a log grid: its points <= threshold span [lo, hi];
-    sigma = ln(hi / lo) / 4; inside: neither end of the grid is in the span."""
-    ok = np.flatnonzero(total <= threshold)
-    return float(np.log(grid[ok[-1]] / grid[ok[0]]) / 4), bool(ok[0] > 0 and ok[-1] < grid.size - 1)
-
-
 def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[RangeFit, str]:
     """Stage 1 under the family prior: beta_D = s * family[type] and beta_B = r * beta_D, one type, one scale s in
     PRIOR_SCALE and one ratio r in RATIO_GRID for all channels (B_inf and the groups' J per channel, in closed form).
@@ -83,21 +77,20 @@ def fit_range_family(data: RangeData, family: dict[str, np.ndarray]) -> tuple[Ra
         y, h, y_inf = data.y[c], data.h[c], float(data.open_mean[c])
         free = grid_sse(y, h, data.z_nodes, BETA_GRID, BETA_GRID, y_inf, w2, data.drift)[0]
         low = float(free.min())
-        var = max(low / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2)
-        scale[c] = (low, var)
+        scale[c] = (low, residual_variance(low, rows, y))
         bd = np.concatenate([PRIOR_SCALE * family[name][c] for name in names])
         sse = grid_sse(y, h, data.z_nodes, bd, BETA_GRID, y_inf, w2, data.drift)[0]
         col = np.clip(np.rint((np.log(np.outer(bd, RATIO_GRID)) - log_grid[0]) / step).astype(np.int64), 0,
                       BETA_GRID.size - 1)
         got = sse[np.arange(bd.size)[:, None], col]  # (members * scales, ratios); +inf outside the ratio band
-        total += (np.where(np.isfinite(got), got, 1e30) - low) / var
+        total += (np.where(np.isfinite(got), got, 1e30) - low) / scale[c][1]
     best = np.unravel_index(int(np.argmin(total)), total.shape)
     m, k = divmod(int(best[0]), n)
     r = int(best[1])
     by_member = total.reshape(len(names), n, nr)[m]
     threshold = float(total[best]) + 4.0
-    rel_s, in_s = _profile_width(by_member.min(axis=1), PRIOR_SCALE, threshold)
-    rel_r, in_r = _profile_width(by_member.min(axis=0), RATIO_GRID, threshold)
+    rel_s, in_s = profile_width(by_member.min(axis=1), PRIOR_SCALE, threshold)
+    rel_r, in_r = profile_width(by_member.min(axis=0), RATIO_GRID, threshold)
     # Second pass: exact pairs around the first pass's choice, for the chosen type.
     fs = np.geomspace(PRIOR_SCALE[max(k - 1, 0)], PRIOR_SCALE[min(k + 1, n - 1)], FINE_STEPS)
     fr = np.geomspace(RATIO_GRID[max(r - 1, 0)], RATIO_GRID[min(r + 1, nr - 1)], FINE_STEPS)

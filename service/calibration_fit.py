@@ -302,13 +302,17 @@ def ratio_band(bd: np.ndarray, bb: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return np.repeat(np.arange(n)[:, None], width, 1), cols, inside
 
 
-def _profile(sse: np.ndarray, axis: int, threshold: float) -> tuple[float, bool]:
-    """(1-sigma relative width, inside) of the profile of sse along the other axis: grid points whose minimum over
-    `axis` is <= threshold span [lo, hi]; sigma = ln(hi / lo) / 4; inside: neither end of the grid is in it."""
-    prof = sse.min(axis=axis)
+def profile_width(prof: np.ndarray, grid: np.ndarray, threshold: float) -> tuple[float, bool]:
+    """(1-sigma relative width, inside) of a profile over a log grid: the grid points whose profile is <= threshold
+    span [lo, hi]; sigma = ln(hi / lo) / 4; inside: neither end of the grid is in the span."""
     ok = np.flatnonzero(prof <= threshold)
-    lo, hi = BETA_GRID[ok[0]], BETA_GRID[ok[-1]]
-    return float(np.log(hi / lo) / 4), bool(ok[0] > 0 and ok[-1] < BETA_GRID.size - 1)
+    return float(np.log(grid[ok[-1]] / grid[ok[0]]) / 4), bool(ok[0] > 0 and ok[-1] < grid.size - 1)
+
+
+def residual_variance(sse: float, rows: int, y: np.ndarray) -> float:
+    """A fit's residual variance per row (GROUPS + 3 parameters), floored at 8-bit quantisation's scale of y so a
+    perfect fit still has a width."""
+    return max(sse / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2)
 
 
 def fit_range(data: RangeData) -> RangeFit:
@@ -334,11 +338,10 @@ def fit_range(data: RangeData) -> RangeFit:
         sse2, B2 = grid_sse(y, h, data.z_nodes, fd, fb, y_inf, w2, data.drift)
         k, m = np.unravel_index(np.argmin(sse2), sse2.shape)
         flat = np.ptp(y) < FLAT_SPREAD
-        # Residual variance per row (floored at 8-bit quantisation's scale so a perfect fit still has a width).
-        var = max(float(sse2[k, m]) / max(rows - GROUPS - 3, 1), (1e-3 * max(float(np.abs(y).max()), 1e-3)) ** 2)
+        var = residual_variance(float(sse2[k, m]), rows, y)
         threshold = max(float(sse2[k, m]), float(sse.min())) + 4 * var
-        out["sd"][c], in_d = _profile(sse, 1, threshold)
-        out["sb"][c], in_b = _profile(sse, 0, threshold)
+        out["sd"][c], in_d = profile_width(sse.min(axis=1), BETA_GRID, threshold)
+        out["sb"][c], in_b = profile_width(sse.min(axis=0), BETA_GRID, threshold)
         out["bd"][c], out["bb"][c], out["B"][c] = fd[k], fb[m], B2[k, m]
         out["sd"][c] *= fd[k]
         out["sb"][c] *= fb[m]
