@@ -3,13 +3,13 @@ the task time limit) and the uploaded assets it names."""
 
 from __future__ import annotations
 
-from api.asset_store import stored_format
-from api.deps import Services
-from api.uploads import ARTICLED, field_kind
-from service.errors import LimitExceeded, SpecError
-from service.settings import Settings
-from service.shards import asset_key, spec_cost_terms, spec_shard_seconds
-from service.spec import DatasetSpec
+from seasynth.api.asset_store import stored_format
+from seasynth.api.deps import Services
+from seasynth.api.uploads import ARTICLED, field_kind
+from seasynth.service.errors import LimitExceeded, SpecError
+from seasynth.service.settings import Settings
+from seasynth.service.shards import asset_key, spec_cost_terms, spec_shard_seconds
+from seasynth.service.spec.dataset import DatasetSpec
 
 
 def check_limits(spec: DatasetSpec, settings: Settings) -> None:
@@ -38,7 +38,7 @@ def check_limits(spec: DatasetSpec, settings: Settings) -> None:
 def shard_over_time_limit(spec: DatasetSpec, budget: float) -> str | None:
     """Why a shard of `spec` would not finish well inside the task time limit on a slow worker, or None.
 
-    Both the estimate and the suggested shard_size come from the full cost model (service.shards.spec_shard_seconds:
+    Both the estimate and the suggested shard_size come from the full cost model (seasynth.service.shards.spec_shard_seconds:
     resolution and quality, objects, terrain cells and builds, extra outputs), so the suggestion really fits.
     """
     need = spec_shard_seconds(spec)

@@ -8,10 +8,10 @@ import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from api.deps import Services
-from api.uploads import FORMATS, FileFormat, format_of, validate
-from service.errors import AssetError, Conflict, LimitExceeded, NotFound
-from service.shards import asset_info_key, asset_key
+from seasynth.api.deps import Services
+from seasynth.api.uploads import FORMATS, FileFormat, format_of, validate
+from seasynth.service.errors import AssetError, Conflict, LimitExceeded, NotFound
+from seasynth.service.shards import asset_info_key, asset_key
 
 UPLOAD_SUFFIXES = tuple(FORMATS)
 

@@ -10,11 +10,11 @@ from typing import Annotated, Any
 
 from fastapi import Depends, Path, Request
 
-from service.errors import NotFound
-from service.records import Records
-from service.settings import Settings
-from service.shards import DATASET_ID
-from service.storage import ObjectStore
+from seasynth.service.errors import NotFound
+from seasynth.service.records.store import Records
+from seasynth.service.settings import Settings
+from seasynth.service.shards import DATASET_ID
+from seasynth.service.storage import ObjectStore
 
 
 @dataclass
@@ -36,8 +36,8 @@ def open_services(settings: Settings) -> Services:
     import redis
     from celery import Celery
 
-    from service.queues import broker_options
-    from service.storage import open_store
+    from seasynth.service.queues import broker_options
+    from seasynth.service.storage import open_store
 
     producer = Celery("seasynth-api", broker=settings.redis_url, set_as_current=False)
     producer.conf.update(

@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 from starlette.routing import Match
 
-from service.errors import (
+from seasynth.service.errors import (
     AssetError,
     CalibrationError,
     Conflict,

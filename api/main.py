@@ -11,15 +11,15 @@ from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 
-from api import errors, metrics
-from api.deps import Services, open_services
-from api.gate import Gate
-from api.admission import check_files, check_limits
-from api.playground import ServicePreviewer, playground_router
-from api.routes import assets, calibrate, datasets, health
-from api.waits import FrameWaits
-from service import __version__
-from service.settings import Settings
+from seasynth.api import errors, metrics
+from seasynth.api.deps import Services, open_services
+from seasynth.api.gate import Gate
+from seasynth.api.admission import check_files, check_limits
+from seasynth.api.playground import ServicePreviewer, playground_router
+from seasynth.api.routes import assets, calibrate, datasets, health
+from seasynth.api.waits import FrameWaits
+from seasynth.service import __version__
+from seasynth.service.settings import Settings
 
 
 # Seconds an idle keep-alive connection stays open. Longer than the clients' and proxies' own idle limits (httpx
@@ -117,10 +117,10 @@ def serve(settings: Settings, host: str = "0.0.0.0", port: int = 8000, workers: 
         uvicorn.run(create_app(settings, freeze_gc=True), host=host, port=port, proxy_headers=True,
                     timeout_keep_alive=KEEP_ALIVE_S)
     else:  # several processes need an import string; each builds its Settings from the same environment
-        uvicorn.run("api.main:app_from_env", factory=True, host=host, port=port, workers=workers, proxy_headers=True,
+        uvicorn.run("seasynth.api.main:app_from_env", factory=True, host=host, port=port, workers=workers, proxy_headers=True,
                     timeout_keep_alive=KEEP_ALIVE_S)
 
 
 def app_from_env() -> FastAPI:
-    """Factory for `uvicorn --factory api.main:app_from_env` (settings from the environment)."""
+    """Factory for `uvicorn --factory seasynth.api.main:app_from_env` (settings from the environment)."""
     return create_app(Settings(), freeze_gc=True)

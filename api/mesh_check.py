@@ -1,4 +1,4 @@
-"""The mesh check of an upload, in a child process with a memory budget (api.uploads runs it): a mesh whose loading
+"""The mesh check of an upload, in a child process with a memory budget (seasynth.api.uploads runs it): a mesh whose loading
 needs more than the budget fails here instead of taking the API process's memory (a 256 MiB binary STL, 5.4 M
 triangles, took 3.5 GB and 49 s of CPU to load with trimesh on a 2-core machine).
 
@@ -20,7 +20,7 @@ def check(path: str, file_type: str) -> dict:
 
     try:
         with open(path, "rb") as f:
-            # As the workers read it (worker/assets/user.py): every part with triangles, transforms applied.
+            # As the workers read it (worker/scene/assets/user.py): every part with triangles, transforms applied.
             scene = trimesh.load_scene(file_obj=f, file_type=file_type)
             parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     except MemoryError:

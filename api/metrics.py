@@ -13,9 +13,9 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 from starlette.routing import Match
 
-from api.gate import METRICS_PATH, ASGIApp, Message, Receive, Scope, Send
-from service.queues import frame_queue, shard_queue
-from service.settings import Settings
+from seasynth.api.gate import METRICS_PATH, ASGIApp, Message, Receive, Scope, Send
+from seasynth.service.queues import frame_queue, shard_queue
+from seasynth.service.settings import Settings
 
 UNMATCHED = "<unmatched>"  # a path no route takes: one label value, so scanners cannot grow the series
 # Latency buckets, seconds: status reads take milliseconds, frame requests up to frame_timeout_s.
@@ -39,7 +39,7 @@ class BrokerCollector(Collector):
     def __init__(self, redis_of: Callable[[], Any], settings: Settings):
         self.redis_of = redis_of
         self.queues = {"shards": shard_queue(settings.worker_version), "frames": frame_queue(settings.worker_version)}
-        self.datasets_key = f"{settings.key_prefix}:datasets"  # service.records: the ZSET GET /datasets pages
+        self.datasets_key = f"{settings.key_prefix}:datasets"  # seasynth.service.records.store: the ZSET GET /datasets pages
 
     def describe(self) -> Iterator[GaugeMetricFamily]:
         """The families without samples (the registry checks names with it; collect would need Redis)."""

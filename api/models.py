@@ -7,7 +7,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from service.records import ERRORS_SHOWN
+from seasynth.service.records.store import ERRORS_SHOWN
 
 
 class DatasetLinks(BaseModel):

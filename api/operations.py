@@ -1,4 +1,4 @@
-"""What the dataset routes do, as plain functions of Services: enqueue datasets (admitted by api.admission), report
+"""What the dataset routes do, as plain functions of Services: enqueue datasets (admitted by seasynth.api.admission), report
 status, cancel, purge, build manifests and fetch single frames. Uploaded assets: api.asset_store."""
 
 from __future__ import annotations
@@ -10,21 +10,21 @@ import uuid
 from datetime import datetime, timezone
 from typing import Any
 
-from api.admission import check_files, check_limits
-from api.deps import Services
-from api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPublic
-from service.errors import AssetError, Conflict, NotFound, RenderError, Unavailable
-from service.manifest import build_manifest
-from service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
-from service.record_types import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord
-from service.records import wait_reply
-from service.recovery import cancelled_key, check_redis, forget, restore, save_record
-from service.shards import (
+from seasynth.api.admission import check_files, check_limits
+from seasynth.api.deps import Services
+from seasynth.api.models import DatasetCreated, DatasetLinks, DatasetPublic, ShardErrorPublic
+from seasynth.service.errors import AssetError, Conflict, NotFound, RenderError, Unavailable
+from seasynth.service.manifest import build_manifest
+from seasynth.service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
+from seasynth.service.records.types import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord
+from seasynth.service.records.store import wait_reply
+from seasynth.service.records.recovery import cancelled_key, check_redis, forget, restore, save_record
+from seasynth.service.shards import (
     FRAME_PARTS,
     dataset_prefix,
     shard_count,
 )
-from service.spec import DatasetSpec
+from seasynth.service.spec.dataset import DatasetSpec
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ def create_dataset(services: Services, spec: DatasetSpec) -> DatasetCreated:
     fails the record is discarded and the answer is 503, so no client ever sees a dataset that nothing will
     render. If the API dies between the two writes, the record stays queued, and the reconciler republishes
     it once it has stalled for SEASYNTH_STALL_TIMEOUT_S (status reads, listings, `seasynth reconcile`).
-    The creation record goes to the bucket first (service.recovery), so a Redis that loses its data loses no
+    The creation record goes to the bucket first (seasynth.service.records.recovery), so a Redis that loses its data loses no
     dataset.
     """
     s = services.settings
@@ -110,7 +110,7 @@ def _time(t: float | None) -> datetime | None:
 
 def public(rec: DatasetRecord, now: float) -> DatasetPublic:
     """The API's view of a record. `errors` lists the failed shards the record carries, the first ERRORS_SHOWN
-    (service.records) by index; `shards_failed` counts them all."""
+    (seasynth.service.records.store) by index; `shards_failed` counts them all."""
     rate = eta = None
     if rec.started_at is not None and rec.frames_done > 0:
         elapsed = (rec.finished_at or now) - rec.started_at
@@ -226,7 +226,7 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
 
 def sweep_all(services: Services, dataset_ids: list[str] | None = None) -> list[str]:
     """`seasynth reconcile`: sweep the given datasets now (force), or every live one that stalled, after
-    recovering from a Redis restart since the last round (service.recovery.check_redis): the datasets it restored
+    recovering from a Redis restart since the last round (seasynth.service.records.recovery.check_redis): the datasets it restored
     from the bucket or whose executions it cut off are swept at once."""
     now = time.time()
     if dataset_ids:
@@ -259,7 +259,7 @@ def sweep_all(services: Services, dataset_ids: list[str] | None = None) -> list[
 
 def live_record(services: Services, dataset_id: str) -> DatasetRecord:
     """The record of a dataset that was not deleted; NotFound for an unknown or deleted one. A dataset Redis lost
-    (its data gone in a restart) is restored from the bucket first (service.recovery.restore)."""
+    (its data gone in a restart) is restored from the bucket first (seasynth.service.records.recovery.restore)."""
     try:
         rec = services.records.get(dataset_id)
     except NotFound:

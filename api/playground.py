@@ -19,12 +19,12 @@ from fastapi import APIRouter, Header, Request
 from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from api.slots import RenderGate
-from api.models import error_responses
-from service import __version__
-from service.errors import NotFound, RenderError, SpecError, Unavailable
-from service.spec import DatasetSpec, parse_spec
-from service.water import JERLOV_TYPES, JERLOV_VEILING_LIGHT
+from seasynth.api.slots import RenderGate
+from seasynth.api.models import error_responses
+from seasynth.service import __version__
+from seasynth.service.errors import NotFound, RenderError, SpecError, Unavailable
+from seasynth.service.spec.dataset import DatasetSpec, parse_spec
+from seasynth.service.water import JERLOV_TYPES, JERLOV_VEILING_LIGHT
 
 View = Literal["image", "depth", "instance", "clean", "air"]
 STATIC = {"app.js": "text/javascript", "style.css": "text/css"}
@@ -112,7 +112,7 @@ def playground_router(previewer_of: Callable[[Request], Previewer], *, mode: str
     service); `start_spec` is the spec the page opens with."""
     router = APIRouter(prefix="/playground", tags=["playground"], responses=error_responses(401))
     gate = RenderGate(slots)
-    page = files("api.static.playground")
+    page = files("seasynth.api.static.playground")
 
     @router.get("", response_class=HTMLResponse, include_in_schema=False)
     def index() -> HTMLResponse:
@@ -181,9 +181,9 @@ class ServicePreviewer:
         self.services = services
 
     def _ask(self, kind: str, spec: DatasetSpec, args: list[Any]) -> dict:
-        from api.operations import publish, worker_error
-        from service.queues import TASK_PREVIEW, frame_queue
-        from service.records import wait_reply
+        from seasynth.api.operations import publish, worker_error
+        from seasynth.service.queues import TASK_PREVIEW, frame_queue
+        from seasynth.service.records.store import wait_reply
 
         s = self.services
         timeout = s.settings.frame_timeout_s

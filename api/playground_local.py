@@ -15,13 +15,13 @@ from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
 from pydantic import BaseModel
 
-from api import errors
-from api.models import error_responses
-from api.playground import Previewer, playground_router
-from api.routes import calibrate
-from service.errors import Conflict, NotFound
-from service.spec import parse_spec, resolve_paths
-from service.spec_outputs import IMAGE_SUFFIXES
+from seasynth.api import errors
+from seasynth.api.models import error_responses
+from seasynth.api.playground import Previewer, playground_router
+from seasynth.api.routes import calibrate
+from seasynth.service.errors import Conflict, NotFound
+from seasynth.service.spec.dataset import parse_spec, resolve_paths
+from seasynth.service.spec.outputs import IMAGE_SUFFIXES
 
 ERROR_TAIL = 2000  # characters of a failed run's stderr shown on the page
 
@@ -36,7 +36,7 @@ class LocalRunPublic(BaseModel):
 
 
 class LocalRuns:
-    """Local generate runs started from the page, each `python -m service.cli generate` in OUT_ROOT/<id>/."""
+    """Local generate runs started from the page, each `python -m seasynth.cli generate` in OUT_ROOT/<id>/."""
 
     def __init__(self, out_root: Path):
         self.out_root = out_root
@@ -59,7 +59,7 @@ class LocalRuns:
             out = folder / "dataset"
             with open(folder / "generate.log", "wb") as log:  # the child keeps its own copy of the descriptor
                 proc = subprocess.Popen(
-                    [sys.executable, "-m", "service.cli", "generate", str(folder / "spec.yaml"), "--out", str(out)],
+                    [sys.executable, "-m", "seasynth.cli", "generate", str(folder / "spec.yaml"), "--out", str(out)],
                     stdout=subprocess.DEVNULL, stderr=log)
             self._runs[run_id] = (proc, spec.frames, out)
         return self.status(run_id)

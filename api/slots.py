@@ -11,7 +11,7 @@ from typing import TypeVar
 
 from fastapi.concurrency import run_in_threadpool
 
-from service.errors import Conflict, Unavailable
+from seasynth.service.errors import Conflict, Unavailable
 
 T = TypeVar("T")
 

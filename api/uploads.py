@@ -1,7 +1,7 @@
 """Uploaded files: their formats, what each spec field needs, and the checks that a mesh loads and an image decodes.
 
 The checks use trimesh and Pillow (pure Python plus NumPy; no OpenGL). A mesh is loaded in a child process with a
-memory budget (api.mesh_check), so a mesh too large to load is refused (413) instead of taking the API's memory.
+memory budget (seasynth.api.mesh_check), so a mesh too large to load is refused (413) instead of taking the API's memory.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from service.errors import AssetError, LimitExceeded, SeasynthError
-from service.settings import UPLOAD_CHECK_MEMORY_MIB
+from seasynth.service.errors import AssetError, LimitExceeded, SeasynthError
+from seasynth.service.settings import UPLOAD_CHECK_MEMORY_MIB
 
 MESH, IMAGE = "mesh", "image"
 ARTICLED = {MESH: "a mesh", IMAGE: "an image"}
@@ -71,7 +71,7 @@ def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = UPLO
 
 
 def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
-    """Load the mesh as the workers do, in a child process (api.mesh_check) within `budget_mib` of memory."""
+    """Load the mesh as the workers do, in a child process (seasynth.api.mesh_check) within `budget_mib` of memory."""
     # The script by its path: it needs only the standard library, NumPy and trimesh, not this package on sys.path.
     cmd = [sys.executable, str(Path(__file__).with_name("mesh_check.py")), str(path), file_type, str(budget_mib)]
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from starlette.routing import BaseRoute, Match
 
-from api.gate import ASGIApp, Receive, Scope, Send, answer
+from seasynth.api.gate import ASGIApp, Receive, Scope, Send, answer
 
 
 class FrameWaits:

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.shards import frame_file
-from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
+from seasynth.service.shards import frame_file
+from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 WIDTH, HEIGHT = 640, 480
@@ -101,8 +101,8 @@ def psnr_db(a: np.ndarray, b: np.ndarray) -> float:
 def hazed_mean(J: np.ndarray, R: np.ndarray, scene, view) -> np.ndarray:
     """Float64 water of the scene's model per sample (the paper's haze, or the physical model's `volume_pixels`),
     averaged in linear light. J: (k, h, w, 3), R: (k, h, w) -> (h, w, 3) float64."""
-    from worker.formation import haze
-    from worker.light.volume import camera_depth, pixel_rays, volume_pixels
+    from seasynth.worker.frame.formation import haze
+    from seasynth.worker.light.volume import camera_depth, pixel_rays, volume_pixels
 
     water, light = scene.water, scene.light
     if light is not None:
@@ -133,7 +133,7 @@ def majority_ids(ids_hi: np.ndarray, s: int) -> np.ndarray:
 
 
 def boxes_of(session, view, scene, items, instance) -> dict[int, tuple[int, int, int, int]]:
-    from worker.labels import tight_boxes
+    from seasynth.worker.frame.labels import tight_boxes
 
     targets = {p.instance_id for p in scene.objects if p.role == "target"}
     return {i: (b.left, b.top, b.right, b.bottom) for i, b in tight_boxes(instance).items() if i in targets}
@@ -146,9 +146,9 @@ class Reference:
 
 
 def reference(session, spec: DatasetSpec) -> Reference:
-    from worker.srgb import encode_srgb8
-    from worker.pipeline import scene_light
-    from worker.render import Sampling, View
+    from seasynth.worker.frame.srgb import encode_srgb8
+    from seasynth.worker.frame.function import scene_light
+    from seasynth.worker.render import Sampling, View
 
     scene = session.scene(spec, 0)
     view = session.view(spec, scene)
@@ -187,8 +187,8 @@ def errors(session, s: DatasetSpec, ref: Reference) -> dict:
 
     from PIL import Image
 
-    from worker.srgb import encode_srgb8
-    from worker.pipeline import PRESETS, Passes, scene_light
+    from seasynth.worker.frame.srgb import encode_srgb8
+    from seasynth.worker.frame.function import PRESETS, Passes, scene_light
 
     preset = s.quality
     files = session.frame_files(s, 0)
@@ -226,8 +226,8 @@ def errors(session, s: DatasetSpec, ref: Reference) -> dict:
 
 def run(out: Path, *, scenes, presets, repeats: int, machine: str | None, platform: str,
         jpeg: tuple[int, ...] = ()) -> dict:
-    from bench.throughput import machine_description
-    from worker.pipeline import RenderSession
+    from seasynth.bench.throughput import machine_description
+    from seasynth.worker.frame.function import RenderSession
 
     scenes = scenes or list(SCENES)
     presets = presets or list(PRESET_NAMES)

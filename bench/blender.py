@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.blender_side import PHASE_G, SURFACE_CLEARANCE_M, WATER_EXTENT_M
+from seasynth.bench.blender_side import PHASE_G, SURFACE_CLEARANCE_M, WATER_EXTENT_M
 
 INSTALL_HINT = ("python3.11 -m venv .venv-blender && .venv-blender/bin/pip install 'bpy==4.5.*' (bpy 4.5 needs "
                 "numpy<2, seasynth numpy>=2, so Blender gets its own environment; pass it with --blender-python)")
@@ -70,7 +70,7 @@ def export_frame(session, spec, index: int) -> dict[str, np.ndarray]:
     size (2,) int64 width, height, world_from_cam (4, 4) KITTI axes, sun_dir_world (3,), sun_intensity (),
     ambient (), absorption / scattering (3,) 1/m (zeros with the water off), phase_g (), surface_z () metres.
     """
-    from service.water import jerlov_absorption, jerlov_scattering
+    from seasynth.service.water import jerlov_absorption, jerlov_scattering
 
     scene = session.scene(spec, index)
     view = session.view(spec, scene)
@@ -107,7 +107,7 @@ def export_frame(session, spec, index: int) -> dict[str, np.ndarray]:
 # ---- the bench ----------------------------------------------------------------------------------------------------
 def check_blender(python: Path) -> str:
     """bpy's version in `python`, or a SeasynthError in one line saying how to install it."""
-    from service.errors import SeasynthError
+    from seasynth.service.errors import SeasynthError
 
     try:
         got = subprocess.run([str(python), "-c", "import bpy; print(bpy.app.version_string)"], capture_output=True,
@@ -141,10 +141,10 @@ def run(spec_path: Path, *, frames: int, width: int, height: int, out: Path | No
     import os
     import tempfile
 
-    from bench.accuracy import write_results
-    from bench.throughput import WARMUP, machine_description, steady_generate, warm_caches
-    from service.spec import load_spec
-    from worker.pipeline import RenderSession
+    from seasynth.bench.accuracy import write_results
+    from seasynth.bench.throughput import WARMUP, machine_description, steady_generate, warm_caches
+    from seasynth.service.spec.dataset import load_spec
+    from seasynth.worker.frame.function import RenderSession
 
     version = check_blender(blender_python)
     spec = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": "default",

@@ -1,8 +1,8 @@
 """Water calibration accuracy: seasynth's own clean frames and range, hazed with known water (Jerlov types and
-off-family waters made from them, noise on and off), estimated back by service.calibration with range (the default,
+off-family waters made from them, noise on and off), estimated back by seasynth.service.calibration.estimate with range (the default,
 with its Jerlov prior, and the free fit) and without range; error per coefficient and channel.
 
-The haze is applied here in float64 per pixel (worker.formation.haze) to the frame's clean image, camera noise
+The haze is applied here in float64 per pixel (seasynth.worker.frame.formation.haze) to the frame's clean image, camera noise
 (Gaussian, linear, seeded) is added, and the result is encoded to 8-bit sRGB once: the estimator sees what a photo
 of that water would hold, and the truth is exact.
 """
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.calibration_floor import apparent_attenuation, floor_summary, format_floor
-from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
+from seasynth.bench.calibration_floor import apparent_attenuation, floor_summary, format_floor
+from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 WIDTH, HEIGHT = 160, 120
@@ -57,8 +57,8 @@ def scene_spec(name: str, width: int, height: int, light: str = LIGHTS[0]) -> Da
 
 def clean_and_range(session, spec: DatasetSpec, index: int) -> tuple[np.ndarray, np.ndarray]:
     """The frame's clean image J: (h, w, 3) float64 linear, and range: (h, w) float64 metres, +inf open water."""
-    from worker.pipeline import PRESETS, scene_light
-    from worker.render import Passes
+    from seasynth.worker.frame.function import PRESETS, scene_light
+    from seasynth.worker.render import Passes
 
     scene = session.scene(spec, index)
     view = session.view(spec, scene)
@@ -71,7 +71,7 @@ def clean_and_range(session, spec: DatasetSpec, index: int) -> tuple[np.ndarray,
 def water_beta(water: str) -> np.ndarray:
     """beta_D (3,) 1/m of a bench water: a Jerlov type's, or for "<type>~" that type's with each channel scaled by
     1 + s U(0.15, 0.25), s = +-1, from a generator seeded by the type (the same on every run)."""
-    from service.water import JERLOV_TYPES, jerlov_beta
+    from seasynth.service.water import JERLOV_TYPES, jerlov_beta
 
     base = water.removesuffix(OFF_FAMILY)
     bd = jerlov_beta(base)
@@ -86,7 +86,7 @@ def water_backscatter_ratio(water: str) -> np.ndarray:
     times 1 + s_c U(0.1, 0.2) per channel, signs s_c = +-1 with both signs present, seeded by the type (a stream
     apart from water_beta's): a ratio that differs by channel (by 20-40% between some two), which the default
     estimator's prior (one ratio for all channels) does not hold."""
-    from service.water import JERLOV_TYPES
+    from seasynth.service.water import JERLOV_TYPES
 
     ratio = np.full(3, BACKSCATTER_RATIO)
     if water.endswith(OFF_FAMILY):
@@ -100,9 +100,9 @@ def water_backscatter_ratio(water: str) -> np.ndarray:
 def hazed_photo(J: np.ndarray, range_m: np.ndarray, water: str, sigma: float, seed: int) -> tuple[np.ndarray, dict]:
     """8-bit sRGB photo (h, w, 3) uint8 of J through bench water `water` (see water_beta), with Gaussian noise sigma
     (linear), and the truth {beta_D, beta_B, B_inf: (3,) lists}."""
-    from service.water import jerlov_veiling_light
-    from worker.formation import haze
-    from worker.srgb import encode_srgb8
+    from seasynth.service.water import jerlov_veiling_light
+    from seasynth.worker.frame.formation import haze
+    from seasynth.worker.frame.srgb import encode_srgb8
 
     bd = water_beta(water)
     truth = {"beta_D": bd, "beta_B": water_backscatter_ratio(water) * bd,
@@ -115,7 +115,7 @@ def hazed_photo(J: np.ndarray, range_m: np.ndarray, water: str, sigma: float, se
 
 def noise_seed(scene: str, index: int, water: str) -> int:
     """The noise generator's seed of one photo: from its scene, frame and water, whichever others are run."""
-    from service.water import JERLOV_TYPES
+    from seasynth.service.water import JERLOV_TYPES
 
     off = 500 if water.endswith(OFF_FAMILY) else 0
     return 100_000 * list(SCENES).index(scene) + 1000 * index + off + JERLOV_TYPES.index(water.removesuffix(OFF_FAMILY))
@@ -162,9 +162,9 @@ def run(out: Path | None, *, scenes=None, waters=None, frames: int = FRAMES, wid
         height: int = HEIGHT, machine: str | None = None, platform: str = "egl", light: str = LIGHTS[0]) -> dict:
     import time
 
-    from bench.throughput import machine_description
-    from service.calibration import estimate_water
-    from worker.pipeline import RenderSession
+    from seasynth.bench.throughput import machine_description
+    from seasynth.service.calibration.estimate import estimate_water
+    from seasynth.worker.frame.function import RenderSession
 
     scenes, waters = scenes or list(SCENES), waters or list(WATERS)
     photos = [*waters, *(w + OFF_FAMILY for w in waters)]

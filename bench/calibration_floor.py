@@ -1,6 +1,6 @@
 """How far the calibration bench's scenes are from the estimator's prior: the attenuation a clean frame shows by itself.
 
-With range, service.calibration assumes that the statistics of J (the scene's colours in air) do not depend on range.
+With range, seasynth.service.calibration.estimate assumes that the statistics of J (the scene's colours in air) do not depend on range.
 A scene whose mean colour drifts with range shows an attenuation even through water that attenuates nothing: the
 slope of ln(mean J) against range over the estimator's range bins. That apparent attenuation is a floor on beta_D's
 error wherever the drift is not seen as such; a beta_D of the same size cannot be measured to 10% in that frame.
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.calibration_fit import RANGE_BINS, range_edges
+from seasynth.service.calibration.fit import RANGE_BINS, range_edges
 
 CHANNELS = ("R", "G", "B")
 

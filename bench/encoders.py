@@ -1,6 +1,6 @@
 """Image encoders for our frames, side by side: ms, bytes, exact round trip and 2-thread speedup per encoder.
 
-    PYOPENGL_PLATFORM=egl PYGLET_HEADLESS=1 python -m bench.encoders --out DIR [--width 1920 --height 1080] [--frames N]
+    PYOPENGL_PLATFORM=egl PYGLET_HEADLESS=1 python -m seasynth.bench.encoders --out DIR [--width 1920 --height 1080] [--frames N]
 
 renders N frames of examples/urchins.yaml through RenderSession (image_2 as rgb8, KITTI depth as depth16), encodes
 each with every candidate that is installed, and writes DIR/encoders.md and DIR/encoders.json. The harness
@@ -42,7 +42,7 @@ class Candidate:
     kinds: tuple[str, ...]  # the KINDS it can encode
     needs: str  # "module" or "module:attribute" that must import for it to run
     encode: Callable[[np.ndarray], bytes]  # takes a C-contiguous array of one of `kinds`
-    current: bool = False  # what worker.pipeline encodes with today: the baseline of speedup_vs_current
+    current: bool = False  # what seasynth.worker.frame.function encodes with today: the baseline of speedup_vs_current
 
 
 def _pillow(fmt: str, **opts) -> Callable[[np.ndarray], bytes]:
@@ -83,18 +83,18 @@ def _call(module: str, func: str, **kw) -> Callable[[np.ndarray], bytes]:
 
 
 def _png_bytes(a: np.ndarray) -> bytes:
-    from worker.image_files import png_bytes
+    from seasynth.worker.frame.encode import png_bytes
 
     return png_bytes(a)
 
 
 def candidates() -> list[Candidate]:
     """Every encoder we compare, installed or not (built on call: nothing is imported here)."""
-    from worker.image_files import PNG_SETTINGS
+    from seasynth.worker.frame.encode import PNG_SETTINGS
 
     both, rgb = KINDS, ("rgb8",)
     settings = ", ".join(f"{k}={v}" for k, v in PNG_SETTINGS.items())
-    c = [Candidate("worker.pipeline.png_bytes", f"imagecodecs png_encode {settings}", True, both,
+    c = [Candidate("seasynth.worker.frame.function.png_bytes", f"imagecodecs png_encode {settings}", True, both,
                    "imagecodecs:png_encode", _png_bytes, current=True)]
     c += [Candidate("Pillow PNG", f"compress_level={lv}, optimize=False", True, both, "PIL",
                     _pillow("PNG", compress_level=lv, optimize=False)) for lv in (0, 1, 2, 6)]
@@ -238,7 +238,7 @@ def format_table(result: dict) -> str:
              "versions: " + ", ".join(f"{k} {v}" for k, v in result["versions"].items()) + "  ",
              "1-minute load average before and after the measurements: "
              + " / ".join(map(str, result.get("load_average_1min", ["n/a"]))), "",
-             "ms: median over frames and interleaved rounds, one thread. x current: worker.pipeline.png_bytes ms / this "
+             "ms: median over frames and interleaved rounds, one thread. x current: seasynth.worker.frame.function.png_bytes ms / this "
              f"ms. 2 threads: wall time of >= {THREAD_SECONDS} s of frames in 1 thread / in 2, fastest of 5 each (~2: "
              "releases the GIL and both cores are free; ~1: holds it). "
              "exact: Pillow decodes the very same array. Errors in 8-bit levels (depth16: 1/256 m)."]
@@ -273,8 +273,8 @@ def write_results(result: dict, out: Path) -> str:
 
 def render_frames(spec_path: Path, width: int, height: int, frames: int, platform: str = "egl"):
     """({"rgb8": [(h, w, 3) uint8], "depth16": [(h, w) uint16]}, GL renderer name) of frames 0..frames-1."""
-    from service.spec import load_spec
-    from worker.pipeline import RenderSession
+    from seasynth.service.spec.dataset import load_spec
+    from seasynth.worker.frame.function import RenderSession
 
     spec = load_spec(spec_path, {"outputs.depth": True, "outputs.labels": False, "outputs.meta": False,
                                  "camera.width": width, "camera.height": height})
@@ -291,7 +291,7 @@ def render_frames(spec_path: Path, width: int, height: int, frames: int, platfor
 
 
 def main(argv: list[str] | None = None) -> None:
-    from bench.throughput import machine_description
+    from seasynth.bench.throughput import machine_description
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True, help="folder for encoders.md and encoders.json")

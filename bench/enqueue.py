@@ -1,7 +1,7 @@
 """How long `POST /datasets` takes to accept a 100,000-frame dataset: one record and one planner message,
 whatever the frame count. Also times what the planner then does on a worker (bulk shard messages).
 
-    python -m bench.enqueue [--frames 100000] [--shard-size 50] [--repeats 20]
+    python -m seasynth.bench.enqueue [--frames 100000] [--shard-size 50] [--repeats 20]
 
 Uses SEASYNTH_REDIS_URL when set, else starts redis-server on a free port; storage is a local folder.
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 def _start_redis(folder: Path) -> tuple[subprocess.Popen, str]:
     import redis
 
-    from bench.stack import free_port
+    from seasynth.bench.stack import free_port
 
     port = free_port()
     proc = subprocess.Popen(
@@ -44,9 +44,9 @@ def run(frames: int, shard_size: int, repeats: int) -> None:
     from celery import Celery
     from fastapi.testclient import TestClient
 
-    from api.main import create_app
-    from service.queues import TASK_SHARD, shard_queue
-    from service.settings import Settings
+    from seasynth.api.main import create_app
+    from seasynth.service.queues import TASK_SHARD, shard_queue
+    from seasynth.service.settings import Settings
 
     with tempfile.TemporaryDirectory() as tmp:
         redis_proc = None

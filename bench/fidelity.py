@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.accuracy import EXAMPLE, psnr_db, write_results
-from service.spec import DatasetSpec, apply_overrides, read_spec_file, spec_digest
+from seasynth.bench.accuracy import EXAMPLE, psnr_db, write_results
+from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 # The table's frame size: the references at 320x240 are converged past every row's error, and seasynth's fixed
 # cost per frame no longer dominates its time (at 160x120: bench/results/cpu/fidelity-resolution/160x120/).
@@ -90,8 +90,8 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
 def path_traced_scene(session, spec: DatasetSpec):
     """The frame's scene for the path tracer, in its units (radiance: our J = albedo x irradiance is pi times less
     than a Lambertian surface's radiance under the same irradiance, so lights are scaled by pi)."""
-    from bench.pathtracer import PTLamp, PTMesh, PTScene
-    from worker.light import SNELL_CONE_DEG
+    from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
+    from seasynth.worker.light import SNELL_CONE_DEG
 
     scene = session.scene(spec, FRAME)
     view = session.view(spec, scene)
@@ -119,8 +119,8 @@ def path_traced_scene(session, spec: DatasetSpec):
 def paper_water(scene, view):
     """The deferred model's coefficients from the same water: beta_D = beta_B = c, and B_inf the physical model's
     open water looking horizontally at the camera's depth."""
-    from worker.light.volume import camera_depth, volume
-    from worker.render import WaterParams
+    from seasynth.worker.light.volume import camera_depth, volume
+    from seasynth.worker.render import WaterParams
 
     light = scene.light
     w = np.array([[1.0, 0.0, 0.0]])
@@ -131,8 +131,8 @@ def paper_water(scene, view):
 
 def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:
     """(preset, terms, linear float image, ms per frame) for each row of a configuration."""
-    from worker.pipeline import PRESETS
-    from worker.render import Passes
+    from seasynth.worker.frame.function import PRESETS
+    from seasynth.worker.render import Passes
 
     scene = session.scene(spec, FRAME)
     view = session.view(spec, scene)
@@ -205,7 +205,7 @@ def path_tracer_cost(pts, timing_spp: int) -> tuple[PathTracerCost, float]:
     fits PathTracerCost; returns it and the seconds of the `timing_spp` render. Scaling one short render's seconds
     by a sample count counts its fixed part once per `timing_spp` samples: 64 samples of clear-lamps took 2.3-2.5 s
     on a 2-core CPU, of which ~0.7 s fixed."""
-    from bench import pathtracer
+    from seasynth.bench import pathtracer
 
     def timed(spp: int) -> float:
         t0 = time.perf_counter()
@@ -230,9 +230,9 @@ def reference_name(name: str, size: tuple[int, int]) -> str:
 
 def export_scenes(out: Path, *, configs: dict[str, str], platform: str,
                   size: tuple[int, int] = (WIDTH, HEIGHT)) -> list[Path]:
-    """Writes each configuration's path-tracer scene to OUT/NAME.scene.npz (for `python -m bench.reference`)."""
-    from bench.reference import SCENE_SUFFIX, save_scene
-    from worker.pipeline import RenderSession
+    """Writes each configuration's path-tracer scene to OUT/NAME.scene.npz (for `python -m seasynth.bench.reference`)."""
+    from seasynth.bench.reference import SCENE_SUFFIX, save_scene
+    from seasynth.worker.frame.function import RenderSession
 
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -245,7 +245,7 @@ def export_scenes(out: Path, *, configs: dict[str, str], platform: str,
 
 def stored_reference(references: Path | None, name: str, pts):
     """The stored reference of this configuration if one exists for exactly this scene, else None."""
-    from bench.reference import REF_SUFFIX, load_reference, scene_digest
+    from seasynth.bench.reference import REF_SUFFIX, load_reference, scene_digest
 
     path = references / f"{reference_name(name, (pts.width, pts.height))}{REF_SUFFIX}" if references else None
     if path is None or not path.exists():
@@ -263,10 +263,10 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
     scene, else two renders of `spp` here. The path tracer's cost is always measured here (path_tracer_cost: a
     warm-up, then `timing_spp` and 4x `timing_spp` samples per pixel; a stored reference's own host and seconds are
     recorded beside them)."""
-    from bench.reference import render_reference
-    from bench.throughput import machine_description
-    from worker.srgb import encode_srgb8
-    from worker.pipeline import RenderSession
+    from seasynth.bench.reference import render_reference
+    from seasynth.bench.throughput import machine_description
+    from seasynth.worker.frame.srgb import encode_srgb8
+    from seasynth.worker.frame.function import RenderSession
 
     rows, pictures, sources = [], [], {}
     with RenderSession(platform=platform) as session:

@@ -1,7 +1,7 @@
 """One checkout's side of a side-by-side fidelity comparison: the fidelity bench's scenes (stored references)
 rendered with chosen presets, scored as the bench scores them, in one process; run it from two checkouts in turn.
 
-    python -m bench.fidelity_side CONFIG[,CONFIG...] [PRESET[,PRESET...]]
+    python -m seasynth.bench.fidelity_side CONFIG[,CONFIG...] [PRESET[,PRESET...]]
 
 Prints per configuration and preset: PSNR (8-bit sRGB) against the reference, ms per frame (median of 6 renders
 after one warm-up), the path tracer's samples per pixel at equal error and their ratio to the ms.
@@ -13,16 +13,16 @@ import sys
 import time
 from pathlib import Path
 
-from bench.accuracy import psnr_db
-from bench.fidelity import CONFIGS, FRAME, config_spec, equal_error_spp, mse, path_traced_scene, stored_reference
+from seasynth.bench.accuracy import psnr_db
+from seasynth.bench.fidelity import CONFIGS, FRAME, config_spec, equal_error_spp, mse, path_traced_scene, stored_reference
 
 REFERENCES = Path(__file__).resolve().parent / "results" / "cpu" / "fidelity-references"
 
 
 def main(names: list[str], presets: list[str]) -> None:
-    from worker.pipeline import PRESETS, RenderSession
-    from worker.render import Passes
-    from worker.srgb import encode_srgb8
+    from seasynth.worker.frame.function import PRESETS, RenderSession
+    from seasynth.worker.render import Passes
+    from seasynth.worker.frame.srgb import encode_srgb8
 
     with RenderSession() as s:
         for name in names:

@@ -1,10 +1,10 @@
 """The GPU's ceiling: P processes each rendering (no labels, no encoding, no writing) the same four frames of
 examples/urchins.yaml in a loop for 8 s; prints the frames/s of all of them together.
 
-    python -m bench.gpu_ceiling WIDTHxHEIGHT VARIANT@PROCS[@DEPTH] ...
+    python -m seasynth.bench.gpu_ceiling WIDTHxHEIGHT VARIANT@PROCS[@DEPTH] ...
 
 DEPTH (default 1): frames each process keeps in flight; above 1, frame k+1's passes are queued before frame k's
-reads are fetched (GLRenderer.queue and fetch, as bench.gpu_timeline uses them), so the GPU never waits for it.
+reads are fetched (GLRenderer.queue and fetch, as seasynth.bench.gpu_timeline uses them), so the GPU never waits for it.
 VARIANT: default (the default preset, ids pass, 8-bit codes), fragment (the same with the fragment resolve),
 no-ids, draft, no-sun-shadow, no-scatter (sun and sky scattering off). Results: bench/results/gpu/passes.md.
 """
@@ -15,9 +15,9 @@ VARIANTS = ("default", "fragment", "no-ids", "draft", "no-sun-shadow", "no-scatt
 
 
 def worker(variant, seconds, barrier, q, res, depth=1):
-    from service.spec import load_spec
-    from worker.pipeline import PRESETS, RenderSession, scene_light
-    from worker.render import Passes
+    from seasynth.service.spec.dataset import load_spec
+    from seasynth.worker.frame.function import PRESETS, RenderSession, scene_light
+    from seasynth.worker.render import Passes
     w, h = res
     spec = load_spec("examples/urchins.yaml", {"camera.width": w, "camera.height": h})
     with RenderSession() as s:

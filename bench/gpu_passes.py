@@ -1,7 +1,7 @@
 """GPU time of each pass of a frame (GL_TIME_ELAPSED queries around the shadow maps, the surface pass, the
 resolve and the ids pass), one process, six frames of examples/urchins.yaml, per preset: medians in ms.
 
-    python -m bench.gpu_passes WIDTHxHEIGHT
+    python -m seasynth.bench.gpu_passes WIDTHxHEIGHT
 
 Results: bench/results/gpu/passes.md.
 """
@@ -9,10 +9,10 @@ import collections
 import statistics
 import sys
 
-from service.spec import load_spec
-from worker.pipeline import PRESETS, RenderSession, scene_light
-from worker.render import Passes
-import worker.render.gl_light as gl_light
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.frame.function import PRESETS, RenderSession, scene_light
+from seasynth.worker.render import Passes
+import seasynth.worker.render.gl_light as gl_light
 
 
 def main(w: int, h: int) -> None:
@@ -59,5 +59,5 @@ def main(w: int, h: int) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) != 2:
-        raise SystemExit("usage: python -m bench.gpu_passes WIDTHxHEIGHT")
+        raise SystemExit("usage: python -m seasynth.bench.gpu_passes WIDTHxHEIGHT")
     main(*(int(x) for x in sys.argv[1].split("x")))

@@ -2,7 +2,7 @@
 frames in flight (frame k+1's passes are queued before frame k's reads are fetched, so the GPU never waits for
 this process), and GL_TIMESTAMP queries between the stages give each stage's share of the GPU's timeline:
 
-    python -m bench.gpu_timeline WIDTHxHEIGHT [PRESET] [VARIANT ...]
+    python -m seasynth.bench.gpu_timeline WIDTHxHEIGHT [PRESET] [VARIANT ...]
 
 Stages: shadow maps, clear (binding and clearing the surface target), surface (the multisampled surface pass),
 resolve (water and the 8-bit codes, reads queued), ids (the ids pass and its read). A stage's time is the GPU's
@@ -12,7 +12,7 @@ VARIANT (default: none): measurement-only changes of the surface target, whose f
 `colour-rgba8`, `colour-rgba32f` (colour format instead of RGBA16F), `depth24` (24-bit depth instead of 32-bit
 float), `clear-colour` (clear the colour as the renderer did before it kept it), `flat-shader` (a one-line surface
 shader instead of the physical one). Results: bench/results/gpu/clear.md (0.5.1, whose surface pass also wrote a
-range attachment; since 0.5.2 range comes from the depth: worker.render.depth).
+range attachment; since 0.5.2 range comes from the depth: seasynth.worker.render.depth).
 """
 from __future__ import annotations
 
@@ -40,9 +40,9 @@ void main() {
 def apply_variants(variants: list[str]) -> None:
     from OpenGL import GL
 
-    import worker.light.glsl as glsl
-    from worker.render import gl as gl_renderer
-    from worker.render import targets
+    import seasynth.worker.light.glsl as glsl
+    from seasynth.worker.render import gl as gl_renderer
+    from seasynth.worker.render import targets
 
     if "flat-shader" in variants:
         glsl.SURFACE = FLAT_SURFACE
@@ -93,9 +93,9 @@ class Stamps:
 
 
 def main(w: int, h: int, preset_name: str, variants: list[str], seconds: float = 4.0) -> None:
-    from service.spec import load_spec
-    from worker.pipeline import PRESETS, RenderSession, scene_light
-    from worker.render import Passes, gl_light
+    from seasynth.service.spec.dataset import load_spec
+    from seasynth.worker.frame.function import PRESETS, RenderSession, scene_light
+    from seasynth.worker.render import Passes, gl_light
 
     apply_variants(variants)
     spec = load_spec("examples/urchins.yaml", {"camera.width": w, "camera.height": h})

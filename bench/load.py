@@ -325,7 +325,7 @@ def run(rate: float = 200, duration_s: float = 20, posts: int = 50, out: Path | 
     import signal
 
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # stop the components on the way out, too
-    from bench.stack import free_port, local_stack
+    from seasynth.bench.stack import free_port, local_stack
 
     # The worker is niced: on a machine this small the renderer would otherwise take the CPU the API is measured on
     # (where they are deployed, the API and the workers have CPUs of their own).

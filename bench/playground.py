@@ -18,8 +18,8 @@ from pathlib import Path
 import httpx
 import yaml
 
-from bench.throughput import machine_description
-from service.spec import read_spec_file, resolve_paths
+from seasynth.bench.throughput import machine_description
+from seasynth.service.spec.dataset import read_spec_file, resolve_paths
 
 # The first row visits each frame for the first time: it builds the terrain and asset variants the frame draws
 # (cached after); later rows revisit the same frames with more views.
@@ -48,7 +48,7 @@ def run(spec_path: Path, out: Path, frames: int = 12, platform: str = "egl") -> 
     with tempfile.TemporaryDirectory() as tmp:
         spec_file = Path(tmp) / "spec.yaml"
         spec_file.write_text(yaml.safe_dump(spec))
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "playground", str(spec_file), "--no-browser",
+        proc = subprocess.Popen([sys.executable, "-m", "seasynth.cli", "playground", str(spec_file), "--no-browser",
                                  "--port", str(port), "--out", str(Path(tmp) / "runs"), "--gl", platform],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         try:

@@ -8,7 +8,7 @@ by the scene's digest (`scene_digest`): change the scene and the stored referenc
 
 This module needs only numpy and Mitsuba (not the rest of seasynth), so a render host needs nothing else:
 
-    python -m bench.reference DIR --spp 131072 --variant cuda_ad_rgb
+    python -m seasynth.bench.reference DIR --spp 131072 --variant cuda_ad_rgb
 
 renders each DIR/NAME.scene.npz into DIR/NAME.ref.npz (two independent halves, their spp, variant, seconds).
 """
@@ -25,8 +25,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-from bench import pathtracer
-from bench.pathtracer import PTLamp, PTMesh, PTScene
+from seasynth.bench import pathtracer
+from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
 
 SCENE_SUFFIX = ".scene.npz"
 REF_SUFFIX = ".ref.npz"

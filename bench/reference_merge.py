@@ -1,8 +1,8 @@
 """Merge path-traced references rendered apart (on several GPUs, hosts or days) into one per scene.
 
-    python -m bench.reference_merge OUT IN [IN ...]
+    python -m seasynth.bench.reference_merge OUT IN [IN ...]
 
-Every NAME.ref.npz found in the IN folders is merged (bench.reference.merge: same scene digest and lamp housing,
+Every NAME.ref.npz found in the IN folders is merged (seasynth.bench.reference.merge: same scene digest and lamp housing,
 distinct seed bases, halves weighted by their samples) into OUT/NAME.ref.npz. OUT may be one of the INs: a stored
 reference grows in place. Needs numpy (and the standard library) only.
 """
@@ -13,9 +13,9 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.reference import REF_SUFFIX, Reference, load_reference, merge, save_reference
-from service.errors import OutputError
-from service.files import atomic_path
+from seasynth.bench.reference import REF_SUFFIX, Reference, load_reference, merge, save_reference
+from seasynth.service.errors import OutputError
+from seasynth.service.files import atomic_path
 
 
 def merge_folders(out: Path, folders: list[Path]) -> dict[str, Reference]:
@@ -34,7 +34,7 @@ def merge_folders(out: Path, folders: list[Path]) -> dict[str, Reference]:
             except ValueError as exc:
                 raise ValueError(f"{path}: {exc}") from None
     out.mkdir(parents=True, exist_ok=True)
-    for name, ref in merged.items():  # each file whole, or not at all (service.files: stdlib only)
+    for name, ref in merged.items():  # each file whole, or not at all (seasynth.service.files: stdlib only)
         with atomic_path(out / f"{name}{REF_SUFFIX}") as tmp, open(tmp, "wb") as f:
             save_reference(ref, f)
     return merged

@@ -1,12 +1,12 @@
 """Scale: finished frames per second against worker processes, GPUs and resolution, through the local CLI's
-`generate` (mode cli) and through the service on this machine (mode service, bench.scale_service), with CPU and GPU
+`generate` (mode cli) and through the service on this machine (mode service, seasynth.bench.scale_service), with CPU and GPU
 utilisation sampled while each run goes.
 
 wall_fps counts every frame over the whole run: for cli, start-up included (pool processes, GL contexts, shader and
 asset variants); for service, from POST /datasets to the status read that says it succeeded, with the workers
 already up (they are long-lived). steady_fps is the rate after the first quarter of the frames has finished (for
 service, of whole shards as the status shows them). `gpus` is the number of GPUs the rendering processes used: with
---gpus G, workers are bound to the first G GPUs round robin (service.gpus); without, to EGL's default device (1 if
+--gpus G, workers are bound to the first G GPUs round robin (seasynth.service.gpus); without, to EGL's default device (1 if
 that is a GPU, 0 on a software renderer). Each run is fresh (a new generate into an empty folder, a new service
 stack), so nothing is cached between rows except what a new process would also find (nothing).
 """
@@ -24,8 +24,8 @@ import threading
 import time
 from pathlib import Path
 
-from service.gpus import GpuChoice
-from service.spec import load_spec
+from seasynth.service.gpus import GpuChoice
+from seasynth.service.spec.dataset import load_spec
 
 STEADY_AFTER = 0.25  # steady_fps counts frames finished after this share of the run's frames
 DONE_AT_PERCENT = (10, 25, 50, 75, 90, 100)  # done_at_s: seconds until this share (%) of the frames was done
@@ -99,7 +99,7 @@ def rates(stamps: list[float], t0: float, wall: float) -> dict:
 
 def run_cli(spec, workers: int, platform: str, gpus: GpuChoice | None = None) -> dict:
     """One fresh local generate of spec with `workers` processes: frames, wall and steady fps, utilisation."""
-    from worker.generate import generate
+    from seasynth.worker.local.generate import generate
 
     stamps: list[float] = []
     with tempfile.TemporaryDirectory() as tmp, GpuSampler() as gpu, CpuMeter() as cpu:
@@ -112,7 +112,7 @@ def run_cli(spec, workers: int, platform: str, gpus: GpuChoice | None = None) ->
 
 
 def stop_fork_server() -> None:
-    """Stop this process's fork server (worker.pool_start), so the next row starts its processes as a new
+    """Stop this process's fork server (seasynth.worker.local.pool_start), so the next row starts its processes as a new
     `seasynth generate` would: the server's imports are part of start-up."""
     from multiprocessing import forkserver
 
@@ -123,7 +123,7 @@ def stop_fork_server() -> None:
 
 def gpus_used(platform: str, gpus: GpuChoice | None, workers: int) -> int:
     """GPUs that `workers` render processes bound by `gpus` use (not GPUs present)."""
-    from worker.render.devices import egl_devices, resolve_gpus
+    from seasynth.worker.render.devices import egl_devices, resolve_gpus
 
     if platform != "egl":
         return 0
@@ -135,7 +135,7 @@ def gpus_used(platform: str, gpus: GpuChoice | None, workers: int) -> int:
 
 def check_gpus(gpu_counts: list[int] | None, platform: str) -> None:
     """Before any row: every count of --gpus is available here (an unattended run fails in seconds, not hours)."""
-    from worker.render.devices import gpu_indices
+    from seasynth.worker.render.devices import gpu_indices
 
     if not gpu_counts:
         return
@@ -150,12 +150,12 @@ def run(spec_path: Path, *, resolutions: list[tuple[int, int]], workers: list[in
         preset: str, out: Path | None, platform: str, machine: str | None = None, modes: tuple[str, ...] = ("cli",),
         gpu_counts: list[int] | None = None, storage: str = "s3") -> list[dict]:
     """One row per (resolution, GPU count, workers, mode); also scale.json, .md and .png in `out` when given."""
-    from bench.scale_service import run_service, service_shard_size
-    from bench.throughput import machine_description
+    from seasynth.bench.scale_service import run_service, service_shard_size
+    from seasynth.bench.throughput import machine_description
 
     check_gpus(gpu_counts, platform)
     if "service" in modes:
-        from bench.stack import find_program
+        from seasynth.bench.stack import find_program
 
         find_program("redis-server", "apt-get install -y redis-server")  # before the first row, not mid-run
     rows = []

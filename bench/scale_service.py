@@ -1,4 +1,4 @@
-"""One `mode: service` row of bench.scale: a spec rendered by the real service on this machine (bench.stack:
+"""One `mode: service` row of seasynth.bench.scale: a spec rendered by the real service on this machine (seasynth.bench.stack:
 redis-server, an S3 server on loopback, the API, one `seasynth worker` whose prefork pool has `workers` processes),
 submitted as a user does (POST /datasets) and followed through GET /datasets/{id}.
 
@@ -19,8 +19,8 @@ from typing import Any
 
 import httpx
 
-from service.gpus import GpuChoice
-from service.spec import MAX_SHARD_MEGAPIXELS, DatasetSpec
+from seasynth.service.gpus import GpuChoice
+from seasynth.service.spec.dataset import MAX_SHARD_MEGAPIXELS, DatasetSpec
 
 POLL_S = 0.1
 SHARDS_PER_WORKER = 5  # several shards per process, so shard completions spread over the run
@@ -39,8 +39,8 @@ def service_shard_size(frames_per_worker: int, pixels_per_frame: int = 0) -> int
 def run_service(spec: DatasetSpec, workers: int, platform: str, gpus: GpuChoice | None,
                 storage: str = "s3") -> dict[str, Any]:
     """frames, wall and steady fps, utilisation, and frames_stored (what the bucket holds) of one service run."""
-    from bench.scale import CpuMeter, GpuSampler, rates
-    from bench.stack import local_stack
+    from seasynth.bench.scale import CpuMeter, GpuSampler, rates
+    from seasynth.bench.stack import local_stack
 
     worker_env = {"SEASYNTH_GL_PLATFORM": platform, **({"SEASYNTH_GPUS": str(gpus)} if gpus is not None else {})}
     body = spec.model_dump(mode="json")
@@ -85,8 +85,8 @@ def follow(client: httpx.Client, dataset_id: str, stamps: list[float], timeout_s
 def frames_stored(store, dataset_id: str) -> int:
     """Frames in the bucket: the stored manifest's frame counts over the shards whose tar is there with the size
     the manifest gives (the tars are not read back: at 1080p that would be gigabytes)."""
-    from bench.stack import wait
-    from service.shards import manifest_key
+    from seasynth.bench.stack import wait
+    from seasynth.service.shards import manifest_key
 
     # manifest.json is written just after the dataset is marked finished
     wait(lambda: store.head(manifest_key(dataset_id)), 30, f"manifest.json of dataset {dataset_id}")

@@ -24,7 +24,7 @@ from typing import Any
 import httpx
 
 BUCKET = "seasynth-bench"
-READY = "render session ready"  # a pool process's log line once its renderer is open (worker/tasks.py)
+READY = "render session ready"  # a pool process's log line once its renderer is open (worker/queue/tasks.py)
 
 
 class MissingComponent(RuntimeError):
@@ -82,7 +82,7 @@ class LocalStack:
 
     def settings(self):
         """The components' Settings, for reading the records and the bucket from this process."""
-        from service.settings import Settings
+        from seasynth.service.settings import Settings
 
         return Settings(**{k[len("SEASYNTH_"):].lower(): v for k, v in self.env.items() if k.startswith("SEASYNTH_")})
 
@@ -91,7 +91,7 @@ class LocalStack:
         from its own chain, the environment, when the client is made)."""
         from unittest import mock
 
-        from service.storage import open_store
+        from seasynth.service.storage import open_store
 
         with mock.patch.dict(os.environ, {k: v for k, v in self.env.items() if k.startswith("AWS_")}):
             return open_store(self.settings())
@@ -123,7 +123,7 @@ def local_stack(folder: Path, *, concurrency: int = 1, queues: str = "shards", a
         env.update(SEASYNTH_STORAGE="local", SEASYNTH_LOCAL_ROOT=str(folder / "objects"))
     if api_key:
         env["SEASYNTH_API_KEYS"] = api_key
-    cli = [sys.executable, "-m", "service.cli"]
+    cli = [sys.executable, "-m", "seasynth.cli"]
     worker = {**env, **(worker_env or {})}
     if metrics_port is not None:
         worker["SEASYNTH_WORKER_METRICS_PORT"] = str(metrics_port)

@@ -1,8 +1,8 @@
 """Where a local generate's start-up goes: a fresh `seasynth generate` (a new interpreter, the fork server, every
-render process) with each render process noting its events (`--timeline`, worker.local_pool.Timeline), summarised
+render process) with each render process noting its events (`--timeline`, seasynth.worker.local.pool.Timeline), summarised
 per run:
 
-    python -m bench.startup_timeline SPEC OUT_DIR --resolution 1280x720 --workers 24 --frames 3000 [--rounds 2]
+    python -m seasynth.bench.startup_timeline SPEC OUT_DIR --resolution 1280x720 --workers 24 --frames 3000 [--rounds 2]
 
 Per run: seconds from the command's start until the render processes had started (forked), opened their renderer
 and written their first frame (min / median / max over processes), the first frames' stages (median ms), when 10,
@@ -29,7 +29,7 @@ def run_once(spec: Path, width: int, height: int, workers: int, frames: int, tim
     timeline.unlink(missing_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.time()
-        subprocess.run([sys.executable, "-m", "service.cli", "generate", str(spec), "--out", f"{tmp}/out",
+        subprocess.run([sys.executable, "-m", "seasynth.cli", "generate", str(spec), "--out", f"{tmp}/out",
                         "--width", str(width), "--height", str(height), "--frames", str(frames),
                         "--workers", str(workers), "--gl", gl, "--timeline", str(timeline)], check=True,
                        stdout=subprocess.DEVNULL)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.spec import DatasetSpec, load_spec
+from seasynth.service.spec.dataset import DatasetSpec, load_spec
 
 STAGES = ("sampling", "render", "formation", "ids", "labels", "encode", "write")
 WARMUP = 5  # frames excluded from steady state (first uploads, shader compiles, cache fills)
@@ -25,7 +25,7 @@ CONFIGS: dict[str, dict] = {
     "+instance": {"outputs.depth": True, "outputs.instance": True},
     "+clean/range": {"outputs.depth": True, "outputs.instance": True, "outputs.clean": True, "outputs.range": True},
     "water off": {"water.enabled": False},
-    # Sensors (worker.sensors), each on its own beside image+labels: the FLS at its defaults (256 beams x 512
+    # Sensors (seasynth.worker.sensors), each on its own beside image+labels: the FLS at its defaults (256 beams x 512
     # bins, a 1454x586 render), the side-scan sonar at its defaults, then DVL+pressure.
     "+fls": {"sensors.fls.enabled": True},
     "+sss": {"sensors.sss.enabled": True},
@@ -94,8 +94,8 @@ def time_stock(scenes: list, spec: DatasetSpec) -> float:
 
 def time_stages(session, spec: DatasetSpec, frames: int, out: Path) -> dict[str, float]:
     """Median seconds per stage over frames WARMUP..frames-1 (GL work is waited for at each stage)."""
-    from worker.generate import write_frame
-    from worker.pipeline import frame_paths
+    from seasynth.worker.local.generate import write_frame
+    from seasynth.worker.frame.function import frame_paths
 
     per_stage: dict[str, list[float]] = {s: [] for s in STAGES}
     for rel in frame_paths(spec, 0):
@@ -121,7 +121,7 @@ def time_stages(session, spec: DatasetSpec, frames: int, out: Path) -> dict[str,
 
 def steady_generate(spec: DatasetSpec, out: Path) -> float:
     """Steady-state wall seconds per frame of a one-worker `generate` (frames after the warm-up)."""
-    from worker.generate import generate
+    from seasynth.worker.local.generate import generate
 
     stamps: list[float] = []
     generate(spec, out, workers=1, on_frames=lambda n: stamps.append(time.perf_counter()))
@@ -135,14 +135,14 @@ def warm_caches(session, spec: DatasetSpec, frames: int) -> None:
 
 
 def with_overrides(spec: DatasetSpec, overrides: dict, frames: int) -> DatasetSpec:
-    from service.spec import apply_overrides
+    from seasynth.service.spec.dataset import apply_overrides
 
     return DatasetSpec.model_validate(apply_overrides(spec.model_dump(mode="json"), {**overrides, "frames": frames}))
 
 
 def run(spec_path: Path, *, frames: int, width: int, height: int, out: Path | None, platform: str,
         preset: str = "default") -> dict:
-    from worker.pipeline import RenderSession
+    from seasynth.worker.frame.function import RenderSession
 
     base = load_spec(spec_path, {"camera.width": width, "camera.height": height, "quality": preset})
     spec = base.model_copy(update={"frames": frames})

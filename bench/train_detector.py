@@ -2,7 +2,7 @@
 random (no weights downloaded), trained for a few hundred steps on a `seasynth export --format coco` folder's train
 split; the loss per window of steps shows it learning.
 
-    python -m bench.train_detector COCO_EXPORT --out DIR [--steps 300] [--batch 4] [--device cuda]
+    python -m seasynth.bench.train_detector COCO_EXPORT --out DIR [--steps 300] [--batch 4] [--device cuda]
 
 Needs torch and torchvision (not a dependency of seasynth: install them where you train). Reads only the export's
 files (json and PNGs), as a user's training script would.

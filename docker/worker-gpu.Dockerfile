@@ -15,8 +15,9 @@ ENV PIP_NO_CACHE_DIR=1 \
 RUN python -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
-COPY pyproject.toml constraints.txt README.md ./
+COPY pyproject.toml setup.py constraints.txt README.md ./
 COPY service ./service
+COPY cli ./cli
 COPY worker ./worker
 RUN pip install -c constraints.txt ".[worker]"
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from service.errors import Conflict, OutputError, SeasynthError, Unavailable
-from service.fetch_manifest import get_manifest, url_refresher
-from service.files import write_atomic
+from seasynth.service.errors import Conflict, OutputError, SeasynthError, Unavailable
+from seasynth.service.fetch_manifest import get_manifest, url_refresher
+from seasynth.service.files import write_atomic
 
 STATE_DIR = ".seasynth-fetch"  # per-shard .part downloads and .done markers; resume reads it
 ATTEMPTS = 3

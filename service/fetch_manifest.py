@@ -7,7 +7,7 @@ import urllib.parse
 from collections.abc import Callable
 from typing import Any
 
-from service.errors import NotFound, Unauthorized, Unavailable
+from seasynth.service.errors import NotFound, Unauthorized, Unavailable
 
 # Fields of one manifest page that say which page it is, or how long its urls last; the assembled manifest drops them.
 PAGE_FIELDS = ("start", "limit", "next", "urls_expire_s")

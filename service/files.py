@@ -8,7 +8,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-from service.errors import OutputError, SeasynthError
+from seasynth.service.errors import OutputError, SeasynthError
 
 TMP_GLOB = ".*.tmp-*"  # what tmp_name makes, for sweeping what a killed process left
 

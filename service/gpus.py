@@ -1,6 +1,6 @@
 """Which GPU each render process uses: the `--gpus` / SEASYNTH_GPUS choice and the process -> device mapping.
 
-Devices are EGL device indices (the order EGL enumerates them, worker.render.devices). Which device renders a frame
+Devices are EGL device indices (the order EGL enumerates them, seasynth.worker.render.devices). Which device renders a frame
 never changes its bytes on GPUs of one model: a frame depends only on (spec, dataset seed, frame index).
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from service.errors import RenderError
+from seasynth.service.errors import RenderError
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ import json
 from collections.abc import Callable
 from typing import Any
 
-from service.record_types import DatasetRecord, ShardCommit
+from seasynth.service.records.types import DatasetRecord, ShardCommit
 
 MANIFEST_FORMAT = "seasynth-manifest/1"
 

@@ -1,4 +1,4 @@
-"""The contact sheet of a service dataset (GET /datasets/{id}/preview.png): drawn by service.sheet (no GL) from the
+"""The contact sheet of a service dataset (GET /datasets/{id}/preview.png): drawn by seasynth.service.sheet (no GL) from the
 tars of its committed shards of lowest index, and cached in the bucket under a key derived from what it was drawn
 from (those tars' keys and sha256, the frame count, the tile width and the drawing code's version)."""
 
@@ -11,13 +11,13 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from service import __version__
-from service.errors import ExportError, NotFound, ParameterError
-from service.kitti import parse_label_file
-from service.record_types import DatasetRecord, ShardCommit
-from service.records import Records
-from service.shards import FRAME_PARTS, named_file, preview_key
-from service.sheet import (
+from seasynth.service import __version__
+from seasynth.service.errors import ExportError, NotFound, ParameterError
+from seasynth.service.kitti import parse_label_file
+from seasynth.service.records.types import DatasetRecord, ShardCommit
+from seasynth.service.records.store import Records
+from seasynth.service.shards import FRAME_PARTS, named_file, preview_key
+from seasynth.service.sheet import (
     COLUMNS,
     GAP,
     HEADER,
@@ -31,8 +31,8 @@ from service.sheet import (
     png_bytes,
     tile_size,
 )
-from service.spec import DatasetSpec, parse_spec
-from service.storage import ObjectStore
+from seasynth.service.spec.dataset import DatasetSpec, parse_spec
+from seasynth.service.storage import ObjectStore
 
 SHEET_FRAMES = 12  # tiles on a sheet by default
 MAX_SHEET_FRAMES = 48

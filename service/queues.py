@@ -58,13 +58,13 @@ def reconciler_round_key(prefix: str) -> str:
 def reconcile_round(services: Any, every_s: float, sweep: Callable[[], list[str]]) -> ReconcileRound | None:
     """One round, unless another reconciler ran one within the last RECONCILER_ROUND_SHARE * every_s (None).
 
-    `services` is the API's (records, producer); `sweep` sweeps every stalled live dataset (api.operations.sweep_all),
+    `services` is the API's (records, producer); `sweep` sweeps every stalled live dataset (seasynth.api.operations.sweep_all),
     each at most once per stall timeout whoever asks (a per-dataset lock), so the round lock only spares work:
     rounds of several reconcilers racing are still safe. Then each dataset left in the set of pending manifests
-    (service.manifest) gets a reconcile task, which writes its manifest.
+    (seasynth.service.manifest) gets a reconcile task, which writes its manifest.
     """
-    from service.errors import NotFound
-    from service.manifest import pending_manifests_key
+    from seasynth.service.errors import NotFound
+    from seasynth.service.manifest import pending_manifests_key
 
     records = services.records
     ttl_ms = max(1, int(every_s * RECONCILER_ROUND_SHARE * 1000))

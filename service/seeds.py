@@ -5,7 +5,7 @@ import numpy as np
 # Distinct streams derived from one frame's entropy; appended to the SeedSequence key so they never collide.
 STREAM_SCENE = 0
 STREAM_NOISE = 1
-# Sensors' own streams (ASCII tags, like worker.export's STREAM_SPLIT): switching a sensor on changes no other draw.
+# Sensors' own streams (ASCII tags, like seasynth.worker.export's STREAM_SPLIT): switching a sensor on changes no other draw.
 STREAM_FLS = 0x666C73  # "fls": forward-looking sonar speckle and noise
 STREAM_SSS = 0x737373  # "sss": side-scan sonar speckle and noise
 STREAM_NAV = 0x6E6176  # "nav": DVL, pressure and IMU noise, and the seabed depth when the water model draws none

@@ -8,11 +8,11 @@ from typing import Literal
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service import __version__
-from service.gpus import GpuChoice, parse_gpus
+from seasynth.service import __version__
+from seasynth.service.gpus import GpuChoice, parse_gpus
 
 
-# Memory the check of an uploaded mesh may use by default (SEASYNTH_UPLOAD_CHECK_MEMORY_MIB, api.uploads).
+# Memory the check of an uploaded mesh may use by default (SEASYNTH_UPLOAD_CHECK_MEMORY_MIB, seasynth.api.uploads).
 UPLOAD_CHECK_MEMORY_MIB = 768
 
 
@@ -44,7 +44,7 @@ class Settings(BaseSettings):
     max_side: int = Field(4096, ge=8)  # camera.width and camera.height
     max_objects: int = Field(64, ge=0)  # per role and frame (upper end of targets.count, distractors.count)
     max_asset_bytes: int = Field(256 * 2**20, ge=1)  # one uploaded file; a multipart body may add 64 KiB
-    # Memory the check of an uploaded mesh may use (a child process: api.mesh_check); a mesh needing more is 413.
+    # Memory the check of an uploaded mesh may use (a child process: seasynth.api.mesh_check); a mesh needing more is 413.
     upload_check_memory_mib: int = Field(UPLOAD_CHECK_MEMORY_MIB, ge=256)  # NumPy and trimesh take ~150 MiB
     max_spec_bytes: int = Field(2**20, ge=1024)  # the body of POST /datasets (and of any other non-upload request)
     frame_timeout_s: float = Field(60.0, gt=0)  # GET /datasets/{id}/frames/{i} waits this long, then 503
@@ -63,7 +63,7 @@ class Settings(BaseSettings):
     worker_soft_shutdown_s: float = Field(30.0, ge=0)
     gl_platform: Literal["egl", "osmesa"] = "egl"  # headless GL of the render processes
     # The GPU of this worker's render processes (EGL device index; SEASYNTH_GPU), or the GPUs its pool processes
-    # are spread over by pool process index (SEASYNTH_GPUS: auto, a count N, or indices 0,1; see service.gpus).
+    # are spread over by pool process index (SEASYNTH_GPUS: auto, a count N, or indices 0,1; see seasynth.service.gpus).
     # Neither: EGL's default device, which is the right one where a container sees one GPU.
     gpu: int | None = Field(None, ge=0)
     gpus: str | None = None

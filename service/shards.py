@@ -30,7 +30,7 @@ class Shard:
 # GPU workers are several times faster still.
 FRAME_OVERHEAD_S = 0.25  # scene sampling, labels, PNG encoding: per frame, whatever the resolution (measured 0.07)
 SAMPLES_PER_S = 2e6  # rendered and water-formed samples per second, per worker process (measured 5e6-2e7)
-# Samples per output pixel of each quality preset (worker/pipeline.py PRESETS: msaa * supersample**2).
+# Samples per output pixel of each quality preset (worker/frame/function.py PRESETS: msaa * supersample**2).
 SAMPLES_PER_PIXEL = {"draft": 1, "fast": 4, "default": 4, "high": 16}
 OBJECT_S = 0.004  # per placed object and frame: draw, placement, a target's labels (measured 0.001)
 TERRAIN_CELL_S = 1e-6  # per heightfield cell (cells**2 of them) and frame: drawing it (measured 3e-7)
@@ -39,12 +39,12 @@ OUTPUT_SHARE = 0.25  # each of clean, range, depth, instance: this share of the 
 # Export formats (outputs.coco, yolo, mcap) count as outputs too: each writes the shard's images again with its
 # labels, and COCO also renders and encodes the instance ids.
 EXTRA_OUTPUTS = ("clean", "range", "depth", "instance", "coco", "yolo", "mcap")
-# Sonar and navigation sensors (service.sensors): their renders (one sample per pixel, then the echo model's numpy
+# Sonar and navigation sensors (seasynth.service.spec.sensors): their renders (one sample per pixel, then the echo model's numpy
 # work per pixel) and a fixed cost per enabled sensor. Measured on the same machine: FLS at defaults (852,044 render
 # pixels) 0.219 s, i.e. 3.9e6 pixels/s; SSS at defaults (2 x 27,060 pixels) 0.016 s; DVL + pressure 0.014 s.
 SENSOR_PIXELS_PER_S = 1e6
 SENSOR_S = 0.05  # per enabled sensor and frame (measured 0.007-0.016)
-# A user terrain mesh is costed as the largest heightfield (service/spec_scene.py MAX_TERRAIN_CELLS): its triangle
+# A user terrain mesh is costed as the largest heightfield (service/spec/scene.py MAX_TERRAIN_CELLS): its triangle
 # count is unknown before it is loaded.
 MAX_TERRAIN_CELLS_COSTED = 1024
 
@@ -65,7 +65,7 @@ def frame_seconds(
     objects: the most objects a frame may place (the upper ends of targets.count and distractors.count);
     terrain_cells: cells per side of the terrain grid; extra_outputs: how many of clean, range, depth, instance
     and the export formats coco, yolo and mcap are switched on; sensors: how many sonar and navigation sensors are
-    on; sensor_pixels: the pixels they render per frame (service.sensors.Sensors.render_pixels).
+    on; sensor_pixels: the pixels they render per frame (seasynth.service.spec.sensors.Sensors.render_pixels).
     """
     samples = width * height * SAMPLES_PER_PIXEL[quality] / SAMPLES_PER_S
     return (FRAME_OVERHEAD_S + samples * (1 + OUTPUT_SHARE * extra_outputs) + OBJECT_S * objects
@@ -98,7 +98,7 @@ def shard_seconds(
 
 
 def spec_cost_terms(spec) -> dict[str, int]:
-    """The keyword arguments of shard_seconds for a DatasetSpec (service.spec), as admission counts them."""
+    """The keyword arguments of shard_seconds for a DatasetSpec (seasynth.service.spec.dataset), as admission counts them."""
     t = spec.terrain
     cells = MAX_TERRAIN_CELLS_COSTED if t.mesh is not None else t.cells
     return {
@@ -131,7 +131,7 @@ def spec_shard_seconds(spec, shard_size: int | None = None) -> float:
 # Host memory of one render process, an upper bound fitted to peaks measured with llvmpipe (which keeps GL
 # buffers in host memory) for one frame with every output: 2048x2048 high 1.7 GB; 4096x4096 draft 2.2 GB,
 # default 3.0 GB, high 6.1 GB. Caches that outlive a frame (terrains: about 0.5 GB each at 1024 cells) come on top;
-# worker_max_memory_per_child (worker/celery_app.py) bounds what a process carries into its next task.
+# worker_max_memory_per_child (worker/queue/app.py) bounds what a process carries into its next task.
 PROCESS_BASE_BYTES = 384 * 2**20  # interpreter, numpy, trimesh, Mesa, the caches of a small spec
 FRAME_BYTES_PER_PIXEL = 128  # read-back images, labels, outputs, PNG encoding
 FRAME_BYTES_PER_SAMPLE = 16  # multisampled colour, range and ids before the resolve
@@ -176,7 +176,7 @@ def export_part_key(dataset_id: str, index: int, fmt: str) -> str:
 
 
 def preview_key(dataset_id: str, digest: str) -> str:
-    """A cached contact sheet; `digest` is the sha256 of what it was drawn from (service.previews)."""
+    """A cached contact sheet; `digest` is the sha256 of what it was drawn from (seasynth.service.previews)."""
     return f"datasets/{dataset_id}/previews/{digest}.png"
 
 
@@ -213,7 +213,7 @@ FRAME_PARTS: dict[str, tuple[str, str]] = {
     "instance": ("instance", ".png"),
     "clean": ("clean", ".png"),
     "range": ("range", ".npy"),
-    # Sonar and navigation sensors (service.sensors), where the spec switches them on.
+    # Sonar and navigation sensors (seasynth.service.spec.sensors), where the spec switches them on.
     "fls": ("fls", ".png"),
     "fls_fan": ("fls_fan", ".png"),
     "fls_label": ("fls_label", ".json"),
@@ -221,7 +221,7 @@ FRAME_PARTS: dict[str, tuple[str, str]] = {
     "sss_label": ("sss_label", ".json"),
     "nav": ("nav", ".json"),
 }
-# Each sensor's parts (service.sensors): a frame has them where the spec switches that sensor on.
+# Each sensor's parts (seasynth.service.spec.sensors): a frame has them where the spec switches that sensor on.
 PARTS_OF_SENSOR: dict[str, tuple[str, ...]] = {"fls": ("fls", "fls_fan", "fls_label"), "sss": ("sss", "sss_label"),
                                                "nav": ("nav",)}
 SENSOR_PARTS = tuple(part for parts in PARTS_OF_SENSOR.values() for part in parts)
@@ -237,7 +237,7 @@ def media_type(path: str) -> str:
 
 def frame_name(index: int) -> str:
     """KITTI's six-digit file stem of frame `index` (the spec's frame limit keeps every index below 10^6)."""
-    from service.spec import MAX_FRAMES
+    from seasynth.service.spec.dataset import MAX_FRAMES
 
     if not 0 <= index < MAX_FRAMES:
         raise ValueError(f"frame index {index} is outside 0..{MAX_FRAMES - 1}")
@@ -257,7 +257,7 @@ def named_file(part: str, name: str, image_suffix: str = ".png") -> str:
 
 
 def frame_parts(spec) -> list[str]:
-    """The parts (FRAME_PARTS keys) every frame of `spec` (a service.spec.DatasetSpec) has."""
+    """The parts (FRAME_PARTS keys) every frame of `spec` (a seasynth.service.spec.dataset.DatasetSpec) has."""
     o, s = spec.outputs, spec.sensors
     wanted = (("image", True), ("calib", True), ("label", o.labels), ("meta", o.meta), ("depth", o.depth),
               ("instance", o.instance), ("clean", o.clean), ("range", o.range))

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.errors import ExportError
+from seasynth.service.errors import ExportError
 
 COLUMNS = 4  # tiles per grid row
 GAP = 4  # px between tiles and around the grid

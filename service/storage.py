@@ -9,10 +9,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
-from service.errors import NotFound, OutputError, SeasynthError, Unavailable, Unreachable
+from seasynth.service.errors import NotFound, OutputError, SeasynthError, Unavailable, Unreachable
 
 if TYPE_CHECKING:
-    from service.settings import Settings
+    from seasynth.service.settings import Settings
 
 
 @dataclass(frozen=True)

@@ -70,7 +70,7 @@ def wait(pred, timeout: float, what: str, interval: float = 0.1):
 def playground_server(spec: Path, port: int, out: Path, log: Path) -> Iterator[str]:
     """`seasynth playground SPEC` in a child process; yields its base URL once the page answers."""
     with open(log, "wb") as sink:
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "playground", str(spec), "--no-browser",
+        proc = subprocess.Popen([sys.executable, "-m", "seasynth.cli", "playground", str(spec), "--no-browser",
                                  "--port", str(port), "--out", str(out)], stdout=sink, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:

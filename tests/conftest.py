@@ -2,7 +2,7 @@
 
 import pytest
 
-from worker.pipeline import RenderSession
+from seasynth.worker.frame.function import RenderSession
 
 
 @pytest.fixture(scope="session")

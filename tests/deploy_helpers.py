@@ -36,7 +36,7 @@ IMAGES = {
     "api": {
         "dockerfile": "docker/api.Dockerfile",
         "extra": "api",
-        "packages": {"service", "api"},
+        "packages": {"service", "cli", "api"},
         "cmd": ["seasynth", "serve", "--host", "0.0.0.0", "--port", "8000"],
         "forbidden_distributions": OPENGL_DISTRIBUTIONS,
         "k8s_image": "seasynth/api",
@@ -44,7 +44,7 @@ IMAGES = {
     "worker": {
         "dockerfile": "docker/worker.Dockerfile",
         "extra": "worker",
-        "packages": {"service", "worker"},
+        "packages": {"service", "cli", "worker"},
         "cmd": ["seasynth", "worker"],
         "forbidden_distributions": API_ONLY_DISTRIBUTIONS,
         "k8s_image": "seasynth/worker",
@@ -52,7 +52,7 @@ IMAGES = {
     "worker-gpu": {
         "dockerfile": "docker/worker-gpu.Dockerfile",
         "extra": "worker",
-        "packages": {"service", "worker"},
+        "packages": {"service", "cli", "worker"},
         "cmd": ["seasynth", "worker"],
         "forbidden_distributions": API_ONLY_DISTRIBUTIONS,
         "k8s_image": "seasynth/worker-gpu",

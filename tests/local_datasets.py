@@ -6,8 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from service.spec import load_spec
-from worker.generate import generate
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.local.generate import generate
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 
@@ -26,4 +26,4 @@ def tree(root: Path) -> dict[str, bytes]:
 
 
 def seasynth(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True)
+    return subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True)

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from service.errors import SpecError
-from service.spec import parse_spec
+from seasynth.service.errors import SpecError
+from seasynth.service.spec.dataset import parse_spec
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "urchins.yaml"

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from worker.assets import Asset, AssetError
-from worker.assets.procedural import PROCEDURAL, procedural_asset, stable_seed
-from worker.assets.user import load_user_asset
+from seasynth.worker.scene.assets import Asset, AssetError
+from seasynth.worker.scene.assets.procedural import PROCEDURAL, procedural_asset, stable_seed
+from seasynth.worker.scene.assets.user import load_user_asset
 
 KINDS = sorted(PROCEDURAL)
 VARIANTS = range(6)

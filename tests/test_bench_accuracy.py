@@ -5,8 +5,8 @@ import math
 
 import numpy as np
 
-from bench import accuracy
-from service.spec import spec_digest
+from seasynth.bench import accuracy
+from seasynth.service.spec.dataset import spec_digest
 
 # wide-fov: a 110-degree view over the example scene, where range and z-depth differ most. At 96 x 72 the bench runs
 # in a few seconds and a 2% error in the shader's transmission already moves some pixel by two codes.

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.blender import PAPER, export_frame, paper_volume
-from bench.blender_side import BLENDER_FROM_KITTI, blender_camera, blender_project, sun_matrix, volume_settings
+from seasynth.bench.blender import PAPER, export_frame, paper_volume
+from seasynth.bench.blender_side import BLENDER_FROM_KITTI, blender_camera, blender_project, sun_matrix, volume_settings
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 
@@ -98,9 +98,9 @@ def test_paper_volume_extinction_is_beta_with_the_types_albedo():
 def test_export_frame_is_the_frames_own_scene():
     """The exported arrays are the draw items placed in the world, their albedo as seasynth shades it, the frame's
     camera, sun and water: checked item by item against the session's own scene."""
-    from service.spec import load_spec
-    from service.water import jerlov_absorption, jerlov_scattering
-    from worker.pipeline import RenderSession
+    from seasynth.service.spec.dataset import load_spec
+    from seasynth.service.water import jerlov_absorption, jerlov_scattering
+    from seasynth.worker.frame.function import RenderSession
 
     spec = load_spec(EXAMPLE, {"camera.width": 160, "camera.height": 120, "terrain.cells": 24,
                                "terrain.variants": 1, "distractors.count": [1, 2], "targets.count": [1, 2],

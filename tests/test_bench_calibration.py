@@ -5,10 +5,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import calibration
-from bench.calibration_floor import apparent_attenuation
-from service.spec import spec_digest
-from service.water import jerlov_beta
+from seasynth.bench import calibration
+from seasynth.bench.calibration_floor import apparent_attenuation
+from seasynth.service.spec.dataset import spec_digest
+from seasynth.service.water import jerlov_beta
 
 RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results" / "cpu"
 

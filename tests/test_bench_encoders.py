@@ -1,11 +1,11 @@
-"""bench.encoders' harness on small synthetic frames: no GL, every installed lossless encoder round-trips exactly."""
+"""seasynth.bench.encoders' harness on small synthetic frames: no GL, every installed lossless encoder round-trips exactly."""
 
 import json
 
 import numpy as np
 import pytest
 
-from bench import encoders
+from seasynth.bench import encoders
 
 
 def frames() -> dict[str, list[np.ndarray]]:
@@ -30,7 +30,7 @@ def test_every_installed_lossless_encoder_round_trips_exactly_and_the_baseline_r
     # Pillow and imagecodecs are worker dependencies: today's encoder and Pillow's levels always run, on both kinds.
     for kind in encoders.KINDS:
         assert len([r for r in ok if r["image"] == kind and r["encoder"] == "Pillow PNG"]) == 5, kind
-        current = [r for r in ok if r["image"] == kind and r["encoder"] == "worker.pipeline.png_bytes"]
+        current = [r for r in ok if r["image"] == kind and r["encoder"] == "seasynth.worker.frame.function.png_bytes"]
         assert [r["speedup_vs_current"] for r in current] == [1.0], kind
     for r in ok:
         assert r["ms_per_frame"] > 0 and r["bytes_per_frame"] > 0 and r["threads2_speedup"] > 0, r

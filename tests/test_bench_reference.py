@@ -4,8 +4,8 @@ weights each by its samples and refuses what cannot be merged."""
 import numpy as np
 import pytest
 
-from bench.pathtracer import PTLamp, PTMesh, PTScene
-from bench.reference import Reference, load_reference, load_scene, merge, save_reference, save_scene, scene_digest
+from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
+from seasynth.bench.reference import Reference, load_reference, load_scene, merge, save_reference, save_scene, scene_digest
 
 
 def scene(**change) -> PTScene:
@@ -67,8 +67,8 @@ def test_the_stored_fidelity_references_are_of_the_scenes_the_bench_exports_toda
     pinned configuration's exported scene must have its reference's digest, and a mismatched one is refused."""
     from pathlib import Path
 
-    from bench import fidelity
-    from bench.reference import REF_SUFFIX, SCENE_SUFFIX
+    from seasynth.bench import fidelity
+    from seasynth.bench.reference import REF_SUFFIX, SCENE_SUFFIX
 
     stored = Path(__file__).resolve().parents[1] / "bench" / "results" / "cpu" / "fidelity-references"
     paths = fidelity.export_scenes(tmp_path, configs=fidelity.CONFIGS, platform="egl")
@@ -83,7 +83,7 @@ def test_the_stored_fidelity_references_are_of_the_scenes_the_bench_exports_toda
 
 
 def test_the_path_tracers_cost_is_a_fixed_part_and_a_part_per_sample():
-    from bench.fidelity import fit_cost
+    from seasynth.bench.fidelity import fit_cost
 
     cost = fit_cost(64, 2.4, 256, 7.5)
     assert cost.s_per_spp == pytest.approx(5.1 / 192)
@@ -107,8 +107,8 @@ def test_the_stored_references_at_other_sizes_are_of_the_scenes_and_tables_commi
     import json
     from pathlib import Path
 
-    from bench import fidelity
-    from service.spec import spec_digest
+    from seasynth.bench import fidelity
+    from seasynth.service.spec.dataset import spec_digest
 
     results = Path(__file__).resolve().parents[1] / "bench" / "results" / "cpu"
     configs = {n: t for n, t in fidelity.CONFIGS.items() if names is None or n in names}
@@ -133,7 +133,7 @@ def test_the_stored_references_at_other_sizes_are_of_the_scenes_and_tables_commi
 
 
 def test_references_rendered_apart_merge_by_name_into_one_folder_even_in_place(tmp_path):
-    from bench.reference_merge import main, merge_folders
+    from seasynth.bench.reference_merge import main, merge_folders
 
     for folder, value, spp, seed in (("stored", 1.0, 100, 0), ("gpu0", 4.0, 300, 1), ("gpu1", 2.0, 100, 2)):
         (tmp_path / folder).mkdir()

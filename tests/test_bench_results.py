@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from bench import accuracy
-from service.spec import spec_digest
+from seasynth.bench import accuracy
+from seasynth.service.spec.dataset import spec_digest
 
 RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results"
 
@@ -50,10 +50,10 @@ def test_committed_jpeg_table_is_of_the_current_scenes_with_each_jpeg_row_beside
 
 
 def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stored_references():
-    from bench import fidelity
-    from bench.accuracy import psnr_db
-    from bench.reference import REF_SUFFIX, load_reference
-    from worker.srgb import encode_srgb8
+    from seasynth.bench import fidelity
+    from seasynth.bench.accuracy import psnr_db
+    from seasynth.bench.reference import REF_SUFFIX, load_reference
+    from seasynth.worker.frame.srgb import encode_srgb8
 
     result = json.loads((RESULTS / "cpu" / "fidelity.json").read_text())
     assert result["configs"] == fidelity.CONFIGS and result["resolution"] == [fidelity.WIDTH, fidelity.HEIGHT]
@@ -88,7 +88,7 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
                 rel=0.01, abs=0.1), (name, r["terms"])
             assert r["speedup_equal_error"] * r["ms_per_frame"] / 1e3 == pytest.approx(
                 r["path_tracer_equal_error_s"], rel=0.01, abs=0.06), (name, r["terms"])
-            # the timed 64-spp frame lies on the fitted line where it has a fixed part (bench.fidelity.fit_cost)
+            # the timed 64-spp frame lies on the fitted line where it has a fixed part (seasynth.bench.fidelity.fit_cost)
             assert r["path_tracer_fixed_s"] == 0 or r["path_tracer_s_per_frame"] == pytest.approx(
                 r["path_tracer_fixed_s"] + r["path_tracer_ms_per_spp"] / 1e3 * r["path_tracer_spp"], rel=0.02,
                 abs=0.02), (name, r["terms"])
@@ -101,7 +101,7 @@ def test_committed_scale_tables_have_every_column_and_count_every_frame(machine)
     """bench/results/{cpu,gpu}/scale: rows through the CLI and the service, each with the columns the README quotes;
     a row's rates follow from its frames and seconds, a service row stored every frame, and the table opens with the
     JSON's rows."""
-    from bench import scale
+    from seasynth.bench import scale
 
     result = json.loads((RESULTS / machine / "scale.json").read_text())
     keys = {"mode", "width", "height", "preset", "workers", "gpus", "frames", "wall_fps", "steady_fps", "gpu_util",

@@ -1,4 +1,4 @@
-"""bench.scale on the CPU at a tiny size, both modes: one row per (resolution, workers, mode) with the fields the
+"""seasynth.bench.scale on the CPU at a tiny size, both modes: one row per (resolution, workers, mode) with the fields the
 committed table promises, frames = workers x frames per worker, every frame the service counted in the bucket, and
 the table, JSON and chart written."""
 
@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from bench import scale
-from bench.scale_service import service_shard_size
+from seasynth.bench import scale
+from seasynth.bench.scale_service import service_shard_size
 
 FIELDS = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "first_frame_s", "wall_fps", "steady_fps",
           "gpu_util", "cpu_util")
@@ -45,21 +45,21 @@ def test_rates_count_the_steady_part_after_a_quarter_of_the_frames():
 
 
 def test_more_gpus_than_found_stop_before_any_row(monkeypatch):
-    from worker.render import devices
+    from seasynth.worker.render import devices
 
     monkeypatch.setattr(devices, "gpu_indices", lambda: [0])
     with pytest.raises(SystemExit, match="--gpus 1,2: EGL finds 1 GPU device"):
         scale.run(Path("examples/urchins.yaml"), resolutions=[(32, 24)], workers=[1], frames_per_worker=4,
                   preset="draft", out=None, platform="egl", gpu_counts=[1, 2])
     monkeypatch.setattr(devices, "gpu_indices", lambda: [0, 1])
-    from service.gpus import GpuChoice
+    from seasynth.service.gpus import GpuChoice
 
     assert [scale.gpus_used("egl", GpuChoice(count=2), n) for n in (1, 2, 16)] == [1, 2, 2]
     assert scale.gpus_used("osmesa", None, 4) == 0
 
 
 def test_service_shards_are_a_fifth_of_a_worker_within_the_spec_limit():
-    from service.spec import MAX_SHARD_MEGAPIXELS
+    from seasynth.service.spec.dataset import MAX_SHARD_MEGAPIXELS
 
     assert [service_shard_size(n) for n in (1, 4, 5, 6, 125, 400)] == [1, 1, 1, 2, 25, 80]
     assert service_shard_size(400, 1920 * 1080) == 80  # 166 megapixels: within the limit

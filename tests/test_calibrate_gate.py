@@ -13,9 +13,9 @@ import numpy as np
 from fastapi import FastAPI
 from PIL import Image
 
-from api.errors import install
-from api.slots import RenderGate
-from api.routes import calibrate
+from seasynth.api.errors import install
+from seasynth.api.slots import RenderGate
+from seasynth.api.routes import calibrate
 
 
 def png() -> bytes:

@@ -1,4 +1,4 @@
-"""service.calibration: known water recovered from synthetic hazed photos, what cannot be identified said so, and
+"""seasynth.service.calibration.estimate: known water recovered from synthetic hazed photos, what cannot be identified said so, and
 degenerate inputs refused or reported, never NaN."""
 
 from __future__ import annotations
@@ -15,13 +15,13 @@ import pytest
 import yaml
 from PIL import Image
 
-from service.calibration import DEFAULT_BOOTSTRAP, WaterEstimate, estimate_water, half_code, srgb8_to_linear_table
-from service.calibration_io import MAX_PHOTO_PIXELS, read_photo, read_range
-from service.calibration_output import describe, to_spec_water
-from service.errors import CalibrationError
-from service.spec import DatasetSpec, read_spec_file
-from worker.formation import haze
-from worker.srgb import SRGB8_TO_LINEAR, encode_srgb8
+from seasynth.service.calibration.estimate import DEFAULT_BOOTSTRAP, WaterEstimate, estimate_water, half_code, srgb8_to_linear_table
+from seasynth.service.calibration.io import MAX_PHOTO_PIXELS, read_photo, read_range
+from seasynth.service.calibration.output import describe, to_spec_water
+from seasynth.service.errors import CalibrationError
+from seasynth.service.spec.dataset import DatasetSpec, read_spec_file
+from seasynth.worker.frame.formation import haze
+from seasynth.worker.frame.srgb import SRGB8_TO_LINEAR, encode_srgb8
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 BETA_D = np.array([0.34, 0.20, 0.22])  # 1/m, Jerlov 3C
@@ -235,8 +235,8 @@ def test_stage_two_fits_the_direct_signal_exactly_once_the_backscatter_is_known(
     """Bin means of a water with a known backscatter (and J drifting with range as RangeData.with_drift states):
     stage 2, told the drift, returns beta_D on the fine grid's step, whatever stage 1's beta_D was, and leaves a
     channel with no direct signal not identified."""
-    from service.calibration_fit import BETA_GRID, FINE_POINTS, RangeData, RangeFit, Z_NODES
-    from service.calibration_refine import refine_beta_D
+    from seasynth.service.calibration.fit import BETA_GRID, FINE_POINTS, RangeData, RangeFit, Z_NODES
+    from seasynth.service.calibration.refine import refine_beta_D
 
     nodes = np.geomspace(1.0, 20.0, Z_NODES)
     h = np.eye(Z_NODES)[::4][None].repeat(2, axis=0)  # (G=2, K=16, Z): each bin at one node

@@ -8,13 +8,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from service.calibration import estimate_water
-from service.calibration_io import read_photo
-from service.calibration_output import to_spec_water
-from service.errors import CalibrationError
+from seasynth.service.calibration.estimate import estimate_water
+from seasynth.service.calibration.io import read_photo
+from seasynth.service.calibration.output import to_spec_water
+from seasynth.service.errors import CalibrationError
 from test_calibration import B_INF, BETA_B, BETA_D, assert_no_nan, full_spec, photo, seabed
-from worker.formation import haze
-from worker.srgb import encode_srgb8
+from seasynth.worker.frame.formation import haze
+from seasynth.worker.frame.srgb import encode_srgb8
 
 
 def test_b_inf_of_a_range_fit_without_open_water_needs_an_identified_backscatter_and_no_clip():
@@ -46,7 +46,7 @@ def test_saturated_surfaces_without_open_water_leave_b_inf_unidentified_with_a_n
 
 def test_a_written_water_section_never_sets_an_unidentified_b_inf_to_zero():
     """Unidentified channels take the nearest (else II's) Jerlov type's veiling light, and B_inf stays within 1."""
-    from service.water import jerlov_veiling_light
+    from seasynth.service.water import jerlov_veiling_light
 
     image, z = photo()
     h, w = z.shape

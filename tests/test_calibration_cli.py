@@ -15,7 +15,7 @@ from test_calibration import BETA_D, B_INF, full_spec, photo
 
 
 def seasynth(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=300)
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service import calibration_fit as fit
-from service.calibration import srgb8_to_linear_table
+from seasynth.service.calibration import fit
+from seasynth.service.calibration.estimate import srgb8_to_linear_table
 from tests.test_calibration import photo
 
 

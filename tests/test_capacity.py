@@ -9,9 +9,9 @@ import sys
 
 import pytest
 
-from service.gpus import GpuChoice
-from worker import capacity
-from worker.capacity import gpus_found, gpus_found_in_child, render_processes, usable_cores
+from seasynth.service.gpus import GpuChoice
+from seasynth.worker.local import capacity
+from seasynth.worker.local.capacity import gpus_found, gpus_found_in_child, render_processes, usable_cores
 
 
 @pytest.fixture
@@ -48,7 +48,7 @@ def test_processes_are_one_a_core_on_software_and_one_and_a_half_on_gpus():
 
 
 def test_auto_workers_never_exceeds_the_frames(monkeypatch):
-    from worker.generate import auto_workers
+    from seasynth.worker.local.generate import auto_workers
 
     monkeypatch.setattr(capacity, "usable_cores", lambda: 4)
     assert [auto_workers(n) for n in (0, 1, 3, 4, 100)] == [1, 1, 3, 4, 4]
@@ -56,7 +56,7 @@ def test_auto_workers_never_exceeds_the_frames(monkeypatch):
 
 
 def test_gpus_found_counts_what_the_choice_names_without_listing_devices(monkeypatch):
-    import worker.render.devices as devices
+    import seasynth.worker.render.devices as devices
 
     monkeypatch.setattr(devices, "gpu_indices", lambda: [0, 2])
     assert gpus_found("osmesa", None) == 0 and gpus_found("osmesa", GpuChoice()) == 0
@@ -76,7 +76,7 @@ def test_gpus_found_counts_what_the_choice_names_without_listing_devices(monkeyp
 def test_gpus_found_here_and_in_a_child_agree():
     """On this machine, listing in this process and in a child give the same count (0 on a CPU-only machine,
     where EGL lists Mesa's software device only)."""
-    from worker.render.devices import gpu_indices
+    from seasynth.worker.render.devices import gpu_indices
 
     here = len(gpu_indices())
     assert gpus_found_in_child("egl", None) == here == gpus_found("egl", None)
@@ -85,6 +85,6 @@ def test_gpus_found_here_and_in_a_child_agree():
 
 
 def test_worker_concurrency_auto_is_refused_when_malformed_and_named_when_chosen():
-    r = subprocess.run([sys.executable, "-m", "service.cli", "worker", "--concurrency", "0"],
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "worker", "--concurrency", "0"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "give a count >= 1 or auto" in r.stderr and "--concurrency" in r.stderr

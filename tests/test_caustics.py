@@ -9,12 +9,12 @@ import pytest
 from pydantic import ValidationError
 from test_render_light import FLOOR, ONE, SHADOW_VIEW, SHADOW_WORLD_FROM_CAM, hit_points, light
 
-from service.seeds import frame_rng
-from service.spec import DatasetSpec
-from worker.light.caustics import contrast, factor, pattern, sample_caustics
-from worker.pipeline import RenderSession
-from worker.render import Passes
-from worker.scene import sample_scene
+from seasynth.service.seeds import frame_rng
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.light.caustics import contrast, factor, pattern, sample_caustics
+from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.render import Passes
+from seasynth.worker.scene.sample import sample_scene
 
 
 def waves(seed=5, wavelength=0.5, slope=0.1):

@@ -11,14 +11,14 @@ from pathlib import Path
 
 import pytest
 
-import service
-from worker.generate import RECORD
+from seasynth import service
+from seasynth.worker.local.generate import RECORD
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 
 
 def seasynth(*args: str | Path, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd)
 
 
@@ -206,7 +206,7 @@ def test_a_command_whose_extra_is_missing_says_which_extra_to_install(tmp_path):
     blocker = tmp_path / "fastapi"
     blocker.mkdir()
     (blocker / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'fastapi'\", name='fastapi')\n")
-    r = subprocess.run([sys.executable, "-m", "service.cli", "playground", "--no-browser"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "playground", "--no-browser"], capture_output=True,
                        text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(tmp_path)})
     assert r.returncode == 1, r.stderr
     assert r.stderr == ("error: this command needs the Python package 'fastapi', which is not installed (the 'api' "

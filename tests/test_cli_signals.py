@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from service.spec import load_spec
-from worker.generate import RECORD, generate
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.local.generate import RECORD, generate
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 FRAMES = 100  # seconds of work at 48 x 36: still going when the signal comes
@@ -27,7 +27,7 @@ def tree(root: Path) -> dict[str, bytes]:
 def start(out: Path, workers: int, *extra: str, tmp: Path | None = None) -> subprocess.Popen:
     """`seasynth generate` in a session (process group) of its own, with default signal dispositions; `tmp`: its
     TMPDIR (where the render processes share terrain variants)."""
-    cmd = [sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out), "--frames", str(FRAMES),
+    cmd = [sys.executable, "-m", "seasynth.cli", "generate", str(EXAMPLE), "--out", str(out), "--frames", str(FRAMES),
            *SIZE, "--workers", str(workers), *extra]
     env = None if tmp is None else {**os.environ, "TMPDIR": str(tmp)}
 
@@ -119,7 +119,7 @@ def test_sigint_exits_130_and_resume_completes_identically(tmp_path, reference, 
     assert_interrupted(proc, out, stdout, stderr)
     written = len(list((out / "image_2").glob("*.png")))
     assert 3 <= written < FRAMES
-    resumed = subprocess.run([sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out),
+    resumed = subprocess.run([sys.executable, "-m", "seasynth.cli", "generate", str(EXAMPLE), "--out", str(out),
                               "--frames", str(FRAMES), *SIZE, "--resume"], capture_output=True, text=True)
     assert resumed.returncode == 0, resumed.stderr
     assert json.loads((out / RECORD).read_text())["state"] == "complete"
@@ -167,7 +167,7 @@ def test_a_sigint_while_workers_start_is_not_lost_to_another_thread():
     become a KeyboardInterrupt, not be discarded as it was while the disposition was SIG_IGN."""
     import threading
 
-    from worker.pool_start import sigint_blocked_for_children
+    from seasynth.worker.local.pool_start import sigint_blocked_for_children
 
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # the runner may ignore SIGINT
     stop = threading.Event()
@@ -192,7 +192,7 @@ def test_the_render_pools_resource_tracker_cleans_up_without_a_warning():
     which shows the check reproduces the warning."""
     code = ("import sys, multiprocessing.resource_tracker as rt\n"
             "if sys.argv[1] == 'pool':\n"
-            "    from worker.pool_start import pool_context\n"
+            "    from seasynth.worker.local.pool_start import pool_context\n"
             "    pool_context()\n"
             "rt.register('/mp-seasynth-unlinked', 'semaphore')\n")  # tracked, never created: as if unlinked behind it
     runs = {how: subprocess.run([sys.executable, "-c", code, how], capture_output=True, text=True, timeout=60)
@@ -220,7 +220,7 @@ def test_a_render_process_killed_mid_run_stops_the_run_with_its_exit_code_and_re
     assert sorted(p.name for p in out.rglob(".*")) == []  # the killed worker's temporary file is removed
     assert json.loads((out / RECORD).read_text())["state"] == "incomplete"
     assert len(list((out / "image_2").glob("*.png"))) < FRAMES, "the other process went on to the end"
-    resumed = subprocess.run([sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out),
+    resumed = subprocess.run([sys.executable, "-m", "seasynth.cli", "generate", str(EXAMPLE), "--out", str(out),
                               "--frames", str(FRAMES), *SIZE, "--resume", "--workers", "2"], capture_output=True,
                              text=True)
     assert resumed.returncode == 0, resumed.stderr

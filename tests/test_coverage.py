@@ -1,13 +1,13 @@
-"""Pixels alone counted on the GPU (worker.render.coverage): for every object, the count equals the pixels its own
+"""Pixels alone counted on the GPU (seasynth.worker.render.coverage): for every object, the count equals the pixels its own
 id pass marks, whatever its triangles' overlap, its region or the other objects in the batch."""
 
 import numpy as np
 import trimesh
 
 from test_hard_cases import GREY, camera_view, fronto_quad, pinhole
-from worker.pipeline import to_render_mesh
-from worker.render import DrawItem
-from worker.render.coverage import clipped
+from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.render import DrawItem
+from seasynth.worker.render.coverage import clipped
 
 W, H = 40, 30
 K = pinhole(W, H, 70.0)

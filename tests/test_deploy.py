@@ -224,7 +224,9 @@ def test_build_stage_packages_exactly_the_image_packages(name, tmp_path):
     assert proc.returncode == 0, f"{name}: the package does not build from the COPYed files:\n{proc.stderr[-3000:]}"
     (wheel,) = wheels.glob("*.whl")
     with zipfile.ZipFile(wheel) as zf:
-        top = {n.split("/")[0] for n in zf.namelist() if "/" in n and ".dist-info" not in n.split("/")[0]}
+        names = [n.split("/") for n in zf.namelist() if ".dist-info" not in n.split("/")[0]]
+    assert {parts[0] for parts in names} == {"seasynth"}, f"{name}: the wheel installs beside the seasynth import root"
+    top = {parts[1] for parts in names if len(parts) > 2}
     assert top == spec["packages"], f"{name}: the image would hold packages {sorted(top)}, not {sorted(spec['packages'])}"
 
 
@@ -236,12 +238,12 @@ def test_package_data_covers_every_non_python_file_the_packages_hold():
 
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
     missing = []
-    for package in ("service", "worker", "api"):  # what the images install (bench/ and its results stay in the repo)
+    for package in ("service", "cli", "worker", "api"):  # what the images install (bench/ and its results stay in the repo)
         for path in (ROOT / package).rglob("*"):
             if not path.is_file() or path.suffix in (".py", ".pyc") or "__pycache__" in path.parts:
                 continue
             rel = path.relative_to(ROOT)
-            owner = ".".join(rel.parent.parts)
+            owner = ".".join(("seasynth", *rel.parent.parts))
             if not any(fnmatch.fnmatch(path.name, pattern) for pattern in data.get(owner, [])):
                 missing.append(str(rel))
     assert "api/static/playground/index.html" not in missing

@@ -131,7 +131,7 @@ def test_compose_workers_scale_and_stop_gracefully(compose, name):
 
 
 def test_compose_gpu_worker_fills_its_host_unless_told(compose):
-    """The GPU worker takes every GPU of its host, so by default it starts what fills the host (worker.capacity:
+    """The GPU worker takes every GPU of its host, so by default it starts what fills the host (seasynth.worker.local.capacity:
     1.5 render processes a core on GPUs, a multiple of the GPU count); SEASYNTH_GPU_WORKER_CONCURRENCY sets a count."""
     assert compose["services"]["worker-gpu"]["command"][3] == "auto"
     told = _compose("--profile", "gpu", "config", env={"SEASYNTH_GPU_WORKER_CONCURRENCY": "12"})
@@ -246,7 +246,7 @@ def test_third_party_images_are_pinned(rendered):
 def test_compose_flower_is_an_opt_in_monitor_with_the_workers_visibility_timeout(compose):
     import runpy
 
-    from service.settings import Settings
+    from seasynth.service.settings import Settings
 
     flower = compose["services"]["flower"]
     assert flower["profiles"] == ["monitor"], "Flower runs only with --profile monitor"

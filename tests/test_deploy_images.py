@@ -60,6 +60,12 @@ def _image_distributions(extra: str) -> set[str]:
     return names
 
 
+def _top(module: str) -> str:
+    """The distribution-level name of a module: its first component, or the project folder under seasynth."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "seasynth" and len(parts) > 1 else parts[0]
+
+
 def _imports(path: Path) -> list[tuple[str, str, int]]:
     """(top-level name, enclosing function or "" at module level, line) of every absolute import in a module,
     inside functions and `try: ... except ImportError` included: an upload or a command reaches them at run time.
@@ -69,10 +75,12 @@ def _imports(path: Path) -> list[tuple[str, str, int]]:
     def visit(nodes, where: str) -> None:
         for node in nodes:
             if isinstance(node, ast.Import):
-                found.extend((a.name.split(".")[0], where, node.lineno) for a in node.names)
+                found.extend((_top(a.name), where, node.lineno) for a in node.names)
             elif isinstance(node, ast.ImportFrom):
-                if node.level == 0 and node.module:
-                    found.append((node.module.split(".")[0], where, node.lineno))
+                if node.level == 0 and node.module == "seasynth":
+                    found.extend((a.name, where, node.lineno) for a in node.names)
+                elif node.level == 0 and node.module:
+                    found.append((_top(node.module), where, node.lineno))
             elif isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
                 visit(node.orelse, where)
             elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
@@ -85,26 +93,26 @@ def _imports(path: Path) -> list[tuple[str, str, int]]:
 
 
 # The benchmark commands import bench/, which no image ships.
-BENCH_COMMANDS = {("service/cli/bench.py", f"bench_{name}"): {"bench"} for name in (
+BENCH_COMMANDS = {("cli/bench.py", f"bench_{name}"): {"bench"} for name in (
     "playground", "throughput", "accuracy", "fidelity", "scale", "load", "calibration", "blender")}
 # CLI commands shipped in every image but run only where their package is: (module, function) -> the project
 # packages they may import that an image lacks. Nothing else is excused.
 COMMANDS_OF_OTHER_IMAGES = {
     "api": {
-        ("service/cli/datasets.py", "generate"): {"worker"},
-        ("service/cli/datasets.py", "reproduce"): {"worker"},
-        ("service/cli/datasets.py", "export"): {"worker"},
-        ("service/cli/datasets.py", "preview"): {"worker"},
-        ("service/cli/datasets.py", "waterfall"): {"worker"},
-        ("service/cli/datasets.py", "fetch"): {"worker"},  # --format merges export parts with worker.export
-        ("service/cli/servers.py", "worker"): {"worker"},
-        ("service/cli/servers.py", "playground"): {"worker"},  # the playground with no servers renders in-process
+        ("cli/datasets.py", "generate"): {"worker"},
+        ("cli/datasets.py", "reproduce"): {"worker"},
+        ("cli/datasets.py", "export"): {"worker"},
+        ("cli/datasets.py", "preview"): {"worker"},
+        ("cli/datasets.py", "waterfall"): {"worker"},
+        ("cli/datasets.py", "fetch"): {"worker"},  # --format merges export parts with seasynth.worker.export
+        ("cli/servers.py", "worker"): {"worker"},
+        ("cli/servers.py", "playground"): {"worker"},  # the playground with no servers renders in-process
         **BENCH_COMMANDS,
     },
     "worker": {
-        ("service/cli/servers.py", "serve"): {"api"},
-        ("service/cli/servers.py", "reconcile"): {"api"},
-        ("service/cli/servers.py", "playground"): {"api", "uvicorn"},
+        ("cli/servers.py", "serve"): {"api"},
+        ("cli/servers.py", "reconcile"): {"api"},
+        ("cli/servers.py", "playground"): {"api", "uvicorn"},
         **BENCH_COMMANDS,
     },
 }
@@ -190,14 +198,18 @@ API_IMAGE_PROBE = """
 import importlib, importlib.util, json, pkgutil, sys
 from pathlib import Path
 ctx = Path(sys.argv[1])
-sys.path.insert(0, str(ctx))
-for package in ("service", "api"):
-    importlib.import_module(package)
-    for m in pkgutil.walk_packages([str(ctx / package)], prefix=package + "."):
+root = ctx.parent / "import-root" / "seasynth"  # the folders under the one import root, as setup.py installs them
+root.mkdir(parents=True)
+for package in ("service", "cli", "api"):
+    (root / package).symlink_to(ctx / package)
+sys.path.insert(0, str(root.parent))
+for package in ("service", "cli", "api"):
+    importlib.import_module("seasynth." + package)
+    for m in pkgutil.walk_packages([str(ctx / package)], prefix=f"seasynth.{package}."):
         importlib.import_module(m.name)
-absent = [n for n in ("pyrender", "OpenGL", "pyglet", "worker") if importlib.util.find_spec(n) is not None]
+absent = [n for n in ("pyrender", "OpenGL", "pyglet", "seasynth.worker") if importlib.util.find_spec(n) is not None]
 assert not absent, f"the API environment holds {absent}"
-from api.uploads import format_of, validate
+from seasynth.api.uploads import format_of, validate
 got = {}
 for arg in sys.argv[2:]:
     path = Path(arg)

@@ -332,7 +332,7 @@ def test_k8s_worker_memory_holds_its_processes_at_the_spec_limits(rendered, name
     c = _container(_by(rendered[kustomization], "Deployment", name))
     shards = _load_file("service/shards.py")
     side = _settings_default("max_side")
-    carried = _module_constant("worker/celery_app.py", "WORKER_MAX_MEMORY_PER_CHILD_MB") / 1024
+    carried = _module_constant("worker/queue/app.py", "WORKER_MAX_MEMORY_PER_CHILD_MB") / 1024
     if c["image"].split(":")[0] == IMAGES["worker-gpu"]["k8s_image"]:
         frame = shards.FRAME_BYTES_PER_PIXEL * side * side / 2**30
     else:
@@ -359,7 +359,7 @@ def test_image_tags_follow_the_code_version(rendered, kustomization):
 def test_a_stopping_api_outwaits_its_longest_request(rendered, compose):
     """uvicorn lets in-flight requests finish on SIGTERM; the longest is a frame request (frame_timeout_s): the grace
     period outlasts it, in compose and on Kubernetes alike."""
-    from service.settings import Settings
+    from seasynth.service.settings import Settings
 
     need = Settings().frame_timeout_s + 10
     assert _duration_s(compose["services"]["api"]["stop_grace_period"]) >= need
@@ -370,9 +370,9 @@ def test_a_stopping_api_outwaits_its_longest_request(rendered, compose):
 
 
 def test_the_api_pod_holds_a_mesh_check_beside_itself(rendered):
-    """An upload's mesh is loaded in a child process of the API (api.mesh_check) within upload_check_memory_mib,
+    """An upload's mesh is loaded in a child process of the API (seasynth.api.mesh_check) within upload_check_memory_mib,
     one at a time: the pod's limit leaves that and 512 MiB for the API itself."""
-    from service.settings import Settings
+    from seasynth.service.settings import Settings
 
     need_gib = (Settings().upload_check_memory_mib + 512) / 1024
     for kustomization, docs in rendered.items():

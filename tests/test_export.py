@@ -15,9 +15,9 @@ import yaml
 from PIL import Image
 from local_datasets import generate_variants, seasynth, tree
 
-from service.errors import ExportError
-from worker import kitti
-from worker.export import (
+from seasynth.service.errors import ExportError
+from seasynth.worker.frame import kitti
+from seasynth.worker.export import (
     SPLITS,
     STREAM_SPLIT,
     ExportInfo,
@@ -28,11 +28,11 @@ from worker.export import (
     run_export,
     split_of,
 )
-from worker.export.coco import coco_bbox, instance_runs, rle_counts, rle_string
-from worker.export.files import EXPORT_RECORD
-from worker.export.yolo import YoloExporter
-from worker.generate import RECORD
-from worker.labels import tight_boxes
+from seasynth.worker.export.coco import coco_bbox, instance_runs, rle_counts, rle_string
+from seasynth.worker.export.files import EXPORT_RECORD
+from seasynth.worker.export.yolo import YoloExporter
+from seasynth.worker.local.generate import RECORD
+from seasynth.worker.frame.labels import tight_boxes
 
 pycocotools = pytest.importorskip("pycocotools")
 from pycocotools import mask as mask_utils  # noqa: E402
@@ -308,7 +308,7 @@ def test_export_twice_and_over_another_split_gives_the_same_bytes(datasets, fmt,
 
 
 def test_a_crash_leaves_the_export_marked_incomplete_and_no_temporary_files(datasets, tmp_path, monkeypatch):
-    from worker.export.dataset import FrameReader
+    from seasynth.worker.export.dataset import FrameReader
 
     read = FrameReader.read
 

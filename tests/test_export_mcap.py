@@ -13,18 +13,18 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from service.errors import ExportError
-from worker import kitti
-from worker.export import SPLITS, plan_export, run_export, split_of
-from worker.export.files import EXPORT_RECORD
-from worker.generate import RECORD
+from seasynth.service.errors import ExportError
+from seasynth.worker.frame import kitti
+from seasynth.worker.export import SPLITS, plan_export, run_export, split_of
+from seasynth.worker.export.files import EXPORT_RECORD
+from seasynth.worker.local.generate import RECORD
 
 pytest.importorskip("mcap")
 pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
-from worker.export.mcap import FRAME_RATE_HZ, detection_box  # noqa: E402
+from seasynth.worker.export.mcap import FRAME_RATE_HZ, detection_box  # noqa: E402
 from local_datasets import generate_variants, seasynth, tree  # noqa: E402
 
 SMALL = {"camera.width": 64, "camera.height": 48, "frames": 8}
@@ -229,8 +229,8 @@ def test_distractors_follow_the_targets_whose_detections_and_ids_stay_as_without
 
 
 def test_survey_stamps_round_the_time_of_flight_and_random_frames_keep_the_nominal_rate():
-    from service.sensors import Trajectory
-    from worker.export.mcap import stamp_ns
+    from seasynth.service.spec.sensors import Trajectory
+    from seasynth.worker.export.mcap import stamp_ns
 
     three = Trajectory(kind="lawnmower", rate_hz=3.0)
     assert [stamp_ns(i, three) for i in range(4)] == [0, 333_333_333, 666_666_667, 1_000_000_000]
@@ -239,8 +239,8 @@ def test_survey_stamps_round_the_time_of_flight_and_random_frames_keep_the_nomin
 
 
 def test_metadata_lists_the_categories_as_json_whatever_their_characters(tmp_path):
-    from worker.export import ExportInfo
-    from worker.export.mcap import McapExporter
+    from seasynth.worker.export import ExportInfo
+    from seasynth.worker.export.mcap import McapExporter
 
     exporter = McapExporter()
     exporter.begin(ExportInfo(out=tmp_path, categories=("Sea,urchin", "distractor"), width=8, height=8,
@@ -284,7 +284,7 @@ def test_cli_exports_mcap(datasets, tmp_path):
 
 
 def test_rotation_quaternion_round_trips_on_every_branch():
-    from worker.export.mcap_tf import rotation_quaternion
+    from seasynth.worker.export.mcap_tf import rotation_quaternion
 
     rng = np.random.default_rng(7)
     rotations = [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]),

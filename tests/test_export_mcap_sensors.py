@@ -12,19 +12,19 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from service.spec import load_spec
-from worker.export import plan_export, run_export
-from worker.generate import generate
-from worker.sensors.fls import fls_grid
-from worker.trajectory import GRAVITY
-from worker.sensors.sss import sss_grid
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.export import plan_export, run_export
+from seasynth.worker.local.generate import generate
+from seasynth.worker.sensors.fls import fls_grid
+from seasynth.worker.scene.trajectory import GRAVITY
+from seasynth.worker.sensors.sss import sss_grid
 
 pytest.importorskip("mcap")
 pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
-from worker.export.mcap_sensors import DTYPE_UINT16, NOMINAL_SOUND_SPEED  # noqa: E402
+from seasynth.worker.export.mcap_sensors import DTYPE_UINT16, NOMINAL_SOUND_SPEED  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey-sonar.yaml"
 SMALL = {"camera.width": 32, "camera.height": 24, "frames": 4, "shard_size": 2, "sensors.fls.beams": 16,
@@ -66,7 +66,7 @@ def check_image(msg, a: np.ndarray, frame_id: str, ns: int) -> None:
 
 
 def survey_ns(spec, i: int) -> int:
-    """A survey's frame i is flown at i / rate_hz s (worker.trajectory); the bag stamps it there, in ns."""
+    """A survey's frame i is flown at i / rate_hz s (seasynth.worker.scene.trajectory); the bag stamps it there, in ns."""
     return round(i * 10**9 / spec.trajectory.rate_hz)
 
 

@@ -10,14 +10,14 @@ import pytest
 import yaml
 from local_datasets import EXAMPLE, seasynth, tree
 
-from service.errors import ExportError
-from service.shards import shard_at, shard_count
-from service.spec import load_spec
-from worker.export import GENERATED_EXPORTS, SPLITS, plan_export, run_export
-from worker.export.files import EXPORT_RECORD
-from worker.export.merge import PartMerger, mcap_name
-from worker.export.parts import REBUILT_AT_MERGE, kitti_names, parts_render_spec, write_part
-from worker.generate import RECORD, generate
+from seasynth.service.errors import ExportError
+from seasynth.service.shards import shard_at, shard_count
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.export import GENERATED_EXPORTS, SPLITS, plan_export, run_export
+from seasynth.worker.export.files import EXPORT_RECORD
+from seasynth.worker.export.merge import PartMerger, mcap_name
+from seasynth.worker.export.parts import REBUILT_AT_MERGE, kitti_names, parts_render_spec, write_part
+from seasynth.worker.local.generate import RECORD, generate
 
 FRAMES = 7
 SPEC = {"camera.width": 48, "camera.height": 36, "frames": FRAMES, "outputs.split": [0.5, 0.25, 0.25]}

@@ -35,7 +35,7 @@ def files_of(root: Path) -> dict[str, bytes]:
 
 
 def generate(spec_file: Path, out: Path, *extra: str, wait: bool = True):
-    argv = [sys.executable, "-m", "service.cli", "generate", str(spec_file), "--out", str(out), *extra]
+    argv = [sys.executable, "-m", "seasynth.cli", "generate", str(spec_file), "--out", str(out), *extra]
     if not wait:
         return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return subprocess.run(argv, capture_output=True, text=True, timeout=300)

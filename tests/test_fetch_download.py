@@ -1,4 +1,4 @@
-"""How `seasynth fetch` downloads (service.fetch), against a real HTTP server on loopback that serves byte ranges:
+"""How `seasynth fetch` downloads (seasynth.service.fetch), against a real HTTP server on loopback that serves byte ranges:
 a download the network cuts off is continued with a Range request, in the same run or the next; the first failure
 stops the other downloads at once; the assembled manifest.json carries no presigned URL; a reply that is not a
 manifest is a clear error."""
@@ -16,9 +16,9 @@ import time
 import httpx
 import pytest
 
-from service.errors import Unavailable
-from service.fetch import STATE_DIR, _download_all, _fetch, fetch_shard
-from service.fetch_manifest import get_manifest_page
+from seasynth.service.errors import Unavailable
+from seasynth.service.fetch import STATE_DIR, _download_all, _fetch, fetch_shard
+from seasynth.service.fetch_manifest import get_manifest_page
 
 
 class Store(http.server.ThreadingHTTPServer):
@@ -161,7 +161,7 @@ def manifest_body(shards: list[dict], **fields) -> bytes:
 
 
 def test_a_manifest_that_repeats_or_drops_shards_is_refused(store, tmp_path):
-    from service.fetch import IntegrityError, fetch_dataset
+    from seasynth.service.fetch import IntegrityError, fetch_dataset
 
     a, b = entry(store, 0, 1024), entry(store, 1, 1024)
     for shards, total in (([a, a], 2), ([a], 2), ([b, a], 2)):
@@ -172,8 +172,8 @@ def test_a_manifest_that_repeats_or_drops_shards_is_refused(store, tmp_path):
 
 
 def test_a_dataset_that_will_not_complete_says_so(store, tmp_path):
-    from service.errors import Conflict
-    from service.fetch import fetch_dataset
+    from seasynth.service.errors import Conflict
+    from seasynth.service.fetch import fetch_dataset
 
     a = entry(store, 0, 1024)
     store.objects["/datasets/d/manifest"] = (manifest_body([a], state="failed", complete=False, shards_total=2),

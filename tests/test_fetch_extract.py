@@ -1,4 +1,4 @@
-"""What `seasynth fetch` unpacks (service.fetch.extract): plain relative files only. Members with `..`, absolute or
+"""What `seasynth fetch` unpacks (seasynth.service.fetch.extract): plain relative files only. Members with `..`, absolute or
 empty paths, links, directories and devices are refused with the member named, and nothing lands outside OUT."""
 
 import io
@@ -6,8 +6,8 @@ import tarfile
 
 import pytest
 
-from service.errors import OutputError
-from service.fetch import IntegrityError, extract
+from seasynth.service.errors import OutputError
+from seasynth.service.fetch import IntegrityError, extract
 
 
 def tar_with(path, *members):

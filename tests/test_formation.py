@@ -1,4 +1,4 @@
-"""Tests for worker.formation and worker.srgb: haze hard cases, float32 vs float64, exact 8-bit sRGB."""
+"""Tests for seasynth.worker.frame.formation and seasynth.worker.frame.srgb: haze hard cases, float32 vs float64, exact 8-bit sRGB."""
 
 import subprocess
 import warnings
@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from worker.formation import GLSL_HAZE, box_downsample, haze, haze_samples, transmission
-from worker.srgb import SRGB8_TO_LINEAR, decode_srgb8, encode_srgb8, linear_to_srgb, srgb_to_linear
+from seasynth.worker.frame.formation import GLSL_HAZE, box_downsample, haze, haze_samples, transmission
+from seasynth.worker.frame.srgb import SRGB8_TO_LINEAR, decode_srgb8, encode_srgb8, linear_to_srgb, srgb_to_linear
 
 DTYPES = [np.float32, np.float64]
 FAST = settings(max_examples=60, deadline=None)

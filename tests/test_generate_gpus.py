@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from service.errors import RenderError
-from service.gpus import GpuChoice, gpu_for_worker, parse_gpus
+from seasynth.service.errors import RenderError
+from seasynth.service.gpus import GpuChoice, gpu_for_worker, parse_gpus
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 
@@ -50,7 +50,7 @@ def test_choice_resolves_against_the_gpus_found():
 
 
 def test_settings_take_one_gpu_or_a_spread(monkeypatch):
-    from service.settings import Settings
+    from seasynth.service.settings import Settings
 
     monkeypatch.setenv("SEASYNTH_GPU", "1")
     assert Settings().gpu_choice == GpuChoice(indices=(1,))
@@ -75,8 +75,8 @@ def test_settings_take_one_gpu_or_a_spread(monkeypatch):
 
 
 def test_platform_names_bind_a_device_only_on_egl():
-    from service.gpus import parse_platform
-    from worker.render.devices import gl_platform
+    from seasynth.service.gpus import parse_platform
+    from seasynth.worker.render.devices import gl_platform
 
     assert parse_platform("egl") == ("egl", None) and parse_platform("egl:2") == ("egl", 2)
     assert parse_platform("egl", 1) == ("egl", 1) and gl_platform("egl", 1) == "egl:1"
@@ -87,8 +87,8 @@ def test_platform_names_bind_a_device_only_on_egl():
 
 
 def test_an_egl_device_out_of_range_names_it_and_the_count():
-    from worker.render.devices import egl_devices
-    from worker.render.gl import GLRenderer
+    from seasynth.worker.render.devices import egl_devices
+    from seasynth.worker.render.gl import GLRenderer
 
     count = len(egl_devices())
     with pytest.raises(RenderError, match=rf"GPU device {count + 3} asked for, but EGL finds {count} device"):
@@ -98,7 +98,7 @@ def test_an_egl_device_out_of_range_names_it_and_the_count():
 
 
 def test_auto_on_a_machine_without_gpus_binds_nothing(monkeypatch):
-    from worker.render import devices
+    from seasynth.worker.render import devices
 
     monkeypatch.setattr(devices, "gpu_indices", lambda: [])
     assert [devices.platform_for_worker("egl", GpuChoice(), k) for k in range(2)] == ["egl", "egl"]
@@ -111,7 +111,7 @@ def test_auto_on_a_machine_without_gpus_binds_nothing(monkeypatch):
 
 
 def seasynth(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=300)
 
 

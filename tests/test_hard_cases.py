@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.spec import load_spec, parse_spec
-from worker import kitti, labels
-from worker.assets import Asset
-from worker.assets.terrain import procedural_terrain
-from worker.pipeline import PRESETS, to_render_mesh
-from worker.render import DrawItem, Lighting, Passes, View, WaterParams
-from worker.scene import (
+from seasynth.service.spec.dataset import load_spec, parse_spec
+from seasynth.worker.frame import kitti, labels
+from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets.terrain import procedural_terrain
+from seasynth.worker.frame.function import PRESETS, to_render_mesh
+from seasynth.worker.render import DrawItem, Lighting, Passes, View, WaterParams
+from seasynth.worker.scene.sample import (
     CAMERA_CLEARANCE_M,
     CAMERA_TRIES,
     Placed,
@@ -375,7 +375,7 @@ def test_a_camera_workspace_wholly_inside_geometry_is_refused_naming_it(render_s
         sample_scene(spec, rng, render_session.asset_for, render_session.terrain_for)
 
 
-# Values at the spec's caps (service.spec_types.MAX_MAGNITUDE and the per-field bounds): beyond them the spec refuses
+# Values at the spec's caps (seasynth.service.spec.types.MAX_MAGNITUDE and the per-field bounds): beyond them the spec refuses
 # (tests/test_spec_refusals.py); at them a frame renders, its float32 light never overflowing to inf or NaN.
 AT_THE_CAPS = {
     "sun": ("urchins", {"lighting.sun_intensity": [1e6, 1e6]}),

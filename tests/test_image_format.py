@@ -17,10 +17,10 @@ from local_datasets import EXAMPLE, seasynth, tree
 from PIL import Image
 from spec_helpers import refusal
 
-from service.spec import DatasetSpec, load_spec, parse_spec, spec_digest
-from worker.export import export_generated
-from worker.generate import generate
-from worker.pipeline import frame_paths
+from seasynth.service.spec.dataset import DatasetSpec, load_spec, parse_spec, spec_digest
+from seasynth.worker.export import export_generated
+from seasynth.worker.local.generate import generate
+from seasynth.worker.frame.function import frame_paths
 
 BASE = {"frames": 4, "camera.width": 64, "camera.height": 48, "quality": "default", "outputs.instance": True,
         "terrain.variants": 1}
@@ -139,8 +139,8 @@ def test_jpeg_bytes_do_not_depend_on_the_cpus_simd(datasets):
     workers on different hosts would write different files. Its JSIMD_FORCE* switches choose the path here (on a
     CPU without AVX2 the default is one of the others)."""
     code = ("import sys, imagecodecs, numpy as np\n"
-            "from worker.image_files import encode_image\n"
-            "from service.spec import load_spec\n"
+            "from seasynth.worker.frame.encode import encode_image\n"
+            "from seasynth.service.spec.dataset import load_spec\n"
             "from PIL import Image\n"
             "spec = load_spec(sys.argv[1], {'outputs.image_format': 'jpeg', 'outputs.jpeg_quality': 90})\n"
             "image = np.asarray(Image.open(sys.argv[2]).convert('RGB'))\n"

@@ -1,4 +1,4 @@
-"""Tests of worker.kitti: label_2 and calib text, and their parsers."""
+"""Tests of seasynth.worker.frame.kitti: label_2 and calib text, and their parsers."""
 
 import re
 
@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.shards import frame_name
-from service.spec import MAX_FRAMES
-from worker.kitti import CALIB_SHAPES, format_calib, format_label_file, format_label_line, parse_calib, parse_label_file
-from worker.labels import KittiObject
+from seasynth.service.shards import frame_name
+from seasynth.service.spec.dataset import MAX_FRAMES
+from seasynth.worker.frame.kitti import CALIB_SHAPES, format_calib, format_label_file, format_label_line, parse_calib, parse_label_file
+from seasynth.worker.frame.labels import KittiObject
 
 TWO_DECIMALS = re.compile(r"-?\d+\.\d{2}")
 K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])

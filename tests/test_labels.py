@@ -1,4 +1,4 @@
-"""Tests of worker.labels: tight boxes, truncation, occlusion, yaw-only 3D boxes and angles."""
+"""Tests of seasynth.worker.frame.labels: tight boxes, truncation, occlusion, yaw-only 3D boxes and angles."""
 
 import math
 
@@ -9,7 +9,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from worker.labels import (
+from seasynth.worker.frame.labels import (
     Box2D,
     Box3D,
     KittiObject,

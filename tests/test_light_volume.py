@@ -1,5 +1,5 @@
-"""Tests of the physical light model's float64 water along view rays (`worker.light.volume`), the sun at the surface
-(`worker.light.sun`) and the lamp profile, against independent quadrature of the integrals they close."""
+"""Tests of the physical light model's float64 water along view rays (`seasynth.worker.light.volume`), the sun at the surface
+(`seasynth.worker.light.sun`) and the lamp profile, against independent quadrature of the integrals they close."""
 
 import math
 
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from worker.light import SNELL_CONE_DEG, WATER_INDEX, Lamp, Medium, PhysicalLight, Terms
-from worker.light.lamps import light_factor, profile
-from worker.light.sun import fresnel_transmittance, refract_down, sun_in_water
-from worker.light.sky import SKY_PHASE_NODES, sky_phase, sky_phase_table
-from worker.light.volume import MU_SKY, segment, volume
+from seasynth.worker.light import SNELL_CONE_DEG, WATER_INDEX, Lamp, Medium, PhysicalLight, Terms
+from seasynth.worker.light.lamps import light_factor, profile
+from seasynth.worker.light.sun import fresnel_transmittance, refract_down, sun_in_water
+from seasynth.worker.light.sky import SKY_PHASE_NODES, sky_phase, sky_phase_table
+from seasynth.worker.light.volume import MU_SKY, segment, volume
 
 SUN = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])  # towards the sun, in the water
 # A camera looking along world +y and 20 degrees down: its camera frame (x right, y down, z forward) in the world.
@@ -250,7 +250,7 @@ def test_lamp_backscatter_is_the_brute_force_integral_to_5e_3_and_converges_to_i
     integral; 384 within 1e-4: the same integrand."""
     got, expected = lamp_case(z)
     np.testing.assert_allclose(got, expected, rtol=5e-3, atol=0)
-    monkeypatch.setattr("worker.light.volume.BACKSCATTER_NODES", 384)
+    monkeypatch.setattr("seasynth.worker.light.volume.BACKSCATTER_NODES", 384)
     fine, _ = lamp_case(z)
     np.testing.assert_allclose(fine, expected, rtol=1e-4, atol=0)
 

@@ -10,7 +10,7 @@ if importlib.util.find_spec("mitsuba") is None:  # only a missing Mitsuba skips;
 
 trimesh = pytest.importorskip("trimesh")
 
-from bench import pathtracer as pt  # noqa: E402
+from seasynth.bench import pathtracer as pt  # noqa: E402
 
 W, H = 32, 24
 F = 28.0  # fx = fy, pixels

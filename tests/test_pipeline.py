@@ -15,14 +15,14 @@ import pytest
 import trimesh
 from PIL import Image
 
-import service
-from service.spec import load_spec
-from worker import kitti
-from worker.formation import haze
-from worker.generate import RECORD, generate, reproduce
-from worker.pipeline import frame_paths
-from worker.labels import tight_boxes
-from worker.srgb import decode_srgb8, encode_srgb8
+from seasynth import service
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.frame import kitti
+from seasynth.worker.frame.formation import haze
+from seasynth.worker.local.generate import RECORD, generate, reproduce
+from seasynth.worker.frame.function import frame_paths
+from seasynth.worker.frame.labels import tight_boxes
+from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SMALL = {"camera.width": 96, "camera.height": 72, "frames": 5}
@@ -192,8 +192,8 @@ def rehazed(spec, index: int, clean: np.ndarray, rng: np.ndarray, meta: dict) ->
     w = meta["water"]
     if w["model"] == "paper":
         return haze(clean, rng, np.array(w["beta_D"]), np.array(w["beta_B"]), np.array(w["B_inf"]), np.float64)
-    from worker.light.volume import camera_depth, pixel_rays, volume
-    from worker.pipeline import RenderSession
+    from seasynth.worker.light.volume import camera_depth, pixel_rays, volume
+    from seasynth.worker.frame.function import RenderSession
 
     scene = RenderSession().scene(spec, index)  # scenes only: no GL
     np.testing.assert_array_equal(scene.world_from_cam, meta["camera"]["pose_world_from_camera"])
@@ -310,7 +310,7 @@ def test_water_off_gives_null_water_record(tmp_path):
 
 def test_cli_generate_refuses_non_empty_and_resumes(tmp_path):
     out = tmp_path / "ds"
-    cmd = [sys.executable, "-m", "service.cli", "generate", str(EXAMPLE), "--out", str(out),
+    cmd = [sys.executable, "-m", "seasynth.cli", "generate", str(EXAMPLE), "--out", str(out),
            "--frames", "2", "--width", "48", "--height", "36"]
     assert subprocess.run(cmd, capture_output=True).returncode == 0
     refused = subprocess.run(cmd, capture_output=True, text=True)

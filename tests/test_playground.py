@@ -16,12 +16,12 @@ import pytest
 import yaml
 from PIL import Image
 
-from api.slots import RenderGate
-from service.errors import Conflict, Unavailable
-from service.kitti import parse_label_file
-from service.spec import parse_spec
-from worker.pipeline import RenderSession
-from worker.playground import STRIP_WIDTH, preview_reply, preview_spec, render_preview, render_strip
+from seasynth.api.slots import RenderGate
+from seasynth.service.errors import Conflict, Unavailable
+from seasynth.service.kitti import parse_label_file
+from seasynth.service.spec.dataset import parse_spec
+from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.preview.playground import STRIP_WIDTH, preview_reply, preview_spec, render_preview, render_strip
 
 SPEC = {
     "seed": 11,
@@ -199,7 +199,7 @@ def test_the_gate_renders_each_clients_newest_request_and_says_when_busy():
 
 
 def test_local_runs_go_one_at_a_time_and_report_their_progress(tmp_path):
-    from api.playground_local import LocalRuns
+    from seasynth.api.playground_local import LocalRuns
 
     runs = LocalRuns(tmp_path)
     first = runs.start({**SPEC, "frames": 200})
@@ -217,7 +217,7 @@ def test_local_runs_go_one_at_a_time_and_report_their_progress(tmp_path):
 def test_a_local_run_reads_relative_files_where_the_previews_do(tmp_path, monkeypatch):
     """A path typed in the page is read from the playground's folder by the previews: the run's spec names it so,
     not relative to the run's own folder."""
-    from api.playground_local import LocalRuns
+    from seasynth.api.playground_local import LocalRuns
 
     monkeypatch.chdir(tmp_path)
     runs = LocalRuns(tmp_path / "runs")
@@ -231,7 +231,7 @@ def test_a_local_run_reads_relative_files_where_the_previews_do(tmp_path, monkey
 
 def test_the_local_playground_answers_only_its_loopback_host_names():
     """A page of another site whose name resolves to 127.0.0.1 (DNS rebinding) sends its own Host: refused."""
-    from api.playground_local import create_local_app
+    from seasynth.api.playground_local import create_local_app
 
     app = create_local_app(None, {}, Path("/nonexistent"))
 

@@ -22,8 +22,8 @@ from PIL import Image
 from selenium.webdriver.support.ui import Select
 
 from browser import chromium, playground_server, prefix_proxy, set_value, wait
-from service.spec import parse_spec
-from worker.generate import RECORD
+from seasynth.service.spec.dataset import parse_spec
+from seasynth.worker.local.generate import RECORD
 
 SPEC = {
     "seed": 5,
@@ -190,8 +190,8 @@ def test_a_photo_uploaded_to_the_calibration_gives_an_estimate_the_spec_takes(pa
 def test_a_photo_with_its_range_map_is_estimated_under_the_prior_chosen_on_the_page(page, tmp_path):
     """A seabed through Jerlov 3C with its range map (.npy, metres): the default prior names the Jerlov type it
     chose, prior none does not, and the page shows the betas POST /calibrate answers for the same choice."""
-    from worker.formation import haze
-    from worker.srgb import encode_srgb8
+    from seasynth.worker.frame.formation import haze
+    from seasynth.worker.frame.srgb import encode_srgb8
 
     driver, base, _ = page
     h, w = 72, 96

@@ -11,9 +11,9 @@ import pytest
 from PIL import Image
 from local_datasets import generate_variants, seasynth
 
-from service.errors import ExportError
-from worker import kitti
-from service.sheet import (
+from seasynth.service.errors import ExportError
+from seasynth.worker.frame import kitti
+from seasynth.service.sheet import (
     BOX_COLOURS,
     COLUMNS,
     GAP,
@@ -25,7 +25,7 @@ from service.sheet import (
     summary_rows,
     tile_origin,
 )
-from worker.preview import make_preview
+from seasynth.worker.preview.sheet import make_preview
 
 W, H, FRAMES = 48, 36, 5
 
@@ -147,7 +147,7 @@ def test_library_refuses_bad_frame_counts_and_names(datasets, tmp_path):
 def test_wide_frames_are_scaled_to_the_tile_width_with_their_boxes(datasets, tmp_path):
     """Tiles of frames wider than --tile-width are scaled down, and each box outline lands on the pixels its box's
     edges cover after scaling: exactly those pixels have the box colour in the image panel."""
-    from service.sheet import scale_box, tile_size
+    from seasynth.service.sheet import scale_box, tile_size
 
     ds, tw = datasets["full"], 24
     w, h = tile_size(W, H, tw)
@@ -177,7 +177,7 @@ def test_wide_frames_are_scaled_to_the_tile_width_with_their_boxes(datasets, tmp
 
 
 def test_scale_box_is_exact_at_scale_one_and_keeps_boxes_inside():
-    from service.sheet import scale_box, tile_size
+    from seasynth.service.sheet import scale_box, tile_size
 
     assert scale_box((3, 4, 10, 20), 1.0, 1.0, (48, 36)) == (3, 4, 10, 20)
     assert scale_box((0, 0, 0, 0), 0.1, 0.1, (5, 4)) == (0, 0, 0, 0)  # a 1-px box stays one pixel

@@ -1,4 +1,4 @@
-"""Reads through pixel buffer objects (worker.render.readback): queued without a wait, fetched in any order, the
+"""Reads through pixel buffer objects (seasynth.worker.render.readback): queued without a wait, fetched in any order, the
 same pixels as a direct read, buffers reused and bounded, and given back when a frame fails before fetching."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from test_render import LIGHT, camera_view, draw, fronto_quad, pinhole
 
-from worker.pipeline import PRESETS
-from worker.render import Passes
-from worker.render.readback import KEEP_PER_SIZE, KEEP_SIZES
+from seasynth.worker.frame.function import PRESETS
+from seasynth.worker.render import Passes
+from seasynth.worker.render.readback import KEEP_PER_SIZE, KEEP_SIZES
 
 W, H = 13, 7  # rows of 13 RGB bytes: not a multiple of 4, so a wrong pack alignment would show
 

@@ -1,11 +1,11 @@
-"""The camera passes' reversed float depth (worker.render.depth): the projection's depth and the resolve's inverse
+"""The camera passes' reversed float depth (seasynth.worker.render.depth): the projection's depth and the resolve's inverse
 agree, and a float32 depth keeps range to float32's relative precision at every distance, as the range outputs and
 the water need."""
 
 import numpy as np
 import pytest
 
-from worker.render.depth import projection, z_from_depth
+from seasynth.worker.render.depth import projection, z_from_depth
 
 K = np.array([[400.0, 0.0, 319.5], [0.0, 400.0, 239.5], [0.0, 0.0, 1.0]])
 

@@ -1,5 +1,5 @@
 """Tests of the physical light model on the GL path: the resolve shader's water against its float64 twin
-(`worker.light.volume`) on the samples it read, sun and lamp shadow maps, and which passes a frame's terms draw."""
+(`seasynth.worker.light.volume`) on the samples it read, sun and lamp shadow maps, and which passes a frame's terms draw."""
 
 import math
 
@@ -8,13 +8,13 @@ import pytest
 import trimesh
 from test_render import draw, pinhole
 
-from worker.light import Lamp, Medium, PhysicalLight, Terms
-from worker.light.sun import sun_in_water
-from worker.light.lamps import LAMP_Z_SPREAD
-from worker.light.volume import volume
-from worker.render import Passes, Sampling, View
-from worker.scene import look_at_pose, rigid_inverse
-from worker.srgb import encode_srgb8
+from seasynth.worker.light import Lamp, Medium, PhysicalLight, Terms
+from seasynth.worker.light.sun import sun_in_water
+from seasynth.worker.light.lamps import LAMP_Z_SPREAD
+from seasynth.worker.light.volume import volume
+from seasynth.worker.render import Passes, Sampling, View
+from seasynth.worker.scene.sample import look_at_pose, rigid_inverse
+from seasynth.worker.frame.srgb import encode_srgb8
 
 ONE = Sampling(msaa=1, supersample=1)
 W, H = 48, 36
@@ -144,7 +144,7 @@ def test_per_sample_shading_moves_where_a_lamp_is_shaded_not_how_much_light_arri
     the pixel centre must leave the frame's mean lamp light as it was (within 1%): a sample shaded off the point where
     the shadow map sampled its triangle must not shadow itself. (Before the lookups moved off the surface along the
     normal, per-sample shading darkened such a frame by about 30%.)"""
-    from worker.assets.terrain import heightfield
+    from seasynth.worker.scene.assets.terrain import heightfield
 
     terrain = heightfield(np.random.default_rng(3), "rock", 12.0, 96, 1.2)
     items = [draw("test/render-light/rock", terrain.mesh, 0)]
@@ -290,7 +290,7 @@ def test_with_four_samples_a_pixel_the_resolve_is_its_twin_and_lamp_scattering_o
     """volume_pixels (the lamps' scattering once a pixel where the samples' ray ends agree within LAMP_Z_SPREAD) is
     the shader to one code; against every sample integrated on its own it differs by under 1e-5 (linear; 2.7e-6
     measured), on frames where a third of the pixels take the once-a-pixel path with their samples' ends apart."""
-    from worker.light.volume import volume_pixels
+    from seasynth.worker.light.volume import volume_pixels
 
     lt = LAMP_CASES[name]
     J, R = renderer.samples(VIEW, SCENE, lt, FOUR)

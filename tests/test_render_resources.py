@@ -5,12 +5,12 @@ import pytest
 import trimesh
 from test_render import LIGHT, WATER, camera_view, draw, fronto_quad, pinhole
 
-from service.errors import RenderError
-from service.spec import load_spec
-from worker.pipeline import PRESETS
-from worker.render import Passes, Sampling, View
-from worker.render.frustum import sphere_in_view
-from worker.render.gl import GLRenderer
+from seasynth.service.errors import RenderError
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.frame.function import PRESETS
+from seasynth.worker.render import Passes, Sampling, View
+from seasynth.worker.render.frustum import sphere_in_view
+from seasynth.worker.render.gl import GLRenderer
 
 W, H = 9, 7
 K = pinhole(W, H, 60.0)

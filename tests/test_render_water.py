@@ -6,8 +6,8 @@ import pytest
 import trimesh
 from test_render import LIGHT, camera_view, draw, fronto_quad, pinhole, pixel_aligned_plane, rays
 
-from worker.pipeline import PRESETS
-from worker.render import Lighting, Passes, WaterParams
+from seasynth.worker.frame.function import PRESETS
+from seasynth.worker.render import Lighting, Passes, WaterParams
 
 # A 120-degree view: the corner rays are about 2.3 times as long as the central one, so range and z-depth differ
 # by a factor the image cannot hide.

@@ -4,9 +4,9 @@ every output configuration, under both shader headers a context may need."""
 import numpy as np
 import pytest
 
-from service.spec import load_spec
-from worker.pipeline import PRESETS, scene_light
-from worker.render import shaders
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.frame.function import PRESETS, scene_light
+from seasynth.worker.render import shaders
 
 HEADERS = {
     "gl43": "#version 430 core",

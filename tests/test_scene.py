@@ -1,4 +1,4 @@
-"""Tests of worker.scene: objects resting on the terrain in their workspaces, the camera, the look-at point and
+"""Tests of seasynth.worker.scene.sample: objects resting on the terrain in their workspaces, the camera, the look-at point and
 where every draw comes from. Sampling needs no GL: a RenderSession that is never entered serves the assets."""
 
 import math
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from service.seeds import frame_rng
-from service.spec import load_spec
-from service.spec_scene import Box
-from worker.pipeline import RenderSession
-from worker.scene import (
+from seasynth.service.seeds import frame_rng
+from seasynth.service.spec.dataset import load_spec
+from seasynth.service.spec.scene import Box
+from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.scene.sample import (
     CAMERA_CLEARANCE_M,
     PLACEMENT_TRIES,
     Scene,

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.spec import load_spec
-from worker.pipeline import RenderSession
-from worker.scene import CAMERA_CLEARANCE_M, SceneError
-from worker.sensors import world_from_sensor
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.scene.sample import CAMERA_CLEARANCE_M, SceneError
+from seasynth.worker.sensors import world_from_sensor
 
 EXAMPLE = "examples/urchins.yaml"
 FRAMES = range(16)

@@ -12,16 +12,16 @@ import pytest
 import trimesh
 from local_datasets import tree
 
-from service.errors import SpecError
-from service.sensors import DVL, SensorPose
-from service.spec import load_spec, parse_spec
-from worker.generate import generate, reproduce
-from worker.pipeline import to_render_mesh
-from worker.render import DrawItem
-from worker.scene import look_at_pose
-from worker.sensors import vehicle_from_sensor
-from worker.sensors.nav import G, P_ATM, RHO, cast, dvl_record, imu_record, janus_directions, pressure_record
-from worker.trajectory import GRAVITY, lawnmower_state
+from seasynth.service.errors import SpecError
+from seasynth.service.spec.sensors import DVL, SensorPose
+from seasynth.service.spec.dataset import load_spec, parse_spec
+from seasynth.worker.local.generate import generate, reproduce
+from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.render import DrawItem
+from seasynth.worker.scene.sample import look_at_pose
+from seasynth.worker.sensors import vehicle_from_sensor
+from seasynth.worker.sensors.nav import G, P_ATM, RHO, cast, dvl_record, imu_record, janus_directions, pressure_record
+from seasynth.worker.scene.trajectory import GRAVITY, lawnmower_state
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SEABED = trimesh.Trimesh(vertices=[[-40, -40, 0], [40, -40, 0], [40, 40, 0], [-40, 40, 0]],
@@ -206,7 +206,7 @@ def test_each_nav_sensor_draws_from_its_own_stream(survey, tmp_path):
 def test_a_surveys_frames_share_one_water_surface_and_random_frames_draw_their_own():
     """Under the paper model the surface depth is drawn from water.depth_m: once per world. A survey's frames share
     frame 0's world, so pressure follows the vehicle alone; independent random frames each draw their own."""
-    from worker.sensors.outputs import surface_z
+    from seasynth.worker.sensors.outputs import surface_z
 
     no_light = SimpleNamespace(light=None)
     survey = parse_spec({"water": {"depth_m": [5.0, 30.0]}, "trajectory": {"kind": "lawnmower"}})

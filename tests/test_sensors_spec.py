@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from service.errors import SpecError
-from service.sensors import FLS, MAX_FLS_FAN_PIXELS, MAX_FLS_FAN_SIDE, Sensors
-from service.spec import DatasetSpec, parse_spec, spec_digest
+from seasynth.service.errors import SpecError
+from seasynth.service.spec.sensors import FLS, MAX_FLS_FAN_PIXELS, MAX_FLS_FAN_SIDE, Sensors
+from seasynth.service.spec.dataset import DatasetSpec, parse_spec, spec_digest
 
 
 def test_every_sensor_is_off_by_default_and_leaves_the_digest_alone():
@@ -56,7 +56,7 @@ def test_the_fls_render_grid_follows_its_beams():
 
 
 def test_the_fls_fan_image_is_bounded_and_counted_in_the_shard_pixels():
-    from worker.sensors.fan import fan_geometry
+    from seasynth.worker.sensors.fan import fan_geometry
 
     # The default keeps one row per range bin's depth over [0, rmax]: ceil(512 * 40 / 39.5) = 519.
     assert FLS().fan_size() == (943, 519)

@@ -12,13 +12,13 @@ import trimesh
 from local_datasets import seasynth, tree
 from PIL import Image
 
-from service.sensors import FLS, Acoustics
-from service.spec import load_spec
-from worker.generate import generate, reproduce
-from worker.pipeline import to_render_mesh
-from worker.render import DrawItem
-from worker.scene import look_at_pose, rigid_inverse
-from worker.sensors.fls import (
+from seasynth.service.spec.sensors import FLS, Acoustics
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.local.generate import generate, reproduce
+from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.render import DrawItem
+from seasynth.worker.scene.sample import look_at_pose, rigid_inverse
+from seasynth.worker.sensors.fls import (
     FULL_SCALE,
     absorption_db_per_m,
     fls_echo,
@@ -143,7 +143,7 @@ def test_tvg_restores_a_uniform_sphere_at_any_range_and_keeps_the_noise(frequenc
 def test_tvg_folded_into_the_bins_equals_the_plain_gain(monkeypatch):
     # A seabed-like ramp of ranges (footprints spread pixels over several bins) at 750 kHz, where the plain gain is
     # sound: the folded TVG (log space, per pixel and bin) gives the same bins to rounding.
-    import worker.sensors.fls as fls_module
+    import seasynth.worker.sensors.fls as fls_module
 
     fls = TVG_LONG.model_copy(update={"range_m": (0.5, 40.0)})
     grid = fls_grid(fls)
@@ -342,7 +342,7 @@ def test_the_survey_example_generates_with_the_cli(tmp_path):
 
 
 def test_fan_boxes_hold_every_fan_pixel_of_their_cells(renderer):
-    from worker.sensors.fan import fan_geometry
+    from seasynth.worker.sensors.fan import fan_geometry
 
     items = [item(SEABED, "seabed", 0), item(sphere(0.6), "sphere.6", 1, np.array([2.0, 10.0, 0.6])),
              item(sphere(0.3), "sphere.3", 2, np.array([-2.5, 7.0, 0.3]))]

@@ -11,14 +11,14 @@ import pytest
 import trimesh
 from PIL import Image
 
-from service.sensors import SSS, Acoustics
-from service.spec import load_spec
-from worker.generate import generate, reproduce
-from worker.pipeline import to_render_mesh
-from worker.render import DrawItem
-from worker.scene import look_at_pose
-from worker.sensors.fls import absorption_db_per_m
-from worker.sensors.sss import side_echo, sss_frame, sss_grid, waterfall
+from seasynth.service.spec.sensors import SSS, Acoustics
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.local.generate import generate, reproduce
+from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.render import DrawItem
+from seasynth.worker.scene.sample import look_at_pose
+from seasynth.worker.sensors.fls import absorption_db_per_m
+from seasynth.worker.sensors.sss import side_echo, sss_frame, sss_grid, waterfall
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SONAR = SSS(enabled=True, range_m=15.0, range_bins=128, speckle=False)  # bins of 0.117 m

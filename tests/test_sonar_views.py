@@ -12,8 +12,8 @@ import pytest
 from PIL import Image
 from local_datasets import seasynth
 
-from service.errors import ExportError
-from service.sheet import (
+from seasynth.service.errors import ExportError
+from seasynth.service.sheet import (
     BOX_COLOURS,
     COLUMNS,
     GAP,
@@ -26,10 +26,10 @@ from service.sheet import (
     summary_rows,
     tile_origin,
 )
-from service.spec import load_spec
-from worker.generate import RECORD, generate
-from worker.pipeline import frame_paths
-from worker.preview import make_preview
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.local.generate import RECORD, generate
+from seasynth.worker.frame.function import frame_paths
+from seasynth.worker.preview.sheet import make_preview
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey-sonar.yaml"
 W, H, FRAMES, BINS = 48, 36, 10, 48
@@ -108,7 +108,7 @@ def test_waterfall_stacks_the_rows_in_frame_order_with_the_label_runs_outlined(s
 
 
 def test_waterfall_refuses_a_dataset_without_side_scan_naming_the_field(survey, tmp_path):
-    from worker.waterfall import write_waterfall
+    from seasynth.worker.preview.waterfall import write_waterfall
 
     ds = tmp_path / "no-sss"
     generate(load_spec(EXAMPLE, {**SMALL, "frames": 1, "sensors.sss.enabled": False}), ds, workers=1)

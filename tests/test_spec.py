@@ -10,8 +10,8 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from service.spec import DatasetSpec, apply_overrides, load_spec, parse_spec, spec_digest
-from service.spec_scene import MAX_SIDE
+from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, load_spec, parse_spec, spec_digest
+from seasynth.service.spec.scene import MAX_SIDE
 from spec_helpers import EXAMPLE, MAPPING, refusal
 
 

@@ -31,7 +31,7 @@ def cli_runs(tmp_path_factory):
     }
     procs = {
         name: subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "generate", *args, "--out", str(out)],
+            [sys.executable, "-m", "seasynth.cli", "generate", *args, "--out", str(out)],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from service.errors import SpecError
-from service.spec import DatasetSpec, apply_overrides, load_spec, parse_spec, read_spec_file, resolve_paths
+from seasynth.service.errors import SpecError
+from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, load_spec, parse_spec, read_spec_file, resolve_paths
 from spec_helpers import EXAMPLE, MAPPING
 
 

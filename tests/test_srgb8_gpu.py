@@ -4,11 +4,11 @@ threshold, on the float32 just below it, on the hard values, and on whole frames
 import numpy as np
 import pytest
 
-from service.spec import load_spec
-from worker.pipeline import PRESETS, scene_light
-from worker.render import Passes
-from worker.render.shaders import FULLSCREEN
-from worker.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.frame.function import PRESETS, scene_light
+from seasynth.worker.render import Passes
+from seasynth.worker.render.shaders import FULLSCREEN
+from seasynth.worker.frame.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
 
 PROBE = """
 #version 330 core

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from local_datasets import tree
 
-from service.seeds import frame_rng
-from service.spec import load_spec
-from worker.generate import generate
-from worker.pipeline import RenderSession
-from worker.scene import SceneError, sample_scene
-from worker.trajectory import lawnmower_state
+from seasynth.service.seeds import frame_rng
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.local.generate import generate
+from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.scene.sample import SceneError, sample_scene
+from seasynth.worker.scene.trajectory import lawnmower_state
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SURVEY = {"camera.width": 32, "camera.height": 24, "frames": 3, "shard_size": 3, "trajectory.kind": "lawnmower",

@@ -11,9 +11,9 @@ import trimesh
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
-from worker.assets import AssetError
-from worker.assets.terrain import STYLES, Terrain, apply_texture, grid_faces, heightfield, procedural_terrain
-from worker.assets.user import load_user_terrain, load_user_texture
+from seasynth.worker.scene.assets import AssetError
+from seasynth.worker.scene.assets.terrain import STYLES, Terrain, apply_texture, grid_faces, heightfield, procedural_terrain
+from seasynth.worker.scene.assets.user import load_user_terrain, load_user_texture
 
 SIZE, CELLS, RELIEF = 4.0, 64, 0.3
 
@@ -197,7 +197,7 @@ def test_texture_is_read_once_per_process_and_frames_are_unchanged(tmp_path: Pat
     import subprocess
     import sys
 
-    from service.spec import load_spec
+    from seasynth.service.spec.dataset import load_spec
 
     image = np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8)
     texture = tmp_path / "seabed.png"
@@ -222,7 +222,7 @@ def test_texture_is_read_once_per_process_and_frames_are_unchanged(tmp_path: Pat
     # The same frame from a fresh process (which reads and decodes the file itself) is byte-identical.
     spec_file, out = tmp_path / "spec.json", tmp_path / "fresh"
     spec_file.write_text(spec.model_dump_json())
-    r = subprocess.run([sys.executable, "-m", "service.cli", "reproduce", str(spec_file), "--frame", "1", "--out",
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "reproduce", str(spec_file), "--frame", "1", "--out",
                         str(out)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert {rel: (out / rel).read_bytes() for rel in second} == second

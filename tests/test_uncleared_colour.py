@@ -6,10 +6,10 @@ infinities before every surface pass, and every file of the frame must still be 
 import numpy as np
 import pytest
 
-from service.spec import load_spec
+from seasynth.service.spec.dataset import load_spec
 from tests.test_resolve_compute import SPECS
-from worker.pipeline import PRESETS
-from worker.render import Passes
+from seasynth.worker.frame.function import PRESETS
+from seasynth.worker.render import Passes
 
 CASES = {
     **SPECS,

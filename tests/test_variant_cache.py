@@ -1,13 +1,13 @@
-"""Terrain variants shared by the render processes of a run through a folder (worker.variant_cache)."""
+"""Terrain variants shared by the render processes of a run through a folder (seasynth.worker.scene.variant_cache)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from worker.assets.terrain import procedural_terrain
-from worker.pipeline import to_render_mesh
-from worker.variant_cache import VariantCache
+from seasynth.worker.scene.assets.terrain import procedural_terrain
+from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.scene.variant_cache import VariantCache
 
 ARGS = ("pebbles", 3, 4.0, 24, 0.3)
 

@@ -1,9 +1,9 @@
-"""Tests for service.water: the Jerlov table, its betas and default veiling light."""
+"""Tests for seasynth.service.water: the Jerlov table, its betas and default veiling light."""
 
 import numpy as np
 import pytest
 
-from service.water import (
+from seasynth.service.water import (
     JERLOV_TRANSMITTANCE,
     JERLOV_TYPES,
     JERLOV_VEILING_LIGHT,
@@ -108,9 +108,9 @@ def test_unknown_type_names_it_and_the_known_types(fn, bad):
 
 
 def test_the_recorded_jerlov_type_is_the_one_the_water_used():
-    from service.seeds import frame_rng
-    from service.spec import parse_spec
-    from worker.scene import _sample_water
+    from seasynth.service.seeds import frame_rng
+    from seasynth.service.spec.dataset import parse_spec
+    from seasynth.worker.scene.sample import _sample_water
 
     rgb = {"min": [0.1, 0.05, 0.02], "max": [0.2, 0.1, 0.05]}
     explicit = parse_spec({"water": {"jerlov": ["7C"], "beta_D": rgb, "B_inf": rgb}})

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from service.spec import DatasetSpec, spec_digest
+from seasynth.service.spec.dataset import DatasetSpec, spec_digest
 
 PAPER_ONLY = {
     "beta_D": {"min": [0.1] * 3, "max": [0.1] * 3},

@@ -4,9 +4,9 @@ from pathlib import PurePosixPath
 
 from fastapi import APIRouter, Response, UploadFile, status
 
-from api import asset_store
-from api.deps import ServicesDep
-from api.models import AssetPublic, error_responses
+from seasynth.api import asset_store
+from seasynth.api.deps import ServicesDep
+from seasynth.api.models import AssetPublic, error_responses
 
 router = APIRouter(prefix="/assets", tags=["assets"])
 

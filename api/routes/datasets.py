@@ -1,18 +1,18 @@
 """Dataset routes: create, list, status, manifest, single frames, preview sheet, cancel, delete and reconcile.
 
-Every status a route can answer is declared, each error with the one body model (api.models.ErrorPublic)."""
+Every status a route can answer is declared, each error with the one body model (seasynth.api.models.ErrorPublic)."""
 
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response, status
 
-from api import operations
-from api.deps import DatasetId, FrameIndex, ServicesDep
-from api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic, error_responses
-from service.previews import MAX_SHEET_FRAMES, SHEET_FRAMES, dataset_preview
-from service.shards import media_type
-from service.sheet import TILE_WIDTH
-from service.spec import DatasetSpec
+from seasynth.api import operations
+from seasynth.api.deps import DatasetId, FrameIndex, ServicesDep
+from seasynth.api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic, error_responses
+from seasynth.service.previews import MAX_SHEET_FRAMES, SHEET_FRAMES, dataset_preview
+from seasynth.service.shards import media_type
+from seasynth.service.sheet import TILE_WIDTH
+from seasynth.service.spec.dataset import DatasetSpec
 
 # Any route: no key (401), a bad parameter (422), Redis down (503).
 router = APIRouter(prefix="/datasets", tags=["datasets"], responses=error_responses(401, 422, 503))

@@ -3,9 +3,9 @@
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
-from api.deps import ServicesDep
-from api.models import Health
-from service import __version__
+from seasynth.api.deps import ServicesDep
+from seasynth.api.models import Health
+from seasynth.service import __version__
 
 router = APIRouter(tags=["health"])
 

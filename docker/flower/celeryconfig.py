@@ -1,6 +1,6 @@
 """Celery settings of the Flower container (docker-compose.yml, profile monitor): Celery's default loader imports
 this module as `celeryconfig`. Flower is a client of the broker like any other, and on Redis the shortest
-visibility timeout of any client wins, so it carries the workers' (service.settings: 3x the hard task time limit)."""
+visibility timeout of any client wins, so it carries the workers' (seasynth.service.settings: 3x the hard task time limit)."""
 
 import os
 

@@ -62,7 +62,7 @@ def stack(infra: Stack) -> Stack:
 @pytest.fixture(scope="session")
 def services(infra: Stack):
     """In-process access to the same Redis records and bucket, for assertions."""
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     s = open_services(infra.settings())
     yield s

@@ -246,7 +246,7 @@ def open_fault_stack(tmp: Path, workers: int = 2) -> FaultStack:
     st.start("s3", [need("moto_server"), "-H", "127.0.0.1", "-p", str(s3_port)])
     wait_for(lambda: httpx.get(f"http://127.0.0.1:{s3_port}", timeout=2).status_code < 500, 30, "moto_server")
     os.environ.update({k: st.env[k] for k in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION")})
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     # The suite's own view of the bucket goes around the proxy: checks must not depend on the fault.
     st.services = open_services(st.settings(s3_endpoint_url=f"http://127.0.0.1:{s3_port}"))
@@ -256,7 +256,7 @@ def open_fault_stack(tmp: Path, workers: int = 2) -> FaultStack:
     for _ in range(workers):
         wait_worker_ready(st.start_worker(1), 1)
     st.start_reconciler(1.0)  # as compose and the k8s manifests deploy it, with a shorter period
-    from service.recovery import run_key
+    from seasynth.service.records.recovery import run_key
 
     # Its first round notes which Redis process it checked (a restart is noticed against that).
     wait_for(lambda: st.services.records.r.get(run_key(st.services.records)), 60, "the reconciler's first round")
@@ -313,7 +313,7 @@ class Verdict:
 def verify_dataset(st: FaultStack, dataset_id: str, spec: dict, tmp: Path) -> Verdict:
     """Fetch the dataset through the API and compare it with a local generate; count frames in the manifest, the
     shard tars and the bucket listing."""
-    from service.fetch import fetch_dataset
+    from seasynth.service.fetch import fetch_dataset
     from test_service_e2e import tree
 
     store = st.services.store

@@ -13,9 +13,9 @@ from contextlib import contextmanager
 import httpx
 import pytest
 
-from service.record_types import ShardCommit
-from service.records import Records
-from service.shards import shard_count
+from seasynth.service.records.types import ShardCommit
+from seasynth.service.records.store import Records
+from seasynth.service.shards import shard_count
 from service_stack import Stack, free_port, tiny_spec, wait_for
 
 VERSION = "0.0.0-hardening"  # no worker consumes these queues: what the API publishes stays where it was put
@@ -47,7 +47,7 @@ def settings(infra: Stack):
 
 @pytest.fixture(scope="module")
 def services(settings):
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     s = open_services(settings)
     yield s
@@ -57,7 +57,7 @@ def services(settings):
 @pytest.fixture
 def serve(settings, services):
     """serve(**replaced services) -> base URL of an API on those services (real Redis and S3 unless replaced)."""
-    from api.main import create_app
+    from seasynth.api.main import create_app
 
     stack = []
 

@@ -13,8 +13,8 @@ from collections.abc import Iterator
 
 import httpx
 
-from service import __version__
-from service.shards import shard_count
+from seasynth.service import __version__
+from seasynth.service.shards import shard_count
 from service_stack import Stack, wait_for
 
 
@@ -35,7 +35,7 @@ def isolated(stack: Stack, db: int, **settings) -> Iterator[tuple[dict[str, str]
     """(environment, services) on Redis database `db`, emptied before and after."""
     import redis
 
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     url = stack.settings().redis_url.rsplit("/", 1)[0] + f"/{db}"
     raw = redis.Redis.from_url(url)
@@ -51,7 +51,7 @@ def isolated(stack: Stack, db: int, **settings) -> Iterator[tuple[dict[str, str]
 
 
 def record_only(services, spec: dict, *, age_s: float = 0, version: str = __version__) -> str:
-    from service.spec import parse_spec
+    from seasynth.service.spec.dataset import parse_spec
 
     s = parse_spec(spec)
     dataset_id = uuid.uuid4().hex
@@ -66,7 +66,7 @@ def api_on(services) -> Iterator[httpx.Client]:
     """An API on `services`, served in this process."""
     import uvicorn
 
-    from api.main import create_app
+    from seasynth.api.main import create_app
     from service_stack import free_port
 
     port = free_port()

@@ -17,7 +17,7 @@ from typing import Any
 import httpx
 import pytest
 
-from bench.stack import free_port  # noqa: F401 (the service tests import it from here)
+from seasynth.bench.stack import free_port  # noqa: F401 (the service tests import it from here)
 
 BUCKET = "seasynth-test"
 
@@ -96,7 +96,7 @@ class Stack:
         return proc
 
     def seasynth(self, name: str, *args: str, env: dict[str, str] | None = None) -> Proc:
-        return self.start(name, [sys.executable, "-m", "service.cli", *args], env)
+        return self.start(name, [sys.executable, "-m", "seasynth.cli", *args], env)
 
     def start_worker(self, concurrency: int = 1) -> Proc:
         return self.seasynth("worker", "worker", "--concurrency", str(concurrency), "--loglevel", "INFO")
@@ -116,7 +116,7 @@ class Stack:
         return proc, url
 
     def settings(self, **over: Any):
-        from service.settings import Settings
+        from seasynth.service.settings import Settings
 
         env = {k[len("SEASYNTH_"):].lower(): v for k, v in self.env.items() if k.startswith("SEASYNTH_")}
         return Settings(**{**env, **over})

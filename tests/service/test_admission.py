@@ -1,4 +1,4 @@
-"""Admission over HTTP: a shard must fit the task time limit by the full cost model (service.shards.spec_shard_seconds),
+"""Admission over HTTP: a shard must fit the task time limit by the full cost model (seasynth.service.shards.spec_shard_seconds),
 and the shard_size a refusal suggests is admitted."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from collections.abc import Iterator
 import httpx
 
 from isolated_stacks import api_on
-from service.shards import shard_seconds, spec_shard_seconds
-from service.spec import parse_spec
+from seasynth.service.shards import shard_seconds, spec_shard_seconds
+from seasynth.service.spec.dataset import parse_spec
 from service_stack import Stack, tiny_spec
 from test_service_plumbing import HEAVY
 
@@ -25,7 +25,7 @@ REFUSAL = re.compile(
 @contextlib.contextmanager
 def unserved_api(infra: Stack) -> Iterator[httpx.Client]:
     """An API whose datasets go to the queues of a code version no worker runs: admitted specs are never rendered."""
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     services = open_services(infra.settings(worker_version="0.0.0-admission", key_prefix="admission"))
     try:

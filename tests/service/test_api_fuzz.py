@@ -13,15 +13,15 @@ from collections.abc import Iterator
 
 import pytest
 
-from service.queues import TASK_PREVIEW, frame_queue
-from service.records import push_reply
-from service.shards import frame_file
+from seasynth.service.queues import TASK_PREVIEW, frame_queue
+from seasynth.service.records.store import push_reply
+from seasynth.service.shards import frame_file
 from service_stack import Proc, Stack
 
 VERSION = "0.0.0-fuzz"  # no render worker consumes these queues; the frame answerer below plays the frame worker
 MIN_REQUESTS = 1000
 PNG_URL = "data:image/png;base64,iVBORw0KGgo="
-# The playground's renders, answered in the shape worker.playground gives them.
+# The playground's renders, answered in the shape seasynth.worker.preview.playground gives them.
 PREVIEW_REPLY = {
     "preview": lambda a: {"frame": a[0], "seed": 0, "width": 8, "height": 8, "images": {"image": PNG_URL},
                           "boxes": [], "render_ms": 0.0},

@@ -14,7 +14,7 @@ import httpx
 import pytest
 
 from hardening import KEY, VERSION, api, new_record, serve, services, serving, settings  # noqa: F401 (fixtures)
-from service.records import push_reply
+from seasynth.service.records.store import push_reply
 from service_stack import tiny_spec
 
 
@@ -155,7 +155,7 @@ def test_malformed_json_is_400_saying_so(api, body):
 def test_frame_indices_are_plain_digits(api, services):
     dataset_id = new_record(services.records, frames=20)
     queue = services.raw_redis
-    from service.queues import frame_queue
+    from seasynth.service.queues import frame_queue
 
     before = queue.llen(frame_queue(VERSION))
     for index in ("%201", "+1", "1.0", "1_0", "-0", "1e1", "%EF%BC%91", "1%0A"):
@@ -168,7 +168,7 @@ def test_frame_indices_are_plain_digits(api, services):
 
 def answer_frame(raw, header: dict, body: bytes = b"") -> tuple[str, int, str]:
     """Play a frame worker: take one frame task of VERSION's queue and answer it with `header`."""
-    from service.queues import frame_queue
+    from seasynth.service.queues import frame_queue
 
     _, message = raw.blpop([frame_queue(VERSION)], timeout=15)
     dataset_id, index, part, reply_key = json.loads(base64.b64decode(json.loads(message)["body"]))[0]
@@ -224,7 +224,7 @@ def test_a_server_app_freezes_what_exists_once_started_and_an_embedded_one_does_
     (tests, bench/enqueue.py) leaves that process's collector as it was."""
     import gc
 
-    from api.main import create_app
+    from seasynth.api.main import create_app
 
     before = [[]]  # a container, so the collector tracks it
     assert any(o is before for o in gc.get_objects())

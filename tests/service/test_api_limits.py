@@ -13,9 +13,9 @@ import httpx
 import pytest
 import redis
 
-from service.queues import frame_queue, shard_queue
-from service.records import push_reply
-from service.settings import Settings
+from seasynth.service.queues import frame_queue, shard_queue
+from seasynth.service.records.store import push_reply
+from seasynth.service.settings import Settings
 from service_stack import Stack, tiny_spec, wait_for
 
 VERSION = "0.0.0-framewaits"  # no worker consumes its queues: frame requests wait until this test answers them

@@ -58,7 +58,7 @@ def shard_tar(index: int) -> bytes:
 
 
 def test_fetch_follows_the_manifest_pages(serve, services, tmp_path):
-    from service.fetch import fetch_dataset
+    from seasynth.service.fetch import fetch_dataset
 
     url = serve()
     records = services.records
@@ -118,7 +118,7 @@ class ExpiringURLs:
 
 def test_fetch_asks_the_api_again_for_urls_the_store_refuses(serve, services, tmp_path):
     """A download that outlasts its presigned URLs: each refused URL is replaced by a fresh one from the manifest."""
-    from service.fetch import fetch_dataset
+    from seasynth.service.fetch import fetch_dataset
 
     store = ExpiringURLs(services.store)
     try:

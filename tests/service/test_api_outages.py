@@ -9,8 +9,8 @@ import httpx
 import pytest
 
 from hardening import KEY, api, commit, new_record, serve, services, settings  # noqa: F401 (fixtures)
-from service.errors import Unavailable
-from service.storage import S3Store
+from seasynth.service.errors import Unavailable
+from seasynth.service.storage import S3Store
 from service_stack import free_port, tiny_spec
 
 
@@ -40,7 +40,7 @@ def hardening_keys(services) -> set[str]:
 def test_a_dataset_the_broker_cannot_take_is_503_and_leaves_no_record(serve, services, settings):
     url = serve(producer=dead_producer())
     before_ids, before_keys = services.records.list_ids(0, 10**6), hardening_keys(services)
-    bucket_records = {o.key for o in services.store.list("records/")}  # service.recovery's creation records
+    bucket_records = {o.key for o in services.store.list("records/")}  # seasynth.service.records.recovery's creation records
     r = httpx.post(f"{url}/datasets", json=tiny_spec(), headers={"X-API-Key": KEY}, timeout=60)
     assert r.status_code == 503 and r.headers["retry-after"] == str(settings.retry_after_s), r.text
     assert r.json()["detail"].startswith("task broker unavailable: could not publish seasynth.plan_dataset (")
@@ -52,7 +52,7 @@ def test_a_dataset_the_broker_cannot_take_is_503_and_leaves_no_record(serve, ser
 def test_a_dataset_redis_cannot_take_is_503_and_leaves_no_bucket_record(serve, services, settings):
     import redis
 
-    from service.records import Records
+    from seasynth.service.records.store import Records
 
     dead = Records(redis.Redis(port=free_port(), decode_responses=True, socket_connect_timeout=2), settings.key_prefix)
     url = serve(records=dead)
@@ -148,8 +148,8 @@ def test_a_record_restored_with_committed_shards_is_swept_at_once(serve, service
     """Redis lost a dataset of which one shard of three had committed: the status read that restores it from the
     bucket adopts that shard's marker without making the dataset look recently active, so that same read sweeps it
     (a reconcile task for the rest), not one a stall timeout later."""
-    from service.recovery import save_record
-    from service.shards import commit_key
+    from seasynth.service.records.recovery import save_record
+    from seasynth.service.shards import commit_key
 
     records, store = services.records, services.store
     spec = tiny_spec(frames=3, shard_size=1)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bench import load as bench
+from seasynth.bench import load as bench
 from isolated_stacks import isolated
 from service_stack import Stack, free_port, wait_worker_ready
 
@@ -46,7 +46,7 @@ def test_a_short_load_run_has_no_errors_and_only_declared_statuses(infra: Stack)
 
 
 def test_the_load_client_reads_each_kind_of_answer_and_reopens_what_the_server_closed():
-    """bench.Http1 against a hand-written server: Content-Length and chunked bodies on one kept-alive connection,
+    """bench.load.Http1 against a hand-written server: Content-Length and chunked bodies on one kept-alive connection,
     a new connection after Connection: close and after the server closed an idle one (its FIN read before the
     next request), and a body cut short raised, not returned."""
     heads: list[bytes] = []

@@ -10,10 +10,10 @@ import pytest
 from celery import Celery
 
 from isolated_stacks import api_on, isolated, queued_tasks
-from service import __version__
-from service.queues import TASK_PLAN, TASK_SHARD, shard_queue
-from service.record_types import FAILED
-from service.records import ERRORS_SHOWN
+from seasynth.service import __version__
+from seasynth.service.queues import TASK_PLAN, TASK_SHARD, shard_queue
+from seasynth.service.records.types import FAILED
+from seasynth.service.records.store import ERRORS_SHOWN
 from service_stack import Stack
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
 
@@ -53,7 +53,7 @@ def test_a_record_written_before_the_bound_shows_its_first_failed_shards(infra: 
 
 @pytest.mark.parametrize("final", ["failed", "succeeded", "cancelled"])
 def test_the_planner_publishes_nothing_for_a_final_dataset(infra: Stack, tmp_path, final):
-    from worker.tasks import register
+    from seasynth.worker.queue.tasks import register
 
     with isolated(infra, 10) as (_, services):
         records = services.records

@@ -30,9 +30,9 @@ from faults import (
     verify_dataset,
     wait_done,
 )
-from service import __version__
-from service.errors import Unavailable
-from service.queues import shard_queue
+from seasynth.service import __version__
+from seasynth.service.errors import Unavailable
+from seasynth.service.queues import shard_queue
 from service_stack import tiny_spec, wait_for
 
 
@@ -186,7 +186,7 @@ _MODES = {"refuse": "refused (ECONNREFUSED) and open ones reset", "stall": "acce
 
 
 def test_api_sigkilled_while_a_client_polls_and_fetches(fstack: FaultStack, client, tmp_path):
-    from service.fetch import fetch_dataset
+    from seasynth.service.fetch import fetch_dataset
 
     dataset_id = mid_dataset(fstack, client)
     url = fstack.api_url
@@ -241,7 +241,7 @@ def test_reconciler_sigkilled_mid_round(fstack: FaultStack, client, tmp_path):
     """Redis comes back empty while the bucket stalls: the reconciler's round hangs listing the bucket's records
     and is SIGKILLed there; a new reconciler does the whole round again once the bucket answers."""
     dataset_id = mid_dataset(fstack, client)
-    from service.recovery import run_key
+    from seasynth.service.records.recovery import run_key
 
     [old] = [p for p in fstack.procs if p.name == "reconciler" and p.popen.poll() is None]
     fstack.proxy.set("stall")

@@ -8,10 +8,10 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from api.metrics import queue_lists
+from seasynth.api.metrics import queue_lists
 from isolated_stacks import isolated
-from service import __version__
-from service.queues import frame_queue, shard_queue
+from seasynth.service import __version__
+from seasynth.service.queues import frame_queue, shard_queue
 from service_stack import Stack, free_port, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 KEY = "k-metrics"
@@ -126,7 +126,7 @@ def test_finished_dataset_counts_exactly_its_shards_and_frames(infra: Stack):
 def test_failed_shards_count_their_frames(infra: Stack):
     """Every shard fails its one attempt (its asset's bytes were replaced in the bucket after the dataset was
     accepted, so the worker's sha256 check refuses them): 3 shards and 6 frames counted failed, none committed."""
-    from service.shards import asset_key
+    from seasynth.service.shards import asset_key
 
     port = free_port()
     with isolated(infra, 6, api_keys=KEY, max_attempts=1) as (env, services):
@@ -171,8 +171,8 @@ def test_the_exporter_empties_a_given_folder_and_needs_the_variable_first(tmp_pa
     code = (
         "import os, sys\n"
         "from pathlib import Path\n"
-        "from service.settings import Settings\n"
-        "from worker.metrics import exporter\n"
+        "from seasynth.service.settings import Settings\n"
+        "from seasynth.worker.queue.metrics import exporter\n"
         f"s = Settings(worker_metrics_port={free_port()}, worker_metrics_dir={str(given) if folder else None!r})\n"
         "with exporter(s):\n"
         "    d = Path(os.environ['PROMETHEUS_MULTIPROC_DIR'])\n"

@@ -11,7 +11,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.spec import parse_spec
+from seasynth.service.spec.dataset import parse_spec
 from service_stack import Stack, tiny_spec
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -28,7 +28,7 @@ def keyed(stack: Stack):
 
 
 def local_draft_png(spec: dict, frame: int) -> bytes:
-    from worker.pipeline import RenderSession
+    from seasynth.worker.frame.function import RenderSession
 
     with RenderSession() as s:
         return s.frame_files(parse_spec({**spec, "quality": "draft"}), frame)[f"image_2/{frame:06d}.png"]

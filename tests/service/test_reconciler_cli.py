@@ -10,8 +10,8 @@ from pathlib import Path
 import yaml
 
 from isolated_stacks import isolated, queued_tasks, record_only
-from service import __version__
-from service.queues import TASK_RECONCILE, shard_queue
+from seasynth.service import __version__
+from seasynth.service.queues import TASK_RECONCILE, shard_queue
 from service_stack import Stack, tiny_spec, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -52,7 +52,7 @@ def test_the_deployed_reconciler_command_runs_rounds_and_stops_on_sigterm(infra:
 
 def test_reconcile_every_refuses_bad_periods_and_named_datasets(infra: Stack):
     def run(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "service.cli", "reconcile", *args], env=infra.env,
+        return subprocess.run([sys.executable, "-m", "seasynth.cli", "reconcile", *args], env=infra.env,
                               capture_output=True, text=True, timeout=60)
 
     for every in ["0", "-1", "0.01", "1e12", "inf", "nan"]:

@@ -183,8 +183,8 @@ def test_a_frame_may_take_longer_than_five_seconds(stack: Stack):
 
     import redis
 
-    from service.queues import frame_queue
-    from service.records import push_reply
+    from seasynth.service.queues import frame_queue
+    from seasynth.service.records.store import push_reply
 
     version = "0.0.0-slowframes"
     proc, url = stack.start_api({"SEASYNTH_WORKER_VERSION": version, "SEASYNTH_FRAME_TIMEOUT_S": "20"})

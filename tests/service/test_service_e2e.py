@@ -18,9 +18,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service import __version__
-from service.fetch import STATE_DIR, fetch_dataset
-from service.queues import shard_queue
+from seasynth.service import __version__
+from seasynth.service.fetch import STATE_DIR, fetch_dataset
+from seasynth.service.queues import shard_queue
 from service_stack import Stack, log_since, log_size, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, not frame files
@@ -38,7 +38,7 @@ def local_generate(spec: dict, out: Path) -> dict[str, bytes]:
     """The reference: `seasynth generate` of the same spec on this machine."""
     spec_file = out.with_suffix(".json")
     spec_file.write_text(json.dumps(spec))
-    r = subprocess.run([sys.executable, "-m", "service.cli", "generate", str(spec_file), "--out", str(out)],
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "generate", str(spec_file), "--out", str(out)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     return tree(out)
@@ -61,7 +61,7 @@ def shard_members(services, manifest: dict) -> list[tuple[int, dict[str, bytes]]
 
 
 def commits_in(log: str, dataset_id: str) -> int:
-    """How many shards of `dataset_id` a worker's log says it committed (worker.shard logs one line per commit;
+    """How many shards of `dataset_id` a worker's log says it committed (seasynth.worker.queue.shard logs one line per commit;
     other tests' datasets may still be committing in the same workers)."""
     return len(re.findall(rf"dataset {dataset_id} shard \d+ committed:", log))
 
@@ -145,7 +145,7 @@ def test_fetch_resumes_a_partial_download_and_rejects_a_corrupt_one(stack: Stack
     assert report.shards_fetched == 2 and len(tree(out)) == 16
     assert not list((out / STATE_DIR).glob("*.part"))
     # The command does the same, with the API address from the environment.
-    r = subprocess.run([sys.executable, "-m", "service.cli", "fetch", dataset_id, "--out", str(tmp_path / "cli")],
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "fetch", dataset_id, "--out", str(tmp_path / "cli")],
                        capture_output=True, text=True, timeout=120, env={**stack.env, "SEASYNTH_API_URL": stack.api_url})
     assert r.returncode == 0, r.stderr
     assert tree(tmp_path / "cli") == tree(out)
@@ -177,7 +177,7 @@ def test_single_frame_equals_the_file_in_its_shard(stack: Stack, client, service
         import numpy as np
         from PIL import Image
 
-        from worker.preview import make_preview
+        from seasynth.worker.preview.sheet import make_preview
 
         r = client.get(f"/datasets/{dataset_id}/preview.png", params={"frames": 12})
         assert r.status_code == 200, r.text

@@ -19,19 +19,19 @@ import yaml
 from PIL import Image
 
 from isolated_stacks import api_on
-from service import __version__
-from service.fetch import STATE_DIR, fetch_dataset
-from service.queues import TASK_SHARD, shard_queue
-from service.record_types import ShardCommit
-from service.shards import commit_key, export_part_key, shard_key
-from service.spec import parse_spec
+from seasynth.service import __version__
+from seasynth.service.fetch import STATE_DIR, fetch_dataset
+from seasynth.service.queues import TASK_SHARD, shard_queue
+from seasynth.service.records.types import ShardCommit
+from seasynth.service.shards import commit_key, export_part_key, shard_key
+from seasynth.service.spec.dataset import parse_spec
 from service_stack import Stack, tiny_spec, wait_for, wait_state
 from test_admission import unserved_api
-from worker.export import SPLITS, plan_export, run_export
-from worker.export.files import EXPORT_RECORD
-from worker.export.merge import PartMerger, mcap_name
-from worker.pipeline import frame_paths
-from worker.preview import make_preview
+from seasynth.worker.export import SPLITS, plan_export, run_export
+from seasynth.worker.export.files import EXPORT_RECORD
+from seasynth.worker.export.merge import PartMerger, mcap_name
+from seasynth.worker.frame.function import frame_paths
+from seasynth.worker.preview.sheet import make_preview
 
 pytest.importorskip("pycocotools")
 from pycocotools.coco import COCO  # noqa: E402
@@ -103,7 +103,7 @@ def test_fetch_format_is_byte_identical_to_exporting_the_fetched_kitti_tree(stac
     local = tmp_path / "local"
     run_export(plan_export(kitti, fmt), local)  # the spec's outputs.split
     out = tmp_path / "fetched"
-    r = subprocess.run([sys.executable, "-m", "service.cli", "fetch", dataset_id, "--out", str(out), "--format", fmt,
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "fetch", dataset_id, "--out", str(out), "--format", fmt,
                         "--api", stack.api_url], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     files = len(tree(out))
@@ -184,12 +184,12 @@ def test_fetch_format_of_a_dataset_without_that_output_is_refused(stack, client,
     plain = post(client, tiny_spec(frames=2, shard_size=2))
     assert wait_state(client, plain, {"succeeded", "failed"})["state"] == "succeeded"
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "service.cli", "fetch", plain, "--out", str(out), "--format", "yolo",
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "fetch", plain, "--out", str(out), "--format", "yolo",
                         "--api", stack.api_url], capture_output=True, text=True, timeout=60)
     assert r.returncode == 1 and "Traceback" not in r.stderr
     assert f"dataset {plain} was generated without outputs.yolo" in r.stderr and "seasynth export" in r.stderr
     assert not out.exists()  # refused before anything was written
-    r = subprocess.run([sys.executable, "-m", "service.cli", "fetch", plain, "--out", str(out), "--format", "voc",
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "fetch", plain, "--out", str(out), "--format", "voc",
                         "--api", stack.api_url], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "Invalid value for '--format'" in r.stderr
 
@@ -221,7 +221,7 @@ def test_a_preview_too_large_to_draw_is_422_and_one_of_an_unreadable_shard_502(i
     import time
     import uuid
 
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     big = tiny_spec(frames=48, shard_size=24)
     big["camera"] = {**big["camera"], "width": 4096, "height": 4096}
@@ -261,7 +261,7 @@ def test_preview_before_any_shard_is_404_and_keys_are_needed(infra, dataset, cli
     paths = client.get("/openapi.json").json()["paths"]
     responses = paths["/datasets/{id}/preview.png"]["get"]["responses"]
     assert "image/png" in responses["200"]["content"] and "404" in responses
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     keyed = open_services(infra.settings(api_keys="k1"))
     try:

@@ -11,14 +11,14 @@ import time
 
 import pytest
 
-from service.errors import NotFound
-from service.records import Records
-from service.shards import Shard, commit_key, manifest_key, shard_at, shard_count, shard_key
-from service.storage import LocalStore, open_store
-from worker.finalise import maybe_finalise
-from worker.packing import pack_tar
-from worker.shard import reconcile, run_shard
-from worker.shard_context import Outcome, RetryShard, ShardContext
+from seasynth.service.errors import NotFound
+from seasynth.service.records.store import Records
+from seasynth.service.shards import Shard, commit_key, manifest_key, shard_at, shard_count, shard_key
+from seasynth.service.storage import LocalStore, open_store
+from seasynth.worker.queue.finalise import maybe_finalise
+from seasynth.worker.queue.packing import pack_tar
+from seasynth.worker.queue.shard import reconcile, run_shard
+from seasynth.worker.queue.context import Outcome, RetryShard, ShardContext
 
 
 class FakeSession:
@@ -58,7 +58,7 @@ def make_ctx(infra, records, tmp_path, session, **settings) -> ShardContext:
 
 
 def new_dataset(records: Records, frames: int = 5, shard_size: int = 2, dataset_id: str = "a" * 32) -> str:
-    from service import __version__
+    from seasynth.service import __version__
 
     spec = {"seed": 3, "frames": frames, "shard_size": shard_size, "camera": {"width": 32, "height": 24}}
     records.create(dataset_id, spec, seed=3, code_version=__version__, frames=frames, shard_size=shard_size,
@@ -129,7 +129,7 @@ def test_complete_dataset_finalises_once_with_its_manifest(infra, records, tmp_p
 def test_racing_finalisers_write_once(infra, records, tmp_path):
     ctx = make_ctx(infra, records, tmp_path, FakeSession())
     ds = new_dataset(records, frames=2, shard_size=2)
-    from service.record_types import ShardCommit
+    from seasynth.service.records.types import ShardCommit
 
     records.commit(ds, ShardCommit(0, shard_key(ds, 0), 0, 2, "0" * 64, 10, "v", "r"))
     results: list[bool] = []
@@ -239,8 +239,8 @@ def test_presigned_urls_use_the_public_endpoint(infra):
 
 
 def test_celery_configuration_guards_against_lost_and_duplicated_work(infra):
-    from service.queues import frame_queue, shard_queue
-    from worker.celery_app import create_app, worker_argv
+    from seasynth.service.queues import frame_queue, shard_queue
+    from seasynth.worker.queue.app import create_app, worker_argv
 
     s = infra.settings(task_time_limit_s=600)
     conf = create_app(s).conf
@@ -252,7 +252,7 @@ def test_celery_configuration_guards_against_lost_and_duplicated_work(infra):
     a, b = worker_argv(2, ["shards", "frames"]), worker_argv(2, ["shards", "frames"])
     name = next(x for x in a if x.startswith("--hostname="))
     assert name != next(x for x in b if x.startswith("--hostname=")) and "--pool=prefork" in a
-    from service import __version__
+    from seasynth.service import __version__
 
     assert f"--queues={shard_queue(__version__)},{frame_queue(__version__)}" in a
     assert __version__ in shard_queue(__version__)
@@ -272,8 +272,8 @@ class NamedSession(FakeSession):
 
 
 def test_a_dataset_keeps_the_renderer_it_started_with(infra, records, tmp_path):
-    from worker.shard import render_frame
-    from worker.shard_context import WrongRenderer
+    from seasynth.worker.queue.shard import render_frame
+    from seasynth.worker.queue.context import WrongRenderer
 
     cpu, gpu = NamedSession("llvmpipe (fake)"), NamedSession("NVIDIA H100 (fake)")
     on_cpu, on_gpu = (make_ctx(infra, records, tmp_path, s) for s in (cpu, gpu))
@@ -320,8 +320,8 @@ def test_hard_time_limit_requeues_the_message(infra):
     from celery.contrib.testing.mocks import TaskMessage
     from celery.worker.request import Request
 
-    from service.queues import TASK_SHARD
-    from worker.celery_app import create_app
+    from seasynth.service.queues import TASK_SHARD
+    from seasynth.worker.queue.app import create_app
 
     app = create_app(infra.settings())
     task = app.tasks[TASK_SHARD]
@@ -336,8 +336,8 @@ def test_hard_time_limit_requeues_the_message(infra):
 
 def test_sample_counts_follow_the_presets():
     """Admission's cost model (service/shards.py) knows each preset's samples per pixel."""
-    from service.shards import SAMPLES_PER_PIXEL
-    from worker.pipeline import PRESETS
+    from seasynth.service.shards import SAMPLES_PER_PIXEL
+    from seasynth.worker.frame.function import PRESETS
 
     assert SAMPLES_PER_PIXEL == {name: s.per_pixel for name, s in PRESETS.items()}
 
@@ -351,8 +351,8 @@ def test_admission_costs_objects_terrain_and_outputs():
     """Each of them adds to the estimate; the heaviest accepted 640x480 draft spec is costed above what a 2-core
     CPU worker was measured to take (2.2 s per frame in the service, about 5 s per frame and process for
     `seasynth generate --workers 2` of 8 frames, every frame drawing a terrain not drawn before)."""
-    from service.shards import frame_seconds, shard_seconds, spec_cost_terms, spec_shard_seconds
-    from service.spec import parse_spec
+    from seasynth.service.shards import frame_seconds, shard_seconds, spec_cost_terms, spec_shard_seconds
+    from seasynth.service.spec.dataset import parse_spec
 
     def cost(**changes):
         return spec_shard_seconds(parse_spec({**HEAVY, "shard_size": 4, "frames": 8, **changes}))
@@ -380,9 +380,9 @@ def test_admission_costs_objects_terrain_and_outputs():
 
 
 def test_admission_costs_a_user_terrain_mesh_as_the_largest_grid():
-    from service.shards import MAX_TERRAIN_CELLS_COSTED, spec_cost_terms
-    from service.spec import parse_spec
-    from service.spec_scene import MAX_TERRAIN_CELLS
+    from seasynth.service.shards import MAX_TERRAIN_CELLS_COSTED, spec_cost_terms
+    from seasynth.service.spec.dataset import parse_spec
+    from seasynth.service.spec.scene import MAX_TERRAIN_CELLS
 
     spec = parse_spec({"terrain": {"cells": 16, "mesh": {"asset_id": "a" * 64}}})
     assert spec_cost_terms(spec)["terrain_cells"] == MAX_TERRAIN_CELLS_COSTED == MAX_TERRAIN_CELLS
@@ -391,7 +391,7 @@ def test_admission_costs_a_user_terrain_mesh_as_the_largest_grid():
 
 def test_frame_memory_model_bounds_the_measured_peaks():
     """Peak RSS of one process rendering one frame with every output (llvmpipe), in GiB."""
-    from service.shards import frame_memory_bytes
+    from seasynth.service.shards import frame_memory_bytes
 
     measured = {(2048, 2048, "high"): 1.65, (4096, 4096, "draft"): 2.19, (4096, 4096, "default"): 2.94,
                 (4096, 4096, "high"): 5.95, (640, 480, "default"): 0.32}
@@ -400,7 +400,7 @@ def test_frame_memory_model_bounds_the_measured_peaks():
 
 
 def test_pool_processes_are_recycled_by_memory(infra, monkeypatch):
-    from worker.celery_app import WORKER_MAX_MEMORY_PER_CHILD_MB, create_app
+    from seasynth.worker.queue.app import WORKER_MAX_MEMORY_PER_CHILD_MB, create_app
 
     assert create_app(infra.settings()).conf.worker_max_memory_per_child == WORKER_MAX_MEMORY_PER_CHILD_MB * 1024
     monkeypatch.setenv("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "3000")

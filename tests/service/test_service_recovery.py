@@ -9,11 +9,11 @@ import time
 
 import pytest
 
-from service import __version__
-from service.queues import TASK_SHARD, shard_queue
-from service.records import Records
-from service.shards import shard_count
-from service.spec import parse_spec
+from seasynth.service import __version__
+from seasynth.service.queues import TASK_SHARD, shard_queue
+from seasynth.service.records.store import Records
+from seasynth.service.shards import shard_count
+from seasynth.service.spec.dataset import parse_spec
 from service_stack import Stack, tiny_spec, wait_state
 
 
@@ -32,7 +32,7 @@ def test_worker_without_a_renderer_takes_no_shards(stack: Stack):
     """GL fails to start: the worker stops with an error and every shard stays queued, no attempt used."""
     import redis
 
-    from api.deps import open_services
+    from seasynth.api.deps import open_services
 
     # A Redis database of its own, so the healthy workers of the session do not take these shards first.
     url = stack.settings().redis_url.rsplit("/", 1)[0] + "/3"
@@ -86,14 +86,14 @@ def test_status_reads_republish_lost_shards(stack: Stack, client, services):
 def test_reconcile_command_sweeps_stalled_datasets_only(stack: Stack, client, services):
     stalled = record_only(services.records, tiny_spec(frames=2, shard_size=1), age_s=10_000)
     fresh = record_only(services.records, tiny_spec(frames=2, shard_size=1), age_s=0)
-    r = subprocess.run([sys.executable, "-m", "service.cli", "reconcile"], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "reconcile"], capture_output=True, text=True,
                        timeout=60, env=stack.env)
     assert r.returncode == 0, r.stderr
     assert stalled in r.stdout and fresh not in r.stdout
     assert wait_state(client, stalled, {"succeeded", "failed"}, timeout=60)["state"] == "succeeded"
     assert services.records.get(fresh).state == "queued"
     # Named datasets are swept at once, stalled or not.
-    r = subprocess.run([sys.executable, "-m", "service.cli", "reconcile", fresh], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", "reconcile", fresh], capture_output=True, text=True,
                        timeout=60, env=stack.env)
     assert r.returncode == 0 and fresh in r.stdout, r.stderr
     assert wait_state(client, fresh, {"succeeded", "failed"}, timeout=60)["state"] == "succeeded"

@@ -8,15 +8,15 @@ import threading
 import pytest
 from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
 
-from service import __version__
-from service.record_types import ShardCommit
-from service.errors import AssetError
-from service.records import Records
-from service.shards import commit_key, manifest_key, shard_key
-from service.storage import LocalStore
-from worker.scene import SceneError
-from worker.shard import run_shard
-from worker.shard_context import Outcome, RetryShard
+from seasynth.service import __version__
+from seasynth.service.records.types import ShardCommit
+from seasynth.service.errors import AssetError
+from seasynth.service.records.store import Records
+from seasynth.service.shards import commit_key, manifest_key, shard_key
+from seasynth.service.storage import LocalStore
+from seasynth.worker.scene.sample import SceneError
+from seasynth.worker.queue.shard import run_shard
+from seasynth.worker.queue.context import Outcome, RetryShard
 
 
 def stored(tmp_path) -> list[str]:
@@ -43,7 +43,7 @@ class UnreachableStore(LocalStore):
     """A bucket that answers no read (an S3 outage)."""
 
     def get_bytes(self, key):
-        from service.errors import Unavailable
+        from seasynth.service.errors import Unavailable
 
         raise Unavailable(f"storage unreachable reading {key}")
 
@@ -178,7 +178,7 @@ def test_a_failed_shard_whose_marker_turns_up_is_counted_once_as_committed(recor
 ], ids=["scene", "asset", "render"])
 def test_a_frame_the_datasets_inputs_cannot_render_is_422_a_failed_render_500(infra, records, tmp_path, error,
                                                                              status):
-    from worker.shard import frame_reply
+    from seasynth.worker.queue.shard import frame_reply
 
     ctx = make_ctx(infra, records, tmp_path, FakeSession(error))
     ds = new_dataset(records, frames=4, shard_size=2)

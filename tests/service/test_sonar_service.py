@@ -7,9 +7,9 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from service.fetch import fetch_dataset
-from service.shards import FRAME_PARTS, frame_file, spec_shard_seconds
-from service.spec import MAX_SHARD_MEGAPIXELS, parse_spec
+from seasynth.service.fetch import fetch_dataset
+from seasynth.service.shards import FRAME_PARTS, frame_file, spec_shard_seconds
+from seasynth.service.spec.dataset import MAX_SHARD_MEGAPIXELS, parse_spec
 from service_stack import Stack, tiny_spec, wait_state
 from test_admission import unserved_api
 from test_service_e2e import local_generate, post, tree
@@ -120,7 +120,7 @@ def test_the_survey_example_runs_through_the_service_as_locally(stack: Stack, tm
     camera: the service's dataset is the local one, byte for byte."""
     from pathlib import Path
 
-    from service.spec import read_spec_file
+    from seasynth.service.spec.dataset import read_spec_file
 
     example = read_spec_file(Path(__file__).resolve().parents[2] / "examples" / "survey-sonar.yaml")
     spec = {**example, "frames": 2, "shard_size": 1,

@@ -10,11 +10,11 @@ import threading
 import time
 
 from isolated_stacks import api_on, isolated, queued_tasks, record_only
-from service import __version__
-from service.manifest import pending_manifests_key
-from service.queues import TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
-from service.record_types import ShardCommit
-from service.shards import shard_key
+from seasynth.service import __version__
+from seasynth.service.manifest import pending_manifests_key
+from seasynth.service.queues import TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
+from seasynth.service.records.types import ShardCommit
+from seasynth.service.shards import shard_key
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 
@@ -22,7 +22,7 @@ from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_re
 
 
 def test_concurrent_reconcilers_sweep_each_stalled_dataset_once(stack: Stack, tmp_path):
-    from api.operations import sweep_all
+    from seasynth.api.operations import sweep_all
 
     every = 0.5
     with isolated(stack, 12) as (env, services):
@@ -31,7 +31,7 @@ def test_concurrent_reconcilers_sweep_each_stalled_dataset_once(stack: Stack, tm
         finished = record_only(services, tiny_spec())
         services.records.finish(finished, "succeeded", time.time())
         services.records.r.sadd(pending_manifests_key(services.records.p), finished)  # its manifest write failed
-        from api.deps import open_services
+        from seasynth.api.deps import open_services
 
         peers = [open_services(services.settings) for _ in range(3)]
         stop, lines = threading.Event(), []
@@ -94,7 +94,7 @@ def test_a_worker_of_another_version_republishes_a_shard_untouched_to_its_versio
     with isolated(stack, 14) as (env, services):
         ds = record_only(services, tiny_spec(frames=4, shard_size=2))
         # A worker whose code says it is another version: it consumes that version's queue only.
-        code = ("import sys, service; service.__version__ = sys.argv[1]; from service.cli import main; "
+        code = ("import sys, service; seasynth.service.__version__ = sys.argv[1]; from seasynth.cli import main; "
                 "sys.argv = ['seasynth', 'worker', '--concurrency', '1', '--queues', 'shards']; main()")
         worker = stack.start("worker-other-version", [sys.executable, "-c", code, OTHER_VERSION], env=env)
         try:
@@ -115,7 +115,7 @@ def test_a_worker_of_another_version_republishes_a_shard_untouched_to_its_versio
 
 
 def test_gzip_shards_end_to_end(stack: Stack, tmp_path):
-    from service.fetch import fetch_dataset
+    from seasynth.service.fetch import fetch_dataset
     from test_service_e2e import local_generate, tree
 
     with isolated(stack, 15, shard_compression="gz") as (env, services):
@@ -155,7 +155,7 @@ def test_gzip_shards_end_to_end(stack: Stack, tmp_path):
 def test_a_second_sweep_waits_until_the_queue_cannot_hold_the_pending_shards(stack: Stack):
     """A stalled dataset is swept once whatever the queue holds; after that, not while its shard queue has at least
     as many messages as it has pending shards (they may be its copies waiting behind a backlog), then again."""
-    from api.operations import sweep_if_stalled
+    from seasynth.api.operations import sweep_if_stalled
 
     with isolated(stack, 13) as (_, services):
         version = "0.0.0+backlog"  # a queue no worker reads

@@ -11,18 +11,18 @@ from pathlib import Path
 import pytest
 
 from isolated_stacks import api_on, isolated, queued_tasks, record_only
-from service import __version__
-from service.manifest import pending_manifests_key
-from service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, shard_queue
-from service.records import Records
-from service.shards import manifest_key
-from service.storage import LocalStore
+from seasynth.service import __version__
+from seasynth.service.manifest import pending_manifests_key
+from seasynth.service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, shard_queue
+from seasynth.service.records.store import Records
+from seasynth.service.shards import manifest_key
+from seasynth.service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
-from worker.finalise import maybe_finalise
-from worker.renderer_pinning import RENDERER_LIVE_S, defer_to_renderer, note_renderer
-from worker.shard import reconcile, run_shard, sweepable
-from worker.shard_context import Outcome, WrongRenderer
+from seasynth.worker.queue.finalise import maybe_finalise
+from seasynth.worker.queue.pinning import RENDERER_LIVE_S, defer_to_renderer, note_renderer
+from seasynth.worker.queue.shard import reconcile, run_shard, sweepable
+from seasynth.worker.queue.context import Outcome, WrongRenderer
 
 
 @pytest.fixture
@@ -100,7 +100,7 @@ class RefuseManifestOnce(LocalStore):
 
     def put_bytes(self, key, data, content_type="application/octet-stream"):
         if key.endswith("/manifest.json") and not self.refused:
-            from service.errors import Unavailable
+            from seasynth.service.errors import Unavailable
 
             self.refused += 1
             raise Unavailable(f"storage unreachable writing {key}")

@@ -1,10 +1,10 @@
 """Export a local dataset (a `generate` or `fetch` folder) to detector formats: split rule, Exporter protocol, driver.
 
 A format is one module with one Exporter class, registered in FORMATS. The driver reads the dataset's frames one
-at a time (worker.export.dataset), gives each to the exporter with its split, and owns the export folder's record
+at a time (seasynth.worker.export.dataset), gives each to the exporter with its split, and owns the export folder's record
 and the removal of files an earlier export left that this one does not write. The same exporters write the formats
-a spec asks for at generate time: a service shard's part (worker.export.parts), merged by `seasynth fetch --format`
-(worker.export.merge), and a local dataset's OUT/export/{format}/ (export_generated).
+a spec asks for at generate time: a service shard's part (seasynth.worker.export.parts), merged by `seasynth fetch --format`
+(seasynth.worker.export.merge), and a local dataset's OUT/export/{format}/ (export_generated).
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ from typing import Protocol
 
 import numpy as np
 
-from service.errors import ExportError
-from service.sensors import Sensors, Trajectory
-from service.seeds import frame_rng
-from service.spec_outputs import EXPORT_FORMATS, IMAGE_SUFFIXES, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
-from worker.export.dataset import (
+from seasynth.service.errors import ExportError
+from seasynth.service.spec.sensors import Sensors, Trajectory
+from seasynth.service.seeds import frame_rng
+from seasynth.service.spec.outputs import EXPORT_FORMATS, IMAGE_SUFFIXES, SPLIT_SUM_TOLERANCE, SPLITS, split_problem
+from seasynth.worker.export.dataset import (
     DISTRACTOR,
     DISTRACTOR_NAME,
     TARGET,
@@ -33,7 +33,7 @@ from worker.export.dataset import (
     open_local_dataset,
     scan_frames,
 )
-from worker.export.files import EXPORT_RECORD, json_bytes, open_export_folder, write_atomic
+from seasynth.worker.export.files import EXPORT_RECORD, json_bytes, open_export_folder, write_atomic
 
 __all__ = [
     "DISTRACTOR", "FORMATS", "GENERATED_EXPORTS", "SPLITS", "SPLIT_SUM_TOLERANCE", "STREAM_SPLIT", "TARGET",
@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 # The split's own stream of SeedSequence([dataset seed, frame index, stream]); far from the frame's streams
-# (service.seeds: 0 scene, 1 noise) so no stream added there later draws the same numbers. ASCII "splt".
+# (seasynth.service.seeds: 0 scene, 1 noise) so no stream added there later draws the same numbers. ASCII "splt".
 STREAM_SPLIT = 0x73706C74
 FORMATS = EXPORT_FORMATS
 GENERATED_EXPORTS = "export"  # `seasynth generate` writes the spec's export formats into OUT/export/{format}/
@@ -110,7 +110,7 @@ class ExportInfo:
 
 class Exporter(Protocol):
     """One output format. `add` gets frames in ascending index, each with its split; `finish` writes what
-    spans frames. Every file is written under a temporary name and renamed (worker.export.files)."""
+    spans frames. Every file is written under a temporary name and renamed (seasynth.worker.export.files)."""
 
     needs_masks: bool  # whether `add` reads Frame.instance and the objects' pixel counts
     # Globs (under the export folder) of the files spanning frames that exports of this format write, an earlier or
@@ -141,15 +141,15 @@ class Exporter(Protocol):
 def exporter_class(fmt: str) -> type:
     """The Exporter class of format `fmt` (its module imports no format package: making one may need it)."""
     if fmt == "coco":
-        from worker.export.coco import CocoExporter
+        from seasynth.worker.export.coco import CocoExporter
 
         return CocoExporter
     if fmt == "yolo":
-        from worker.export.yolo import YoloExporter
+        from seasynth.worker.export.yolo import YoloExporter
 
         return YoloExporter
     if fmt == "mcap":
-        from worker.export.mcap import McapExporter
+        from seasynth.worker.export.mcap import McapExporter
 
         return McapExporter
     raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")

@@ -21,9 +21,9 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.errors import ExportError
-from worker.export import SPLITS, ExportInfo, Frame
-from worker.export.files import atomic_writer, make_dirs, place_file, tmp_name
+from seasynth.service.errors import ExportError
+from seasynth.worker.export import SPLITS, ExportInfo, Frame
+from seasynth.worker.export.files import atomic_writer, make_dirs, place_file, tmp_name
 
 ANN_ID_STRIDE = 1 << 16  # instance ids are uint16, so frame * stride + id never collides
 STREAMS = ("images", "annotations")

@@ -10,8 +10,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
 
-from service.errors import ExportError
-from service.files import TMP_GLOB, atomic_path, tmp_name  # noqa: F401 (TMP_GLOB, tmp_name: for the exporters)
+from seasynth.service.errors import ExportError
+from seasynth.service.files import TMP_GLOB, atomic_path, tmp_name  # noqa: F401 (TMP_GLOB, tmp_name: for the exporters)
 
 EXPORT_RECORD = "seasynth-export.json"  # says which format and whether the export is finished
 

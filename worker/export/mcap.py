@@ -4,7 +4,7 @@ Written with the PyPI packages mcap and mcap-ros2-support (no ROS install): prof
 schemas as ros2msg text (the type's .msg, then each type it uses after a line of 80 "=" and "MSG: pkg/Type",
 as rosbag2 writes them), zstd chunks. Frames come in ascending index, each stamped (from 0, the epoch) in every
 message's header.stamp and as the record's log and publish time: a `lawnmower` survey's frame i at its time on the
-survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i at i / rate_hz s); independent
+survey, round(i * 1e9 / trajectory.rate_hz) ns (seasynth.worker.scene.trajectory flies frame i at i / rate_hz s); independent
 `random` frames at a nominal i / FRAME_RATE_HZ s, exactly (stamp_ns). Topics:
 
   /camera/image/compressed  sensor_msgs/msg/CompressedImage  format "png" (or "jpeg" with outputs.image_format
@@ -20,14 +20,14 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (worker.trajectory flies frame i 
                                                              same with or without --distractors
   /tf_static                tf2_msgs/msg/TFMessage           camera -> each enabled sensor's frame (fls, sss,
                                                              dvl, pressure, imu): its sensors.*.pose
-                                                             (worker.export.mcap_tf); once a bag, before its
+                                                             (seasynth.worker.export.mcap_tf); once a bag, before its
                                                              first frame's messages, stamped with it
   /tf                       tf2_msgs/msg/TFMessage           world -> camera, meta's pose_world_from_camera
                                                              (only when the dataset has meta/)
   /camera/depth             sensor_msgs/msg/Image            "32FC1" z-depth in metres, NaN where none (only
                                                              when the dataset has depth/)
   /fls/..., /sss/..., /dvl/twist, /pressure, /imu: the sonar and navigation sensors the spec switches on
-  (worker.export.mcap_sensors lists them)
+  (seasynth.worker.export.mcap_sensors lists them)
 
 Each channel carries the ROS 2 profile's offered_qos_profiles (offered_qos): reliable, and /tf_static transient
 local, so `ros2 bag play` latches it as a static broadcaster does. Header frame_id is "camera" (tf's is "world"):
@@ -48,13 +48,13 @@ from typing import Any
 
 import numpy as np
 
-from service.errors import ExportError
-from service.sensors import Trajectory
-from worker.export import SPLITS, ExportInfo, Frame
-from worker.export.dataset import camera_pose, camera_projection, depth_metres
-from worker.export.files import make_dirs, tmp_name
-from worker.export.mcap_sensors import SENSOR_DEFS, SENSOR_TOPICS, sensor_messages
-from worker.export.mcap_tf import CAMERA_FRAME, camera_tf, sensor_tf_static
+from seasynth.service.errors import ExportError
+from seasynth.service.spec.sensors import Trajectory
+from seasynth.worker.export import SPLITS, ExportInfo, Frame
+from seasynth.worker.export.dataset import camera_pose, camera_projection, depth_metres
+from seasynth.worker.export.files import make_dirs, tmp_name
+from seasynth.worker.export.mcap_sensors import SENSOR_DEFS, SENSOR_TOPICS, sensor_messages
+from seasynth.worker.export.mcap_tf import CAMERA_FRAME, camera_tf, sensor_tf_static
 
 FRAME_RATE_HZ = 10  # random frame i is stamped i / 10 s: frames are independent scenes, so the rate is nominal
 NS_PER_S = 1_000_000_000
@@ -148,7 +148,7 @@ def offered_qos(topic: str) -> dict[str, str]:
 
 
 def stamp_ns(index: int, trajectory: Trajectory) -> int:
-    """Frame `index`'s time in ns: round(index * 1e9 / rate_hz) on a survey (the time worker.trajectory flies it at),
+    """Frame `index`'s time in ns: round(index * 1e9 / rate_hz) on a survey (the time seasynth.worker.scene.trajectory flies it at),
     index / FRAME_RATE_HZ s exactly for independent `random` frames."""
     if trajectory.kind == "random":
         return index * NS_PER_S // FRAME_RATE_HZ

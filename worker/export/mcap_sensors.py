@@ -1,9 +1,9 @@
-"""The MCAP export's sonar and navigation messages (worker.export.mcap writes them): one frame's sensor files as ROS 2
+"""The MCAP export's sonar and navigation messages (seasynth.worker.export.mcap writes them): one frame's sensor files as ROS 2
 messages, with the message definitions they need.
 
 Topics, each only where the spec switches the sensor on (header.frame_id in brackets; every sensor frame has the
 camera's axes, x right/starboard, y down, z forward, turned and placed by the sensor's spec pose: /tf_static's
-camera -> sensor transform, worker.export.mcap_tf):
+camera -> sensor transform, seasynth.worker.export.mcap_tf):
 
   /fls/image        sensor_msgs/msg/Image  [fls]  "mono16": fls/N.png as it is (rows = range bins nearest first,
                                                    columns = beams port first)
@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.errors import ExportError
-from service.sensors import FLS, SSS, Sensors
+from seasynth.service.errors import ExportError
+from seasynth.service.spec.sensors import FLS, SSS, Sensors
 
 NOMINAL_SOUND_SPEED = 1500.0  # m/s, ping_info.sound_speed
 _DTYPES = ("UINT8", "INT8", "UINT16", "INT16", "UINT32", "INT32", "UINT64", "INT64", "FLOAT32", "FLOAT64")
@@ -143,7 +143,7 @@ def _diag(values, n: int) -> list[float]:
 
 
 def sensor_messages(files: dict[str, Path], sensors: Sensors, header: Callable[[str], dict]) -> list[tuple[str, dict]]:
-    """(topic, message) of one frame's sensor files (folder -> path, as worker.export.dataset.Frame has them), in
+    """(topic, message) of one frame's sensor files (folder -> path, as seasynth.worker.export.dataset.Frame has them), in
     a fixed order. header(frame_id) gives the frame's std_msgs/Header."""
     out: list[tuple[str, dict]] = []
     if "fls" in files:

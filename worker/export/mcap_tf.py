@@ -1,4 +1,4 @@
-"""The MCAP export's transforms (worker.export.mcap writes them): tf2_msgs/TFMessage contents for /tf (world ->
+"""The MCAP export's transforms (seasynth.worker.export.mcap writes them): tf2_msgs/TFMessage contents for /tf (world ->
 camera, each frame) and /tf_static (camera -> each enabled sensor's frame, once a bag).
 
 A transform parent -> child is the (4, 4) pose parent_from_child: its translation is the child's origin in the
@@ -15,8 +15,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from service.sensors import Sensors
-from worker.sensors import vehicle_from_sensor
+from seasynth.service.spec.sensors import Sensors
+from seasynth.worker.sensors import vehicle_from_sensor
 
 CAMERA_FRAME = "camera"  # optical: x right, y down, z forward (KITTI's camera axes)
 WORLD_FRAME = "world"

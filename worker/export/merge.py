@@ -1,4 +1,4 @@
-"""`seasynth fetch --format`: the shards' export parts (worker.export.parts) merged into one export folder.
+"""`seasynth fetch --format`: the shards' export parts (seasynth.worker.export.parts) merged into one export folder.
 
 COCO and YOLO come out as `seasynth export` of the fetched KITTI dataset writes them, file for file and byte for
 byte, but for the record seasynth-export.json (which says where the export came from): COCO's instances_{split}.json
@@ -14,17 +14,17 @@ import os
 from pathlib import Path
 from typing import Any
 
-from service.errors import ExportError, SpecError
-from service.shards import frame_name
-from service.spec import DatasetSpec, parse_spec, spec_digest
-from worker.export import SPLITS, STREAM_SPLIT, ExportInfo, exporter_for
-from worker.export.coco import coco_head
-from worker.export.files import EXPORT_RECORD, json_bytes, make_dirs, open_export_folder, place_file, write_atomic
-from worker.export.parts import part_info
+from seasynth.service.errors import ExportError, SpecError
+from seasynth.service.shards import frame_name
+from seasynth.service.spec.dataset import DatasetSpec, parse_spec, spec_digest
+from seasynth.worker.export import SPLITS, STREAM_SPLIT, ExportInfo, exporter_for
+from seasynth.worker.export.coco import coco_head
+from seasynth.worker.export.files import EXPORT_RECORD, json_bytes, make_dirs, open_export_folder, place_file, write_atomic
+from seasynth.worker.export.parts import part_info
 
 
 class PartMerger:
-    """service.fetch.ExportMerger of one format."""
+    """seasynth.service.fetch.ExportMerger of one format."""
 
     def __init__(self, fmt: str) -> None:
         if fmt not in MERGES:

@@ -1,7 +1,7 @@
 """Export parts: one shard's frames in a detector format (spec outputs.coco, yolo, mcap), written at generate time.
 
 A part is what `seasynth export` writes for those frames alone, less the files that name the export folder
-(YOLO's data.yaml, rebuilt by worker.export.merge): COCO's images/{split}/*.png and annotations/instances_{split}
+(YOLO's data.yaml, rebuilt by seasynth.worker.export.merge): COCO's images/{split}/*.png and annotations/instances_{split}
 .json of the shard's frames, YOLO's images/ and labels/, MCAP's {split}.mcap. Every frame gets the split
 split_of(seed, index, outputs.split) gives it, whatever the shard, so merged parts equal one export of the whole
 dataset. A part is a pure function of (spec, code version, the shard's frame files).
@@ -12,11 +12,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from service.errors import ExportError
-from service.shards import frame_file
-from service.spec import DatasetSpec, spec_digest
-from worker.export import SPLITS, ExportInfo, exporter_class, exporter_for, split_of
-from worker.export.dataset import decode_instance, frame_of, mask_spec
+from seasynth.service.errors import ExportError
+from seasynth.service.shards import frame_file
+from seasynth.service.spec.dataset import DatasetSpec, spec_digest
+from seasynth.worker.export import SPLITS, ExportInfo, exporter_class, exporter_for, split_of
+from seasynth.worker.export.dataset import decode_instance, frame_of, mask_spec
 
 # Files of an export that describe the folder rather than frames: left out of parts, written by the merge.
 REBUILT_AT_MERGE = {"yolo": ("data.yaml",)}
@@ -29,7 +29,7 @@ def needs_masks(spec: DatasetSpec) -> bool:
 
 def parts_render_spec(spec: DatasetSpec) -> DatasetSpec:
     """What a shard with export parts renders: `spec`, or with instance/ and meta/ on when a format needs masks
-    (the frames' image_2, label_2 and calib bytes are the same either way: worker.export.dataset.mask_spec)."""
+    (the frames' image_2, label_2 and calib bytes are the same either way: seasynth.worker.export.dataset.mask_spec)."""
     return mask_spec(spec) if needs_masks(spec) else spec
 
 

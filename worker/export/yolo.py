@@ -9,9 +9,9 @@ relative to it; Ultralytics finds the labels by replacing images/ with labels/) 
 
 from __future__ import annotations
 
-from service.errors import ExportError
-from worker.export import SPLITS, ExportInfo, Frame
-from worker.export.files import make_dirs, place_file, write_atomic
+from seasynth.service.errors import ExportError
+from seasynth.worker.export import SPLITS, ExportInfo, Frame
+from seasynth.worker.export.files import make_dirs, place_file, write_atomic
 
 DECIMALS = 10
 

@@ -92,7 +92,7 @@ class PhysicalLight:
     sky_irradiance: np.ndarray  # (3,) sky's irradiance on a horizontal surface just below the surface
     lamps: tuple[Lamp, ...]
     terms: Terms
-    caustics: object = None  # worker.light.caustics.Caustics when terms.caustics
+    caustics: object = None  # seasynth.worker.light.caustics.Caustics when terms.caustics
 
     def coefficients(self) -> dict:
         """Every derived coefficient a frame uses, for meta."""

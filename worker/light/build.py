@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.spec import DatasetSpec
-from service.water import jerlov_absorption, jerlov_scattering
-from worker.light import Medium, PhysicalLight, Terms
-from worker.light.caustics import sample_caustics
-from worker.light.lamps import lamp_from_spec, spread_worthwhile
-from worker.light.sun import shadow_worthwhile, sun_in_water
-from worker.render import Lighting
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.water import jerlov_absorption, jerlov_scattering
+from seasynth.worker.light import Medium, PhysicalLight, Terms
+from seasynth.worker.light.caustics import sample_caustics
+from seasynth.worker.light.lamps import lamp_from_spec, spread_worthwhile
+from seasynth.worker.light.sun import shadow_worthwhile, sun_in_water
+from seasynth.worker.render import Lighting
 
 
 def sample_physical(

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from worker.light import WATER_INDEX
+from seasynth.worker.light import WATER_INDEX
 
 WAVES = 5
 LINE_WIDTH = 0.2  # of the caustic curves, in units of the wave field G (whose standard deviation is 0.71)

@@ -1,12 +1,12 @@
 """GLSL 330 of the physical model: surface radiance under the water column (`SURFACE`) and the water along view
-rays (`VOLUME`, the twin of `worker.light.volume`). Terms are compiled in or out by defines: WITH_SUN,
+rays (`VOLUME`, the twin of `seasynth.worker.light.volume`). Terms are compiled in or out by defines: WITH_SUN,
 WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
 
-from worker.light import caustics
-from worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
+from seasynth.worker.light import caustics
+from seasynth.worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
                                 REACH_MARGIN_RAD)
-from worker.light.sky import SKY_PHASE_NODES
-from worker.light.volume import MU_SKY
+from seasynth.worker.light.sky import SKY_PHASE_NODES
+from seasynth.worker.light.volume import MU_SKY
 
 MAX_LAMPS = 4
 SOFT_SHADOW_RADIUS_M = 0.05  # the forward-scattered sun arrives within a few degrees: its shadows blur by this

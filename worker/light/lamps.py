@@ -24,8 +24,8 @@ import math
 
 import numpy as np
 
-from service.spec_light import Lamp as LampSpec
-from worker.light import Lamp
+from seasynth.service.spec.light import Lamp as LampSpec
+from seasynth.worker.light import Lamp
 
 # Quadrature nodes of the lamp's single-scattering integral along each view ray, in the equiangular variable
 # (Kulla & Fajardo 2012), which turns the inverse-square peak near the lamp into a smooth integrand.

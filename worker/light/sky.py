@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from worker.light import SNELL_CONE_DEG
+from seasynth.worker.light import SNELL_CONE_DEG
 
 SKY_PHASE_NODES = 129  # w_z = -1, -1 + 2/128, ..., 1
 _POLAR_NODES, _AZIMUTH_NODES = 48, 96  # quadrature over the window: < 1e-4 relative for g <= 0.95, ~20 ms
@@ -31,7 +31,7 @@ def window_radiance(sky_irradiance: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=32)
 def _table(g: float) -> np.ndarray:
-    from worker.light.volume import hg
+    from seasynth.worker.light.volume import hg
 
     cos_c = math.cos(math.radians(SNELL_CONE_DEG))
     x, wx = np.polynomial.legendre.leggauss(_POLAR_NODES)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from worker.light import WATER_INDEX
+from seasynth.worker.light import WATER_INDEX
 
 # Below this share of its surface irradiance the sun's unscattered beam is invisible in an 8-bit image (under
 # half a code at full albedo), so no shadow map is drawn for it.

@@ -17,10 +17,10 @@ import math
 
 import numpy as np
 
-from worker.light import SNELL_CONE_DEG, PhysicalLight
-from worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
+from seasynth.worker.light import SNELL_CONE_DEG, PhysicalLight
+from seasynth.worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
                                 cone_interval, light_factor, reach)
-from worker.light.sky import sky_phase, sky_phase_table, window_radiance
+from seasynth.worker.light.sky import sky_phase, sky_phase_table, window_radiance
 
 MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
 _SMALL = 1e-2  # |alpha z| below this: the series of (1 - exp(-x)) / x to x^3 (truncation < 1e-10)

@@ -1,10 +1,10 @@
 """Pixels each object covers when drawn alone (KITTI occlusion needs them), counted on the GPU for many objects with
-one wait. Used by GLRenderer (worker.render.gl)."""
+one wait. Used by GLRenderer (seasynth.worker.render.gl)."""
 
 from __future__ import annotations
 
-from worker.render import DrawItem, View
-from worker.render.shaders import DEPTH_ONLY, VERTEX
+from seasynth.worker.render import DrawItem, View
+from seasynth.worker.render.shaders import DEPTH_ONLY, VERTEX
 
 Region = tuple[int, int, int, int]  # (left, top, right, bottom) inclusive pixel bounds
 

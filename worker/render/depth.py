@@ -14,8 +14,8 @@ import ctypes
 
 import numpy as np
 
-from service.errors import RenderError
-from worker.render import View
+from seasynth.service.errors import RenderError
+from seasynth.worker.render import View
 
 LOWER_LEFT, NEGATIVE_ONE_TO_ONE, ZERO_TO_ONE = 0x8CA1, 0x935E, 0x935F  # glClipControl's enums (GL 4.5)
 SAMPLE_POSITION = 0x8E50
@@ -54,7 +54,7 @@ class ClipControl:
     def __init__(self, GL, renderer_name: str) -> None:
         from OpenGL import platform
 
-        from worker.render.shaders import context_has, context_version
+        from seasynth.worker.render.shaders import context_has, context_version
 
         address = platform.PLATFORM.getExtensionProcedure(b"glClipControl")
         if not (context_version(GL) >= (4, 5) or context_has(GL, ("GL_ARB_clip_control",))) or not address:

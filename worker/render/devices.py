@@ -5,8 +5,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from service.errors import RenderError
-from service.gpus import GpuChoice, gpu_for_worker, parse_platform
+from seasynth.service.errors import RenderError
+from seasynth.service.gpus import GpuChoice, gpu_for_worker, parse_platform
 
 _EGL_EXTENSIONS = 0x3055  # eglQueryDeviceStringEXT(device, EGL_EXTENSIONS)
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from worker.render import View
+from seasynth.worker.render import View
 
 
 def sphere_in_view(view: View, centre_cam: np.ndarray, radius: float) -> bool:

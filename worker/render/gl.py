@@ -3,7 +3,7 @@
 Why not pyrender's stock renderer: it writes gamma-encoded colour into an 8-bit 4x MSAA buffer (resolved in that
 space), returns z-depth from one sample with 0 for no hit, and renders passes we may not need. Here colour stays
 linear and float, range comes from each sample's reversed float depth (float32 precision at every range:
-worker.render.depth), open water is +inf, the water is applied per sample before averaging, and only the passes a
+seasynth.worker.render.depth), open water is +inf, the water is applied per sample before averaging, and only the passes a
 frame's outputs need are drawn and read back.
 """
 
@@ -16,17 +16,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.errors import RenderError
-from service.gpus import parse_platform
-from worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
-from worker.render import shaders
-from worker.render.coverage import pixels_alone
-from worker.render.depth import ClipControl, projection
-from worker.render.devices import egl_platform, prepare_environment
-from worker.render.frustum import sphere_in_view
-from worker.render.readback import Pending, Readback
-from worker.render.surface import SurfaceReads, surface_pass
-from worker.render.targets import Target, Targets
+from seasynth.service.errors import RenderError
+from seasynth.service.gpus import parse_platform
+from seasynth.worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
+from seasynth.worker.render import shaders
+from seasynth.worker.render.coverage import pixels_alone
+from seasynth.worker.render.depth import ClipControl, projection
+from seasynth.worker.render.devices import egl_platform, prepare_environment
+from seasynth.worker.render.frustum import sphere_in_view
+from seasynth.worker.render.readback import Pending, Readback
+from seasynth.worker.render.surface import SurfaceReads, surface_pass
+from seasynth.worker.render.targets import Target, Targets
 
 # Cache bounds of a long-lived renderer. Uploaded meshes: least recently drawn first out once their vertex and index
 # buffers pass the budget, never one drawn by the call in progress. Framebuffers: a few of each kind (surface,
@@ -57,7 +57,7 @@ class _GpuMesh:
 
 class GLRenderer:
     """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size
-    (`targets`, worker.render.targets); the surface pass and its resolve are worker.render.surface.
+    (`targets`, seasynth.worker.render.targets); the surface pass and its resolve are worker.render.surface.
 
     Both caches are bounded (mesh_budget_bytes of vertex and index buffers, targets_per_kind framebuffers of each
     kind), so a long-lived worker that meets many assets and image sizes does not keep them all; what is evicted is
@@ -114,7 +114,7 @@ class GLRenderer:
         self.readback = Readback(GL)
         self._empty_vao = GL.glGenVertexArrays(1)
         self.clip_control = ClipControl(GL, self.name)
-        self.sample_positions: dict[int, np.ndarray] = {}  # msaa -> (msaa, 2), read once (worker.render.depth)
+        self.sample_positions: dict[int, np.ndarray] = {}  # msaa -> (msaa, 2), read once (seasynth.worker.render.depth)
         GL.glEnable(GL.GL_DEPTH_TEST)
         self.clip_control.camera()  # reversed depth for the camera's passes; shadow maps switch to GL's own
         GL.glDisable(GL.GL_CULL_FACE)
@@ -212,7 +212,7 @@ class GLRenderer:
             )
         except RuntimeError as err:
             raise RenderError(f"shader compilation failed on {self.name}: {err}") from err
-        from worker.light.glsl import UNIFORMS as LIGHT_UNIFORMS
+        from seasynth.worker.light.glsl import UNIFORMS as LIGHT_UNIFORMS
 
         locs = {name: GL.glGetUniformLocation(prog, name) for name in (*shaders.UNIFORMS, *LIGHT_UNIFORMS)}
         got = (prog, {name: loc for name, loc in locs.items() if loc >= 0})
@@ -328,7 +328,7 @@ class GLRenderer:
         return QueuedFrame(reads, ids[0], ids[1], tuple(log))
 
     def fetch(self, queued: QueuedFrame) -> RenderResult:
-        """Wait for a queued frame's reads (one wait for the GPU: worker.render.readback) and give its result. A
+        """Wait for a queued frame's reads (one wait for the GPU: seasynth.worker.render.readback) and give its result. A
         failure gives back the buffers of every read still queued, this frame's and any other's."""
         self._platform.make_current()
         try:
@@ -399,7 +399,7 @@ class GLRenderer:
         return self.pixels_alone_many(view, [(item, region)])[0]
 
     def pixels_alone_many(self, view: View, jobs: list[tuple[DrawItem, tuple[int, int, int, int] | None]]) -> list[int]:
-        """pixels_alone of each (item, region), with one wait for the GPU (worker.render.coverage)."""
+        """pixels_alone of each (item, region), with one wait for the GPU (seasynth.worker.render.coverage)."""
         self._platform.make_current()
         self._call += 1
         return pixels_alone(self, view, jobs)

@@ -1,18 +1,18 @@
 """The physical model's GL side: shadow maps for the sun and lamps, and the uniforms of the surface and resolve
-passes (`worker.light.glsl`). Used by GLRenderer; only frames with water.model physical reach it."""
+passes (`seasynth.worker.light.glsl`). Used by GLRenderer; only frames with water.model physical reach it."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from worker.light import PhysicalLight
-from worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
-from worker.light.lamps import cone_energy
-from worker.light.sky import sky_phase_table
-from worker.light.volume import camera_depth
-from worker.render import DrawItem, View
-from worker.render import shadows
-from worker.render.shaders import DEPTH_ONLY, VERTEX
+from seasynth.worker.light import PhysicalLight
+from seasynth.worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
+from seasynth.worker.light.lamps import cone_energy
+from seasynth.worker.light.sky import sky_phase_table
+from seasynth.worker.light.volume import camera_depth
+from seasynth.worker.render import DrawItem, View
+from seasynth.worker.render import shadows
+from seasynth.worker.render.shaders import DEPTH_ONLY, VERTEX
 
 SHADOW_UNIT = 3  # texture units from here on hold shadow maps (the resolve's colour and depth use 0 and 1)
 

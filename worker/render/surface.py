@@ -1,5 +1,5 @@
 """The surface pass and its resolve: the frame shaded (with range) into a multisampled float target, then the water
-applied to each sample, each pixel's samples averaged and the outputs read back. Used by GLRenderer (worker.render.gl).
+applied to each sample, each pixel's samples averaged and the outputs read back. Used by GLRenderer (seasynth.worker.render.gl).
 """
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.errors import RenderError
-from worker.light import PhysicalLight
-from worker.render import depth, gl_light, shaders
-from worker.render.readback import Pending, Readback
+from seasynth.service.errors import RenderError
+from seasynth.worker.light import PhysicalLight
+from seasynth.worker.render import depth, gl_light, shaders
+from seasynth.worker.render.readback import Pending, Readback
 
 
 def surface_pass(
@@ -39,7 +39,7 @@ def surface_pass(
     if positions is None:  # the pattern is the implementation's, read once from a bound target of msaa samples
         positions = r.sample_positions[msaa] = depth.sample_positions(GL, msaa)
     if physical:
-        from worker.light.glsl import SURFACE as PHYSICAL_SURFACE
+        from seasynth.worker.light.glsl import SURFACE as PHYSICAL_SURFACE
 
         prog, locs = r._program(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting))
         GL.glUseProgram(prog)
@@ -62,8 +62,8 @@ def surface_pass(
     if done is not None:
         done("render")
 
-    from worker.formation import GLSL_HAZE
-    from worker.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32
+    from seasynth.worker.frame.formation import GLSL_HAZE
+    from seasynth.worker.frame.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 
     second = want_clean or sample_range
     # 8-bit codes are read back packed as RGB (unpacking RGBA on the CPU cost 23 ms a 1080p frame on llvmpipe,
@@ -75,7 +75,7 @@ def surface_pass(
     compute = r.compute_resolve
     volume = physical and not sample_range  # audits (samples()) read J and range before any water
     if volume:
-        from worker.light.glsl import VOLUME
+        from seasynth.worker.light.glsl import VOLUME
 
         src = shaders.RESOLVE.replace("HAZE_FUNCTION", VOLUME)
         extra_defines = {"PHYSICAL": True, **gl_light.defines(lighting)}
@@ -160,7 +160,7 @@ def surface_pass(
 
 @dataclass
 class SurfaceReads:
-    """The surface pass's outputs, queued (worker.render.readback): fetched after the frame's last pass."""
+    """The surface pass's outputs, queued (seasynth.worker.render.readback): fetched after the frame's last pass."""
 
     image: Pending
     extra: Pending | None

@@ -6,7 +6,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from service.errors import RenderError
+from seasynth.service.errors import RenderError
 
 
 @dataclass
@@ -138,7 +138,7 @@ class Targets:
         return self.get(("resolve", w, h, formats), build)
 
     def stencil(self, w: int, h: int) -> Target:
-        """Single-sample depth and stencil, no colour: coverage counts (worker.render.coverage)."""
+        """Single-sample depth and stencil, no colour: coverage counts (seasynth.worker.render.coverage)."""
 
         def build() -> Target:
             GL = self._gl

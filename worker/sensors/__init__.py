@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from service.sensors import SensorPose
+from seasynth.service.spec.sensors import SensorPose
 
 
 def vehicle_from_sensor(pose: SensorPose) -> np.ndarray:

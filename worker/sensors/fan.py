@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.sensors import FLS
+from seasynth.service.spec.sensors import FLS
 
 
 @dataclass(frozen=True)
@@ -28,7 +28,7 @@ class Fan:
 
 @functools.lru_cache(maxsize=8)
 def fan_geometry(fls: FLS) -> Fan:
-    """The fan image's lookup of FLS.fan_size pixels (at most MAX_FLS_FAN_PIXELS: service.sensors)."""
+    """The fan image's lookup of FLS.fan_size pixels (at most MAX_FLS_FAN_PIXELS: seasynth.service.spec.sensors)."""
     rmin, rmax = fls.range_m
     dr = (rmax - rmin) / fls.range_bins
     width, height = fls.fan_size()

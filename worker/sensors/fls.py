@@ -50,9 +50,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.sensors import FLS, FLS_STEPS_PER_BEAM, SSS, Acoustics
-from worker.render import View
-from worker.scene import rigid_inverse
+from seasynth.service.spec.sensors import FLS, FLS_STEPS_PER_BEAM, SSS, Acoustics
+from seasynth.worker.render import View
+from seasynth.worker.scene.sample import rigid_inverse
 
 FINE_PER_BEAM = 4  # azimuth sub-bins per beam spacing, at least (fine_per_beam)
 TVG_PLAIN_MAX_DECADES = 100.0  # alpha r / 5 at the last bin edge up to which TVG multiplies the bins (folds_tvg)
@@ -304,8 +304,8 @@ def to_uint16(image: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class FlsFrame:
     polar: np.ndarray  # (range_bins, beams) uint16: rows = range bins (nearest first), columns = beams (port first)
-    fan: np.ndarray  # (fan height, fan width) uint16 Cartesian fan (worker.sensors.fan)
-    labels: list[dict]  # worker.sensors.fan.label_records
+    fan: np.ndarray  # (fan height, fan width) uint16 Cartesian fan (seasynth.worker.sensors.fan)
+    labels: list[dict]  # seasynth.worker.sensors.fan.label_records
     record: dict  # meta's fls entry
 
 
@@ -318,7 +318,7 @@ def fls_frame(fls: FLS, acoustics: Acoustics, renderer, items: list, world_from_
               objects: dict[int, tuple[str, str | None]], depth_m: float, rng: np.random.Generator) -> FlsFrame:
     """One ping of the sonar at world_from_sonar (4, 4) float64 over the frame's draw items. objects: instance id
     -> (role, class name); depth_m: the sonar's depth below the surface (for alpha); rng: the frame's FLS stream."""
-    from worker.sensors.fan import fan_geometry, fan_image, label_records
+    from seasynth.worker.sensors.fan import fan_geometry, fan_image, label_records
 
     grid = fls_grid(fls)
     instance, range_m = renderer.geometry(fls_view(fls, grid, world_from_sonar), items)

@@ -1,7 +1,7 @@
 """Navigation sensors: DVL (velocity and four Janus beam ranges), pressure (depth) and IMU, one record per frame.
 
 Models, stated so they can be checked:
-- Truth comes from the trajectory (worker.trajectory): with `random` poses frames are independent, so velocity,
+- Truth comes from the trajectory (seasynth.worker.scene.trajectory): with `random` poses frames are independent, so velocity,
   angular rate and specific force are null (undefined) and only the DVL's ranges and the pressure are measured.
 - DVL: beams k = 0..3 at beam_angle_deg from the sensor's +y axis (its boresight, "down" when mounted level),
   azimuths 45, 135, 225, 315 deg from its +z (forward) axis towards +x (Janus "X" layout). Each beam's slant range is
@@ -23,12 +23,12 @@ import math
 
 import numpy as np
 
-from service.seeds import STREAM_NAV, STREAM_NAV_BIAS, frame_rng
-from service.spec import DatasetSpec
-from worker.render import View
-from worker.scene import Scene, look_at_pose, rigid_inverse
-from worker.sensors import vehicle_from_sensor, world_from_sensor
-from worker.trajectory import GRAVITY, VehicleState, vehicle_state
+from seasynth.service.seeds import STREAM_NAV, STREAM_NAV_BIAS, frame_rng
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.render import View
+from seasynth.worker.scene.sample import Scene, look_at_pose, rigid_inverse
+from seasynth.worker.sensors import vehicle_from_sensor, world_from_sensor
+from seasynth.worker.scene.trajectory import GRAVITY, VehicleState, vehicle_state
 
 P_ATM = 101_325.0  # Pa
 RHO = 1025.0  # kg/m^3, sea water

@@ -7,12 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.seeds import STREAM_FLS, STREAM_NAV, STREAM_SSS, frame_rng
-from service.sensors import Sensors
-from service.shards import frame_file
-from service.spec import DatasetSpec
-from worker.scene import Scene
-from worker.sensors import world_from_sensor
+from seasynth.service.seeds import STREAM_FLS, STREAM_NAV, STREAM_SSS, frame_rng
+from seasynth.service.spec.sensors import Sensors
+from seasynth.service.shards import frame_file
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.scene.sample import Scene
+from seasynth.worker.sensors import world_from_sensor
 
 
 def sensors_on(s: Sensors) -> bool:
@@ -48,7 +48,7 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
     surface = surface_z(spec, scene, index)
     objects = {p.instance_id: (p.role, p.class_name) for p in scene.objects}
     if s.fls.enabled:
-        from worker.sensors.fls import fls_frame
+        from seasynth.worker.sensors.fls import fls_frame
 
         pose = world_from_sensor(scene.world_from_cam, s.fls.pose)
         fr = fls_frame(s.fls, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
@@ -58,7 +58,7 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
         outputs[path("fls_label")] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
         record["fls"] = fr.record
     if s.sss.enabled:
-        from worker.sensors.sss import sss_frame
+        from seasynth.worker.sensors.sss import sss_frame
 
         pose = world_from_sensor(scene.world_from_cam, s.sss.pose)
         fr = sss_frame(s.sss, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
@@ -67,7 +67,7 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
         outputs[path("sss_label")] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
         record["sss"] = fr.record
     if s.any_nav:
-        from worker.sensors.nav import nav_record
+        from seasynth.worker.sensors.nav import nav_record
 
         nav = nav_record(spec, index, scene, items, renderer, surface)
         outputs[path("nav")] = json.dumps(nav, indent=1, sort_keys=True) + "\n"

@@ -26,10 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.sensors import SSS, SSS_ANGLE_STEP_DEG, SSS_DEPRESSION_SPAN_DEG, Acoustics
-from worker.render import View
-from worker.scene import rigid_inverse
-from worker.sensors.fls import (
+from seasynth.service.spec.sensors import SSS, SSS_ANGLE_STEP_DEG, SSS_DEPRESSION_SPAN_DEG, Acoustics
+from seasynth.worker.render import View
+from seasynth.worker.scene.sample import rigid_inverse
+from seasynth.worker.sensors.fls import (
     absorption_db_per_m,
     beam_pattern,
     bin_echoes,

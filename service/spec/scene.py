@@ -1,0 +1,206 @@
+"""The scene sections of the dataset spec: camera, objects and their assets, terrain, workspaces, randomisation."""
+
+from __future__ import annotations
+
+import math
+import unicodedata
+from typing import Annotated, Literal
+
+from pydantic import AfterValidator, Field, StrictFloat, StrictInt, field_validator, model_validator
+
+from seasynth.service.spec.types import (
+    MAX_CHOICES,
+    MAX_MAGNITUDE,
+    Interval,
+    NonNegInterval,
+    PositiveInterval,
+    SpecModel,
+    Vec3,
+    within,
+)
+
+# Documented limits (with seasynth.service.spec.dataset's): they keep one frame inside memory.
+MAX_SIDE = 4096
+MIN_SIDE = 8
+MAX_OBJECTS = 64  # per role and frame
+MAX_TERRAIN_CELLS = 1024
+MAX_VARIANTS = 1024
+MAX_ASSETS = 256  # entries in targets.assets and in distractors.assets
+MAX_PATH_CHARS = 4096
+
+ProceduralTarget = Literal["urchin", "rock", "coral", "seaweed", "clam"]
+TerrainStyle = Literal["sand", "pebbles", "rock"]
+
+
+def _count_range(v: tuple[int, int]) -> tuple[int, int]:
+    if v[0] < 0:
+        raise ValueError(f"counts must be >= 0, got min {v[0]}")
+    if v[0] > v[1]:
+        raise ValueError(f"min {v[0]} > max {v[1]}")
+    if v[1] > MAX_OBJECTS:
+        raise ValueError(f"max {v[1]} is over the limit of {MAX_OBJECTS} objects")
+    return v
+
+
+CountInterval = Annotated[tuple[StrictInt, StrictInt], AfterValidator(_count_range)]
+# An object's scale against its asset's size: up to 100x (an urchin asset 10 m wide).
+ScaleInterval = Annotated[PositiveInterval, AfterValidator(lambda v: within(v, 0, 100))]
+
+
+class Box(SpecModel):
+    """An axis-aligned box in world coordinates (metres, z up)."""
+
+    min: Vec3
+    max: Vec3
+
+    @model_validator(mode="after")
+    def _check(self) -> Box:
+        for axis, lo, hi in zip("xyz", self.min, self.max):
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError(f"{axis} bounds must be finite")
+            if lo > hi:
+                raise ValueError(f"min {axis} {lo} > max {axis} {hi}")
+        return self
+
+
+class Intrinsics(SpecModel):
+    fx: StrictFloat = Field(gt=0, le=MAX_MAGNITUDE)
+    fy: StrictFloat = Field(gt=0, le=MAX_MAGNITUDE)
+    cx: StrictFloat = Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)
+    cy: StrictFloat = Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)
+
+
+class Camera(SpecModel):
+    width: StrictInt = Field(640, ge=MIN_SIDE, le=MAX_SIDE)
+    height: StrictInt = Field(480, ge=MIN_SIDE, le=MAX_SIDE)
+    # Horizontal field of view; the vertical one follows from the aspect ratio (square pixels).
+    hfov_deg: StrictFloat | None = Field(None, gt=1.0, lt=170.0)
+    intrinsics: Intrinsics | None = None
+    clip: PositiveInterval = (0.02, 300.0)
+    look_at_jitter_m: StrictFloat = Field(0.05, ge=0, le=100)
+
+    @field_validator("clip")
+    @classmethod
+    def _near_before_far(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if v[0] >= v[1]:
+            raise ValueError(f"near {v[0]} must be < far {v[1]}")
+        return v
+
+    @model_validator(mode="after")
+    def _one_projection(self) -> Camera:
+        if self.hfov_deg is not None and self.intrinsics is not None:
+            raise ValueError("give either hfov_deg or intrinsics, not both")
+        i = self.intrinsics
+        if i is not None:  # the same bound as hfov_deg's, on each axis: a focal length that sees less than 170 deg
+            for name, f, side in (("fx", i.fx, self.width), ("fy", i.fy, self.height)):
+                if 2 * math.degrees(math.atan(side / (2 * f))) >= 170.0:
+                    raise ValueError(f"intrinsics.{name} {f} px gives a field of view of 170 deg or more over "
+                                     f"{side} px; at least {side / (2 * math.tan(math.radians(85.0))):.4g}")
+        return self
+
+    def K(self) -> list[list[float]]:
+        """The 3x3 intrinsic matrix (pixels; pixel centres at integer coordinates)."""
+        if self.intrinsics is not None:
+            i = self.intrinsics
+            return [[i.fx, 0.0, i.cx], [0.0, i.fy, i.cy], [0.0, 0.0, 1.0]]
+        hfov = math.radians(70.0 if self.hfov_deg is None else self.hfov_deg)
+        f = (self.width / 2.0) / math.tan(hfov / 2.0)
+        return [[f, 0.0, (self.width - 1) / 2.0], [0.0, f, (self.height - 1) / 2.0], [0.0, 0.0, 1.0]]
+
+
+class FileRef(SpecModel):
+    """A user file: a local path (spec files, CLI) or the sha256 id of an asset uploaded to the service."""
+
+    path: str | None = Field(None, min_length=1, max_length=MAX_PATH_CHARS)
+    asset_id: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
+
+    def _sources(self) -> list[str]:
+        return [n for n in ("path", "asset_id") if getattr(self, n) is not None]
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> FileRef:
+        if len(self._sources()) != 1:
+            raise ValueError(f"give exactly one of path, asset_id (got {self._sources() or 'none'})")
+        return self
+
+
+class AssetRef(FileRef):
+    """One object asset: exactly one of a procedural kind, a local file, or an uploaded asset id."""
+
+    procedural: ProceduralTarget | None = None
+    # Procedural kinds are built in this many deterministic variants, cached per process.
+    variants: StrictInt = Field(8, ge=1, le=MAX_VARIANTS)
+
+    def _sources(self) -> list[str]:
+        return [n for n in ("procedural", "path", "asset_id") if getattr(self, n) is not None]
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> AssetRef:
+        if len(self._sources()) != 1:
+            raise ValueError(f"give exactly one of procedural, path, asset_id (got {self._sources() or 'none'})")
+        return self
+
+
+def _kitti_token(name: str) -> str:
+    """A class name is written as one KITTI label field, and label files are read back with str.split(): refuse any
+    character str.isspace() calls whitespace (the pattern's \\S misses U+001C..U+001F) and control characters."""
+    bad = next((c for c in name if c.isspace() or unicodedata.category(c) == "Cc"), None)
+    if bad is not None:
+        raise ValueError(f"{name!r} holds U+{ord(bad):04X}, a whitespace or control character; a class name must be "
+                         "one KITTI label field")
+    return name
+
+
+class Targets(SpecModel):
+    class_name: Annotated[str, AfterValidator(_kitti_token)] = Field("Urchin", pattern=r"^\S+$", max_length=64)
+    assets: list[AssetRef] = Field(
+        default_factory=lambda: [AssetRef(procedural="urchin")], min_length=1, max_length=MAX_ASSETS
+    )
+    count: CountInterval = (3, 8)
+    scale: ScaleInterval = (0.8, 1.25)
+
+
+class Distractors(SpecModel):
+    assets: list[AssetRef] = Field(
+        default_factory=lambda: [AssetRef(procedural=k) for k in ("rock", "coral", "seaweed", "clam")],
+        min_length=1,
+        max_length=MAX_ASSETS,
+    )
+    count: CountInterval = (4, 12)
+    scale: ScaleInterval = (0.7, 1.4)
+
+
+class Terrain(SpecModel):
+    styles: list[TerrainStyle] = Field(
+        default_factory=lambda: ["sand", "pebbles", "rock"], min_length=1, max_length=MAX_CHOICES
+    )
+    variants: StrictInt = Field(8, ge=1, le=MAX_VARIANTS)
+    size_m: StrictFloat = Field(12.0, gt=0, le=1000)
+    cells: StrictInt = Field(192, ge=2, le=MAX_TERRAIN_CELLS)
+    relief_m: StrictFloat = Field(0.25, ge=0, le=100)
+    # User terrain: a mesh file (replaces the procedural heightfield) and/or a colour texture.
+    mesh: FileRef | None = None
+    texture: FileRef | None = None
+    texture_tile_m: StrictFloat = Field(1.0, gt=0)
+
+
+class Workspaces(SpecModel):
+    """The paper's four workspaces (world metres, z up)."""
+
+    targets: Box = Box(min=(-2.0, -2.0, -5.0), max=(2.0, 2.0, 5.0))
+    distractors: Box = Box(min=(-3.0, -3.0, -5.0), max=(3.0, 3.0, 5.0))
+    camera: Box = Box(min=(-1.5, -3.0, 0.8), max=(1.5, -1.0, 2.0))
+    look_at: Box = Box(min=(-2.0, -2.0, -5.0), max=(2.0, 2.0, 5.0))
+
+
+class TextureRandomisation(SpecModel):
+    """Per-channel albedo scale and bias, drawn per object (colour changes, pattern stays)."""
+
+    scale: NonNegInterval = (0.75, 1.25)
+    bias: Interval = (-0.04, 0.04)
+
+
+class Noise(SpecModel):
+    """Camera noise: off by default; recorded in meta when on."""
+
+    gaussian_sigma: StrictFloat = Field(0.0, ge=0, le=0.5)

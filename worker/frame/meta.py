@@ -1,0 +1,91 @@
+"""A frame's audit record (meta/NNNNNN.json): the seeds, versions, camera, water, lights and every object drawn."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import TYPE_CHECKING
+
+from seasynth import service
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.render import Sampling, View
+from seasynth.worker.scene.sample import Placed, Scene
+from seasynth.worker.sensors.outputs import SensorFrame
+
+if TYPE_CHECKING:
+    from seasynth.worker.frame.function import FrameLabels
+
+
+def frame_meta(spec: DatasetSpec, index: int, scene: Scene, view: View, sampling: Sampling, fl: FrameLabels | None,
+               noise: dict | None, sensors: SensorFrame | None, renderer_name: str, versions: dict[str, str]) -> str:
+    """The frame's audit record: nothing in it depends on time, host, duration, worker count, the dataset's
+    frame count, shard size or the optional outputs depth/instance/clean/range (the dataset record holds the
+    whole spec). With outputs.labels off there are no labels, so each object's label_line, visible_pixels
+    and pixels_alone are null."""
+    record = {
+        "dataset_seed": spec.seed,
+        "frame_index": index,
+        "code_version": service.__version__,
+        "versions": versions,
+        "gl_renderer": renderer_name,
+        "preset": spec.quality,
+        "sampling": dataclasses.asdict(sampling),
+        "camera": {
+            "K": view.K.tolist(),
+            "width": view.width,
+            "height": view.height,
+            "pose_world_from_camera": scene.world_from_cam.tolist(),
+            "clip": [view.near, view.far],
+            "look_at": scene.look_at.tolist(),
+            "look_at_instance": scene.look_at_instance,
+            "position_draws": scene.camera_tries,
+        },
+        "water": _water_record(scene),
+        "lights": {
+            "sun_direction_world": scene.lighting.sun_dir_world.tolist(),
+            "sun_intensity": scene.lighting.sun_intensity,
+            "ambient": scene.lighting.ambient,
+        },
+        "terrain": {
+            "key": scene.terrain.key,
+            "albedo_scale": scene.terrain_albedo_scale.tolist(),
+            "albedo_bias": scene.terrain_albedo_bias.tolist(),
+        },
+        "objects": [_object_record(p, fl) for p in scene.objects],
+        "objects_left_out": scene.dropped,
+        "noise": noise,
+    }
+    if sensors is not None:  # absent with every sensor off, so such frames' meta is unchanged
+        record["sensors"] = sensors.record
+    return json.dumps(record, indent=1, sort_keys=True) + "\n"
+
+
+def _water_record(scene: Scene) -> dict | None:
+    """meta's water: the model, the Jerlov type drawn, and every coefficient the frame used."""
+    if scene.light is not None:
+        return {"model": "physical", "jerlov_type": scene.water_type, **scene.light.coefficients()}
+    w = scene.water
+    if w is None:
+        return None
+    return {"model": "paper", "jerlov_type": scene.water_type, "beta_D": w.beta_D.tolist(),
+            "beta_B": w.beta_B.tolist(), "B_inf": w.B_inf.tolist()}
+
+
+def _asset_record(key: str, source: str, sha256: str | None) -> dict:
+    return {"key": key, "source": source, "sha256": sha256}
+
+
+def _object_record(p: Placed, fl: FrameLabels | None) -> dict:
+    return {
+        "instance_id": p.instance_id,
+        "class": p.class_name,
+        "role": p.role,
+        "label_line": None if fl is None else fl.line_of.get(p.instance_id),
+        "visible_pixels": None if fl is None else fl.visible.get(p.instance_id, 0),
+        "pixels_alone": None if fl is None else fl.alone.get(p.instance_id),
+        "asset": {**_asset_record(p.asset.key, p.asset.source, p.asset.sha256), "variant": p.variant},
+        "scale": p.scale,
+        "pose_world_from_object": p.world_from_obj.tolist(),
+        "albedo_scale": p.albedo_scale.tolist(),
+        "albedo_bias": p.albedo_bias.tolist(),
+    }

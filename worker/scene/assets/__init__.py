@@ -1,0 +1,46 @@
+"""Meshes the scene sampler places: procedural urchins and distractors, user files, and their shared types."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from seasynth.service.errors import AssetError
+
+if TYPE_CHECKING:
+    import trimesh
+
+__all__ = ["Asset", "AssetError", "freeze", "read_source"]
+
+
+@dataclass(frozen=True, eq=False)
+class Asset:
+    """One placeable mesh: metres, +z up, base at z = 0, bounding box centred on x, y = 0.
+
+    `mesh` is shared through per-process caches: its vertex, face and colour arrays are read-only
+    and callers must copy it (`mesh.copy()`) before changing anything else on it.
+    """
+
+    key: str  # cache / GPU-upload key, e.g. "procedural/urchin/3" or "file/<sha256>"
+    mesh: trimesh.Trimesh  # vertex colours: (n, 4) uint8 sRGB-encoded RGBA
+    sha256: str | None  # hex digest of the source file; None for procedural assets
+    source: str  # human description for metadata, e.g. "procedural:urchin#3" or a file name
+
+
+def freeze(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Mark the mesh's vertex, face and vertex-colour arrays read-only and return it."""
+    mesh.vertices.flags.writeable = False
+    mesh.faces.flags.writeable = False
+    mesh.visual.vertex_colors.flags.writeable = False
+    return mesh
+
+
+def read_source(path: Path) -> bytes:
+    """The bytes of a user file; `AssetError` naming the path if it is missing or unreadable."""
+    try:
+        return Path(path).read_bytes()
+    except FileNotFoundError:
+        raise AssetError(f"{path}: file not found") from None
+    except OSError as exc:
+        raise AssetError(f"{path}: cannot read file ({exc.strerror or exc})") from exc

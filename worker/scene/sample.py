@@ -1,0 +1,390 @@
+"""Scene sampling: terrain, targets and distractors on the surface, camera, light, water, all from one rng."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from seasynth.service.errors import AssetError, SeasynthError, SpecError
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.spec.scene import AssetRef, Box
+from seasynth.service.water import jerlov_beta, jerlov_veiling_light
+from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets.terrain import Terrain
+from seasynth.worker.light import PhysicalLight
+from seasynth.worker.light.build import sample_physical
+from seasynth.worker.render import Lighting, WaterParams
+from seasynth.worker.sensors import world_from_sensor
+
+PLACEMENT_TRIES = 24  # per object, before it is left out
+CAMERA_TRIES = 64  # per frame, before the frame is refused
+CAMERA_CLEARANCE_M = 0.05  # the camera, and each enabled sensor, keeps at least this far above the terrain and
+# outside objects
+
+
+class SceneError(SeasynthError):
+    """A frame whose workspaces admit no valid scene (e.g. every camera position is inside geometry)."""
+
+
+# What says that a spec or its files cannot render (a 422 to an API client), as opposed to rendering failing.
+INPUT_ERRORS = (SpecError, AssetError, SceneError)
+
+
+@dataclass(frozen=True)
+class Placed:
+    """One object resting on the terrain."""
+
+    instance_id: int  # 1.. in placement order (targets first); 0 is reserved for terrain and open water
+    role: str  # "target" or "distractor"
+    class_name: str | None  # the spec's class name for targets, None for distractors
+    asset: Asset
+    variant: int | None
+    scale: float
+    world_from_obj: np.ndarray  # (4, 4) float64, metres, world z up
+    albedo_scale: np.ndarray  # (3,) float32
+    albedo_bias: np.ndarray  # (3,) float32
+    footprint_m: float  # metres: radius of the disc about the anchor holding the object's horizontal projection
+
+
+@dataclass(frozen=True)
+class Scene:
+    terrain: Terrain
+    terrain_albedo_scale: np.ndarray  # (3,) float32
+    terrain_albedo_bias: np.ndarray  # (3,) float32
+    objects: tuple[Placed, ...]
+    world_from_cam: np.ndarray  # (4, 4) float64, KITTI camera axes (x right, y down, z forward)
+    look_at: np.ndarray  # (3,) float64 world
+    look_at_instance: int | None
+    camera_tries: int  # camera positions drawn until one was outside all geometry
+    lighting: Lighting  # as drawn, in air (the paper's model shades with it directly)
+    water: WaterParams | None  # the paper's model
+    water_type: str | None
+    dropped: int  # objects left out because no free spot was found
+    light: PhysicalLight | None = None  # the physical model (then water is None)
+
+    @property
+    def cam_from_world(self) -> np.ndarray:
+        return rigid_inverse(self.world_from_cam)
+
+
+AssetSource = Callable[[AssetRef, int], Asset]
+
+
+def rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rotation + translation."""
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation taking unit vector a onto unit vector b (the shortest arc)."""
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1 + 1e-12:  # opposite: rotate by pi about any axis perpendicular to a
+        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1 + c)
+
+
+def look_at_pose(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(4, 4) world_from_cam in KITTI axes, looking from eye at target with world +z as up."""
+    f = target - eye
+    f = f / np.linalg.norm(f)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    if np.linalg.norm(right) < 1e-6:  # looking straight up or down: take world +y as the image's up
+        right = np.cross(f, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(f, right)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = right, down, f, eye
+    return T
+
+
+def in_box(points: np.ndarray, box: Box) -> np.ndarray:
+    """(n,) bool: which of (n, 3) points lie in the box (bounds included)."""
+    return np.all((points >= np.asarray(box.min)) & (points <= np.asarray(box.max)), axis=1)
+
+
+_CANDIDATES: dict[tuple[str, Box], np.ndarray] = {}
+
+
+def _candidates(terrain: Terrain, box: Box) -> np.ndarray:
+    """Indices of terrain vertices inside a workspace box (cached per process: terrains and boxes repeat)."""
+    key = (terrain.key, box)
+    got = _CANDIDATES.get(key)
+    if got is None:
+        if len(_CANDIDATES) >= 256:
+            _CANDIDATES.clear()
+        got = _CANDIDATES[key] = np.flatnonzero(in_box(np.asarray(terrain.mesh.vertices), box))
+    return got
+
+
+_EXTREMES: dict[str, np.ndarray] = {}
+
+
+def _extreme_points(asset: Asset) -> np.ndarray:
+    """(k, 3) float64: the asset's convex hull vertices, or all its vertices where it has no 3D hull (flat).
+
+    A footprint's radius is the largest norm of a linear image of the vertices, a convex function, so it is
+    reached at a hull vertex: measuring only those is exact, and cheap for large user meshes. Cached per process.
+    """
+    got = _EXTREMES.get(asset.key)
+    if got is None:
+        from scipy.spatial import ConvexHull, QhullError
+
+        verts = np.asarray(asset.mesh.vertices, dtype=np.float64)
+        try:
+            got = verts[ConvexHull(verts).vertices]
+        except (QhullError, ValueError):  # coplanar, collinear or too few points: measure them all
+            got = verts
+        if len(_EXTREMES) >= 1024:
+            _EXTREMES.clear()
+        _EXTREMES[asset.key] = got
+    return got
+
+
+def footprint_radius(vertices: np.ndarray, linear: np.ndarray) -> float:
+    """Radius (metres) of the disc about the anchor that holds the object's horizontal projection as placed.
+
+    vertices: (n, 3) float64, object metres; linear: (3, 3) world_from_obj's rotation times scale. Two objects
+    whose discs do not overlap cannot interpenetrate: each lies in the vertical cylinder over its disc.
+    """
+    xy = vertices @ linear[:2].T
+    return float(np.sqrt(np.einsum("ij,ij->i", xy, xy).max()))
+
+
+def uniform3(rng: np.random.Generator, lo, hi) -> np.ndarray:
+    return rng.uniform(np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+
+
+def _place(
+    rng: np.random.Generator,
+    terrain: Terrain,
+    box: Box,
+    asset: Asset,
+    scale: float,
+    placed: list[Placed],
+) -> tuple[np.ndarray, float] | None:
+    """A pose for `asset` resting on a terrain vertex in `box` whose footprint (after tilt, yaw and scale)
+    overlaps no placed footprint, and that footprint's radius; or None."""
+    cands = _candidates(terrain, box)
+    if cands.size == 0:
+        return None
+    verts = np.asarray(terrain.mesh.vertices)
+    normals = np.asarray(terrain.mesh.vertex_normals)
+    obj_verts = _extreme_points(asset)
+    others = np.array([p.world_from_obj[:2, 3] for p in placed]).reshape(-1, 2)
+    other_r = np.array([p.footprint_m for p in placed])
+    for _ in range(PLACEMENT_TRIES):
+        idx = cands[rng.integers(cands.size)]
+        yaw = rng.uniform(0.0, 2 * math.pi)
+        pos = verts[idx]
+        n = normals[idx] / max(np.linalg.norm(normals[idx]), 1e-12)
+        c, s = math.cos(yaw), math.sin(yaw)
+        Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        linear = rotation_between(np.array([0, 0, 1.0]), n) @ Rz * scale
+        # Measured as placed: on a slope a tall object leans out past its upright footprint (2.5x seen).
+        radius = footprint_radius(obj_verts, linear)
+        if others.size and np.any(np.linalg.norm(others - pos[:2], axis=1) < other_r + radius):
+            continue
+        T = np.eye(4)
+        T[:3, :3] = linear
+        T[:3, 3] = pos
+        return T, radius
+    return None
+
+
+def _sample_water(spec: DatasetSpec, rng: np.random.Generator) -> tuple[WaterParams | None, str | None]:
+    w = spec.water
+    if not w.enabled:
+        return None, None
+    kind = w.jerlov[rng.integers(len(w.jerlov))] if w.jerlov else None
+    if w.beta_D is not None:
+        beta_D = uniform3(rng, w.beta_D.min, w.beta_D.max)
+    else:
+        beta_D = jerlov_beta(kind) * rng.uniform(*w.beta_jitter)
+    if w.beta_B is not None:
+        beta_B = uniform3(rng, w.beta_B.min, w.beta_B.max)
+    else:
+        beta_B = beta_D * rng.uniform(*w.backscatter_ratio)
+    if w.B_inf is not None:
+        B_inf = uniform3(rng, w.B_inf.min, w.B_inf.max)
+    else:
+        B_inf = jerlov_veiling_light(kind) * rng.uniform(*w.B_inf_jitter)
+    # The type is drawn whatever the ranges (so the draw order stays fixed) but recorded only when it was used.
+    used = w.beta_D is None or w.B_inf is None
+    return WaterParams(beta_D=beta_D, beta_B=beta_B, B_inf=B_inf), kind if used else None
+
+
+def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSource, terrain_for) -> Scene:
+    """Draw one frame's scene. Every draw comes from `rng`, in a fixed order that no output option changes. A survey
+    (trajectory.kind other than random) draws no camera: its pose is the trajectory's at frame 0 (on_trajectory
+    moves it to any frame)."""
+    tex = spec.texture
+    terrain = terrain_for(spec, rng)
+    t_scale = rng.uniform(*tex.scale, size=3).astype(np.float32)
+    t_bias = rng.uniform(*tex.bias, size=3).astype(np.float32)
+
+    placed: list[Placed] = []
+    dropped = 0
+    roles = (
+        ("target", spec.targets, spec.workspaces.targets, spec.targets.class_name),
+        ("distractor", spec.distractors, spec.workspaces.distractors, None),
+    )
+    for role, group, box, class_name in roles:
+        n = int(rng.integers(group.count[0], group.count[1] + 1))
+        for _ in range(n):
+            ref = group.assets[rng.integers(len(group.assets))]
+            variant = int(rng.integers(ref.variants)) if ref.procedural is not None else None
+            asset = asset_for(ref, variant)
+            scale = float(rng.uniform(*group.scale))
+            a_scale = rng.uniform(*tex.scale, size=3).astype(np.float32)
+            a_bias = rng.uniform(*tex.bias, size=3).astype(np.float32)
+            pose = _place(rng, terrain, box, asset, scale, placed)
+            if pose is None:
+                dropped += 1
+                continue
+            T, radius = pose
+            placed.append(
+                Placed(
+                    instance_id=len(placed) + 1,
+                    role=role,
+                    class_name=class_name,
+                    asset=asset,
+                    variant=variant,
+                    scale=scale,
+                    world_from_obj=T,
+                    albedo_scale=a_scale,
+                    albedo_bias=a_bias,
+                    footprint_m=radius,
+                )
+            )
+
+    spheres = [_bounding_sphere(p) for p in placed]
+    if spec.trajectory.kind == "random":
+        world_from_cam, look_at, look_id, tries = _draw_camera(spec, rng, terrain, placed, spheres)
+    else:  # a survey's pose is its trajectory's (frame 0 here, see on_trajectory): no draw, so no workspace fails it
+        from seasynth.worker.scene.trajectory import vehicle_state
+
+        world_from_cam = vehicle_state(spec.trajectory, 0).world_from_vehicle
+        look_at, look_id, tries = world_from_cam[:3, 3] + world_from_cam[:3, 2], None, 0
+
+    lt = spec.lighting
+    elev = math.radians(rng.uniform(*lt.sun_elevation_deg))
+    azim = math.radians(rng.uniform(*lt.sun_azimuth_deg))
+    lighting = Lighting(
+        sun_dir_world=np.array([math.cos(elev) * math.cos(azim), math.cos(elev) * math.sin(azim), math.sin(elev)]),
+        sun_intensity=float(rng.uniform(*lt.sun_intensity)),
+        ambient=float(rng.uniform(*lt.ambient)),
+    )
+    water, water_type, light = None, None, None
+    if spec.water.enabled and spec.water.resolved_model == "physical":
+        top_z = max([float(terrain.mesh.bounds[1][2])] + [c[2] + r for c, r in spheres])
+        light, water_type = sample_physical(spec, rng, lighting, top_z)
+    else:
+        water, water_type = _sample_water(spec, rng)
+    return Scene(
+        terrain=terrain,
+        terrain_albedo_scale=t_scale,
+        terrain_albedo_bias=t_bias,
+        objects=tuple(placed),
+        world_from_cam=world_from_cam,
+        look_at=look_at,
+        look_at_instance=look_id,
+        camera_tries=tries,
+        lighting=lighting,
+        water=water,
+        water_type=water_type,
+        light=light,
+        dropped=dropped,
+    )
+
+
+def _draw_camera(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, placed: list[Placed],
+                 spheres: list) -> tuple[np.ndarray, np.ndarray, int | None, int]:
+    """A random-pose frame's camera: (world_from_cam (4, 4) float64, look_at (3,) float64 world, its target's
+    instance id or None, positions drawn). Looks at a random target inside the look-at workspace, else at a random
+    point of that workspace's seabed, from the first position in workspaces.camera clear of all geometry."""
+    ws = spec.workspaces
+    centres = np.array([p.world_from_obj[:3, 3] for p in placed if p.role == "target"]).reshape(-1, 3)
+    ids = [p.instance_id for p in placed if p.role == "target"]
+    inside = np.flatnonzero(in_box(centres, ws.look_at)) if centres.size else np.array([], int)
+    if inside.size:
+        pick = int(inside[rng.integers(inside.size)])
+        look_at, look_id = centres[pick].copy(), ids[pick]
+    else:  # a point of the seabed inside the look-at workspace
+        look_at, look_id = uniform3(rng, ws.look_at.min, ws.look_at.max), None
+        ground = float(terrain.height_at(look_at[None, :2])[0])
+        look_at[2] = min(max(ground, ws.look_at.min[2]), ws.look_at.max[2])
+    look_at = look_at + rng.normal(0.0, spec.camera.look_at_jitter_m, size=3)
+
+    for tries in range(1, CAMERA_TRIES + 1):
+        eye = uniform3(rng, ws.camera.min, ws.camera.max)
+        if _camera_clear(eye, look_at, terrain, spheres, spec.camera.clip[0]):
+            T = look_at_pose(eye, look_at)
+            if _sensor_inside(T, spec, terrain, spheres) is None:
+                return T, look_at, look_id, tries
+    also = " with every enabled sensor (sensors.*.pose) outside them too" if spec.sensors.enabled_poses() else ""
+    raise SceneError(f"workspaces.camera: no camera position outside the terrain and objects{also} after "
+                     f"{CAMERA_TRIES} draws")
+
+
+def _bounding_sphere(p: Placed) -> tuple[np.ndarray, float]:
+    v = np.asarray(p.asset.mesh.vertices)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre_obj = (lo + hi) / 2
+    radius = float(np.linalg.norm(v - centre_obj, axis=1).max()) * p.scale
+    return p.world_from_obj[:3, :3] @ centre_obj + p.world_from_obj[:3, 3], radius
+
+
+def _camera_clear(eye, look_at, terrain: Terrain, spheres, near: float) -> bool:
+    """The camera is above the terrain, outside every object's bounding sphere and not on its look-at point."""
+    return bool(np.linalg.norm(look_at - eye) >= 1e-3) and _clear(eye, terrain, spheres, near)
+
+
+def _sensor_inside(world_from_vehicle: np.ndarray, spec: DatasetSpec, terrain: Terrain,
+                   spheres) -> tuple[str, np.ndarray] | None:
+    """(name, world position (3,)) of the first enabled sensor that is not as clear of the terrain and objects as
+    the camera must be, with the vehicle at world_from_vehicle (4, 4); None when every one is."""
+    for name, pose in spec.sensors.enabled_poses().items():
+        p = world_from_sensor(world_from_vehicle, pose)[:3, 3]
+        if not _clear(p, terrain, spheres, spec.camera.clip[0]):
+            return name, p
+    return None
+
+
+def _clear(eye, terrain: Terrain, spheres, near: float) -> bool:
+    """eye (3,) world is CAMERA_CLEARANCE_M + near above the terrain and outside every object's bounding sphere."""
+    ground = float(terrain.height_at(eye[None, :2])[0])
+    if math.isfinite(ground) and eye[2] < ground + CAMERA_CLEARANCE_M + near:
+        return False
+    return all(np.linalg.norm(eye - c) > r + CAMERA_CLEARANCE_M + near for c, r in spheres)
+
+
+def on_trajectory(scene: Scene, spec: DatasetSpec, index: int) -> Scene:
+    """The scene seen from the trajectory's vehicle pose at frame `index` (seasynth.worker.scene.trajectory), which must lie above
+    the terrain and outside every object, as must each enabled sensor."""
+    import dataclasses
+
+    from seasynth.worker.scene.trajectory import vehicle_state
+
+    state = vehicle_state(spec.trajectory, index)
+    T = state.world_from_vehicle
+    eye = T[:3, 3]
+    spheres = [_bounding_sphere(p) for p in scene.objects]
+    if not _camera_clear(eye, eye + T[:3, 2], scene.terrain, spheres, spec.camera.clip[0]):
+        raise SceneError(f"trajectory: frame {index}'s vehicle position {eye.round(3).tolist()} is inside the terrain "
+                         "or an object; raise trajectory.altitude_m")
+    inside = _sensor_inside(T, spec, scene.terrain, spheres)
+    if inside is not None:
+        name, p = inside
+        raise SceneError(f"sensors.{name}.pose.offset_m: at frame {index} the {name} sits at {p.round(3).tolist()}, "
+                         "inside the terrain or an object; raise trajectory.altitude_m or move the sensor")
+    return dataclasses.replace(scene, world_from_cam=T, look_at=eye + T[:3, 2], look_at_instance=None, camera_tries=0)
