@@ -24,7 +24,7 @@ void main() {
 
 def gpu_codes(renderer, values: np.ndarray) -> np.ndarray:
     """(n, 4) uint8: the shader's codes of float32 values (one value per pixel in all three channels; alpha: NaN)."""
-    GL = renderer._gl
+    GL = renderer.gl
     renderer._platform.make_current()
     n = values.size
     rgb = np.repeat(values.astype(np.float32)[:, None], 4, axis=1).reshape(1, n, 4)
@@ -39,12 +39,12 @@ def gpu_codes(renderer, values: np.ndarray) -> np.ndarray:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, target.fbo)
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0])
         GL.glDisable(GL.GL_DEPTH_TEST)
-        prog, locs = renderer._program(FULLSCREEN, PROBE)
+        prog, locs = renderer.programs.get(FULLSCREEN, PROBE)
         GL.glUseProgram(prog)
         GL.glUniform1i(GL.glGetUniformLocation(prog, "u_vals"), 0)
         GL.glUniform1fv(locs["u_srgb_thr"], 255, SRGB8_THRESHOLDS_F32)
         GL.glViewport(0, 0, n, 1)
-        GL.glBindVertexArray(renderer._empty_vao)
+        GL.glBindVertexArray(renderer.empty_vao)
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)

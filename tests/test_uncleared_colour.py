@@ -29,7 +29,7 @@ def junk_in_kept_colour(renderer, monkeypatch) -> list[int]:
     from OpenGL import GL
 
     kept = []
-    real = renderer._bind_and_clear
+    real = renderer.bind_and_clear
 
     def bind_and_clear(t, clears):
         real(t, clears)
@@ -38,7 +38,7 @@ def junk_in_kept_colour(renderer, monkeypatch) -> list[int]:
                 GL.glClearBufferfv(GL.GL_COLOR, slot, JUNK)
                 kept.append(slot)
 
-    monkeypatch.setattr(renderer, "_bind_and_clear", bind_and_clear)
+    monkeypatch.setattr(renderer, "bind_and_clear", bind_and_clear)
     return kept
 
 

@@ -25,7 +25,7 @@ def pixels_alone(r, view: View, jobs: list[tuple[DrawItem, Region | None]]) -> l
     occlusion query counts its pixels (the pixels a lone id pass would mark). Every item is drawn before any count is
     read, so the GPU is waited for once, not once an item.
     """
-    GL = r._gl
+    GL = r.gl
     w, h = view.width, view.height
     regions = [clipped(region, w, h) for _, region in jobs]
     drawn = [k for k, region in enumerate(regions) if region is not None]
@@ -34,9 +34,9 @@ def pixels_alone(r, view: View, jobs: list[tuple[DrawItem, Region | None]]) -> l
         return counts
     t = r.targets.stencil(w, h)
     GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
-    prog, locs = r._program(VERTEX, DEPTH_ONLY)
+    prog, locs = r.programs.get(VERTEX, DEPTH_ONLY)
     GL.glUseProgram(prog)
-    r._set_view(locs, view, w, h)
+    r.set_view(locs, view, w, h)
     GL.glDisable(GL.GL_DEPTH_TEST)
     GL.glEnable(GL.GL_SCISSOR_TEST)
     GL.glEnable(GL.GL_STENCIL_TEST)
@@ -49,7 +49,7 @@ def pixels_alone(r, view: View, jobs: list[tuple[DrawItem, Region | None]]) -> l
             GL.glScissor(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
             GL.glClearBufferiv(GL.GL_STENCIL, 0, [0])
             GL.glBeginQuery(GL.GL_SAMPLES_PASSED, query)
-            r._draw(view, [jobs[k][0]], locs, lit=False, ids=False)
+            r.draw(view, [jobs[k][0]], locs, lit=False, ids=False)
             GL.glEndQuery(GL.GL_SAMPLES_PASSED)
         for k, query in zip(drawn, queries):
             counts[k] = int(GL.glGetQueryObjectuiv(query, GL.GL_QUERY_RESULT))

@@ -16,6 +16,7 @@ import numpy as np
 
 from seasynth.service.errors import RenderError
 from seasynth.worker.render import View
+from seasynth.worker.render.shaders import context_has, context_version
 
 LOWER_LEFT, NEGATIVE_ONE_TO_ONE, ZERO_TO_ONE = 0x8CA1, 0x935E, 0x935F  # glClipControl's enums (GL 4.5)
 SAMPLE_POSITION = 0x8E50
@@ -52,9 +53,8 @@ class ClipControl:
     ctypes). Raises RenderError where the context has neither GL 4.5 nor ARB_clip_control."""
 
     def __init__(self, GL, renderer_name: str) -> None:
+        # Imported here: PyOpenGL picks its platform at its first import (after devices.prepare_environment).
         from OpenGL import platform
-
-        from seasynth.worker.render.shaders import context_has, context_version
 
         address = platform.PLATFORM.getExtensionProcedure(b"glClipControl")
         if not (context_version(GL) >= (4, 5) or context_has(GL, ("GL_ARB_clip_control",))) or not address:

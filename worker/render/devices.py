@@ -48,7 +48,7 @@ def egl_devices() -> list[EglDevice]:
     """The EGL devices in EGL's order (their index is what `GLRenderer(gpu=...)` takes); [] where EGL cannot list
     devices (no EGL_EXT_device_enumeration)."""
     prepare_environment("egl")
-    from pyrender.platforms import egl
+    from pyrender.platforms import egl  # only now: it imports OpenGL, which picks its platform at that import
 
     try:
         found = egl.query_devices()
@@ -82,7 +82,7 @@ def resolve_gpus(choice: GpuChoice | None, platform: str = "egl") -> tuple[int, 
 def egl_platform(gpu: int | None):
     """pyrender's EGLPlatform on EGL device `gpu` (None: EGL's default device); RenderError if there is none."""
     prepare_environment("egl")
-    from pyrender.platforms.egl import EGLPlatform, query_devices
+    from pyrender.platforms.egl import EGLPlatform, query_devices  # only now, as in egl_devices
 
     if gpu is None:
         return EGLPlatform(8, 8)

@@ -3,8 +3,8 @@
 Why not pyrender's stock renderer: it writes gamma-encoded colour into an 8-bit 4x MSAA buffer (resolved in that
 space), returns z-depth from one sample with 0 for no hit, and renders passes we may not need. Here colour stays
 linear and float, range comes from each sample's reversed float depth (float32 precision at every range:
-seasynth.worker.render.depth), open water is +inf, the water is applied per sample before averaging, and only the passes a
-frame's outputs need are drawn and read back.
+seasynth.worker.render.depth), open water is +inf, the water is applied per sample before averaging, and only the
+passes a frame's outputs need are drawn and read back.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from seasynth.worker.render.coverage import pixels_alone
 from seasynth.worker.render.depth import ClipControl, projection
 from seasynth.worker.render.devices import egl_platform, prepare_environment
 from seasynth.worker.render.frustum import sphere_in_view
+from seasynth.worker.render.programs import Programs
 from seasynth.worker.render.readback import Pending, Readback
 from seasynth.worker.render.surface import SurfaceReads, surface_pass
 from seasynth.worker.render.targets import Target, Targets
@@ -46,7 +47,10 @@ class QueuedFrame:
 
 
 @dataclass
-class _GpuMesh:
+class GpuMesh:
+    """A Mesh on the GPU (GLRenderer.mesh): bind vao and draw count GL_UNSIGNED_INT indices as triangles. Vertex
+    attributes 0, 1, 2: the Mesh's vertices, normals and albedo, 3 float32 each."""
+
     vao: int
     buffers: tuple[int, int]  # vertex and index buffer
     count: int  # indices
@@ -54,10 +58,13 @@ class _GpuMesh:
     used: int  # the renderer call (see GLRenderer._call) that last drew it
 
 
-
 class GLRenderer:
     """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size
     (`targets`, seasynth.worker.render.targets); the surface pass and its resolve are worker.render.surface.
+
+    The passes in sibling modules (surface, gl_light, coverage) draw through the public members only: `gl`,
+    `programs`, `targets`, `readback`, `mesh`, `draw`, `set_view`, `bind_and_clear`, `empty_vao` and the context's
+    facts (`name`, `max_samples`, `compute_resolve`, `compute_header`, `clip_control`, `sample_positions`).
 
     Both caches are bounded (mesh_budget_bytes of vertex and index buffers, targets_per_kind framebuffers of each
     kind), so a long-lived worker that meets many assets and image sizes does not keep them all; what is evicted is
@@ -84,7 +91,7 @@ class GLRenderer:
             if platform == "egl":
                 self._platform = egl_platform(gpu)  # a missing device: RenderError naming it and the count
             else:
-                from pyrender.platforms.osmesa import OSMesaPlatform
+                from pyrender.platforms.osmesa import OSMesaPlatform  # after prepare_environment, as OpenGL
 
                 self._platform = OSMesaPlatform(8, 8)
             self._platform.init_context()
@@ -93,7 +100,7 @@ class GLRenderer:
             raise
         except Exception as err:  # EGL/OSMesa report failures in many shapes; all mean "no context"
             raise RenderError(f"cannot create a headless {platform} OpenGL context: {err!r}") from err
-        from OpenGL import GL
+        from OpenGL import GL  # only now: PyOpenGL picks its platform at its first import (prepare_environment)
 
         self._gl = GL
         self.name = GL.glGetString(GL.GL_RENDERER).decode()
@@ -106,13 +113,13 @@ class GLRenderer:
         software = any(k in self.name.lower() for k in ("llvmpipe", "softpipe", "swrast"))
         self.compute_header = None if software else shaders.compute_header(GL)
         self.compute_resolve = self.compute_header is not None
-        self._meshes: OrderedDict[str, _GpuMesh] = OrderedDict()  # least recently drawn first
+        self._meshes: OrderedDict[str, GpuMesh] = OrderedDict()  # least recently drawn first
         self._mesh_bytes = 0
         self._call = 0  # counts render/samples/pixels_alone calls: meshes drawn by the current one stay
-        self._programs: dict[tuple, tuple[int, dict[str, int]]] = {}
+        self.programs = Programs(GL, self.name)
         self.targets = Targets(GL, self.name, targets_per_kind)
         self.readback = Readback(GL)
-        self._empty_vao = GL.glGenVertexArrays(1)
+        self.empty_vao = GL.glGenVertexArrays(1)  # no attributes: what full-screen triangles (the resolve) draw with
         self.clip_control = ClipControl(GL, self.name)
         self.sample_positions: dict[int, np.ndarray] = {}  # msaa -> (msaa, 2), read once (seasynth.worker.render.depth)
         GL.glEnable(GL.GL_DEPTH_TEST)
@@ -129,16 +136,14 @@ class GLRenderer:
         self._platform.make_current()
         for key in list(self._meshes):
             self._drop_mesh(key)
-        for prog, _ in self._programs.values():
-            GL.glDeleteProgram(prog)
+        self.programs.clear()
         self.targets.clear()
         self.readback.clear()
-        GL.glDeleteVertexArrays(1, [self._empty_vao])
-        self._programs.clear()
+        GL.glDeleteVertexArrays(1, [self.empty_vao])
         if self._platform_name == "egl":
             # Destroy only our context: pyrender's delete_context() also terminates the EGL display, which
             # every context of the process shares, and would kill other renderers that are still open.
-            from OpenGL import EGL
+            from OpenGL import EGL  # imported once the platform is chosen, as GL is (__init__)
 
             p = self._platform
             EGL.eglMakeCurrent(p._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
@@ -153,8 +158,15 @@ class GLRenderer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # ---- resources -------------------------------------------------------------------------------------------
-    def _mesh(self, mesh: Mesh) -> _GpuMesh:
+    # ---- what the passes draw with (surface, gl_light, coverage); each needs the context current --------------
+    @property
+    def gl(self):
+        """The PyOpenGL `GL` module, for this renderer's context."""
+        return self._gl
+
+    def mesh(self, mesh: Mesh) -> GpuMesh:
+        """The mesh on the GPU, uploaded on first use; kept at least until the current call (render, samples,
+        geometry, pixels_alone_many) returns, then least recently drawn first out past mesh_budget_bytes."""
         got = self._meshes.get(mesh.key)
         if got is not None:
             got.used = self._call
@@ -174,8 +186,8 @@ class GLRenderer:
         GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
         GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, faces.nbytes, faces, GL.GL_STATIC_DRAW)
         GL.glBindVertexArray(0)
-        got = _GpuMesh(vao=vao, buffers=(vbo, ebo), count=int(faces.size),
-                       nbytes=interleaved.nbytes + faces.nbytes, used=self._call)
+        got = GpuMesh(vao=vao, buffers=(vbo, ebo), count=int(faces.size),
+                      nbytes=interleaved.nbytes + faces.nbytes, used=self._call)
         self._meshes[mesh.key] = got
         self._mesh_bytes += got.nbytes
         while self._mesh_bytes > self.mesh_budget_bytes:
@@ -192,40 +204,11 @@ class GLRenderer:
         GL.glDeleteVertexArrays(1, [m.vao])
         GL.glDeleteBuffers(2, list(m.buffers))
 
-    def _program(self, vertex: str | None, fragment: str, **defines: object) -> tuple[int, dict[str, int]]:
-        """The linked program of a vertex and fragment shader, or of one compute shader (vertex None), with the
-        defines, and its uniforms' locations; built once."""
-        key = (vertex, fragment, tuple(sorted(defines.items())))
-        got = self._programs.get(key)
-        if got is not None:
-            return got
-        GL = self._gl
-        from OpenGL.GL import shaders as gls
-
-        if vertex is None:
-            stages = [(fragment, GL.GL_COMPUTE_SHADER)]
-        else:
-            stages = [(vertex, GL.GL_VERTEX_SHADER), (fragment, GL.GL_FRAGMENT_SHADER)]
-        try:
-            prog = gls.compileProgram(
-                *(gls.compileShader(shaders.variant(src, **defines), kind) for src, kind in stages), validate=False
-            )
-        except RuntimeError as err:
-            raise RenderError(f"shader compilation failed on {self.name}: {err}") from err
-        from seasynth.worker.light.glsl import UNIFORMS as LIGHT_UNIFORMS
-
-        locs = {name: GL.glGetUniformLocation(prog, name) for name in (*shaders.UNIFORMS, *LIGHT_UNIFORMS)}
-        got = (prog, {name: loc for name, loc in locs.items() if loc >= 0})
-        self._programs[key] = got
-        return got
-
-    def _ids_program(self, want_ids: bool, want_range: bool) -> tuple[int, dict[str, int]]:
-        """The single-sample pass writing ids (slot 0) and/or range (the slot after them), as targets.ids lays out."""
-        return self._program(shaders.VERTEX, shaders.IDS, WITH_IDS=want_ids, WITH_RANGE=want_range,
-                             RANGE_LOCATION=int(want_ids))
-
-    # ---- drawing ---------------------------------------------------------------------------------------------
-    def _draw(self, view: View, items: list[DrawItem], locs: dict[str, int], *, lit: bool, ids: bool) -> None:
+    def draw(self, view: View, items: list[DrawItem], locs: dict[str, int], *, lit: bool, ids: bool) -> None:
+        """Draw with the program in use (its uniform locations `locs`) each item whose bounding sphere reaches into
+        the view, setting per item u_cam_from_obj (4x4, object frame -> camera frame, metres) and, where the program
+        has them, u_range_bounds (its sphere's nearest and farthest range, metres); lit: its normal matrix and
+        albedo scale and bias; ids: u_id, its instance id."""
         GL = self._gl
         cam_from_world = view.cam_from_world
         for item in items:
@@ -234,7 +217,7 @@ class GLRenderer:
             centre = cam_from_world[:3, :3] @ centre_world + cam_from_world[:3, 3]
             if not sphere_in_view(view, centre, radius):
                 continue
-            gpu = self._mesh(item.mesh)
+            gpu = self.mesh(item.mesh)
             if "u_range_bounds" in locs:
                 dist = float(np.linalg.norm(centre))
                 GL.glUniform2f(locs["u_range_bounds"], max(dist - radius, 0.0), dist + radius)
@@ -250,13 +233,15 @@ class GLRenderer:
             GL.glDrawElements(GL.GL_TRIANGLES, gpu.count, GL.GL_UNSIGNED_INT, None)
         GL.glBindVertexArray(0)
 
-    def _set_view(self, locs: dict[str, int], view: View, w: int, h: int) -> None:
+    def set_view(self, locs: dict[str, int], view: View, w: int, h: int) -> None:
+        """Viewport (w, h) framebuffer pixels (the view's size times any supersampling) and u_proj: the view's
+        reversed-depth projection (seasynth.worker.render.depth.projection), for the program in use."""
         GL = self._gl
         GL.glViewport(0, 0, w, h)
         proj = projection(view.K, view.width, view.height, view.near, view.far)
         GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, proj.astype(np.float32))
 
-    def _bind_and_clear(self, t: Target, clears: tuple[str, ...]) -> None:
+    def bind_and_clear(self, t: Target, clears: tuple[str, ...]) -> None:
         """Bind a geometry target and draw into its colour attachments in slot order, each cleared as named:
         "ids" to 0, "colour" to 0, "range" to +inf, "keep" not at all (what the last frame left); depth to far
         (reversed depth's 0)."""
@@ -273,6 +258,7 @@ class GLRenderer:
                 GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([value, 0, 0, 0], np.float32))
         GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
 
+    # ---- frames ----------------------------------------------------------------------------------------------
     def render(
         self,
         view: View,
@@ -315,10 +301,8 @@ class GLRenderer:
         done = stage if stage is not None else (lambda name: None)
         log: list[str] = []
         try:
-            reads = surface_pass(
-                self, view, items, lighting, water, sampling, passes.clean, -1, want_nearest=passes.range, done=done,
-                log=log, srgb8=passes.srgb8,
-            )
+            reads = surface_pass(self, view, items, lighting, water, sampling, want_clean=passes.clean,
+                                 want_nearest=passes.range, srgb8=passes.srgb8, done=done, log=log)
             centres = passes.range and sampling.per_pixel > 1
             ids = self._queue_ids(view, items, passes.ids, centres, log=log) if passes.ids or centres else (None, None)
             done("ids")
@@ -328,8 +312,8 @@ class GLRenderer:
         return QueuedFrame(reads, ids[0], ids[1], tuple(log))
 
     def fetch(self, queued: QueuedFrame) -> RenderResult:
-        """Wait for a queued frame's reads (one wait for the GPU: seasynth.worker.render.readback) and give its result. A
-        failure gives back the buffers of every read still queued, this frame's and any other's."""
+        """Wait for a queued frame's reads (one wait for the GPU: seasynth.worker.render.readback) and give its
+        result. A failure gives back the buffers of every read still queued, this frame's and any other's."""
         self._platform.make_current()
         try:
             image, clean, nearest = queued.reads.fetch(self.readback)
@@ -349,7 +333,7 @@ class GLRenderer:
         self._call += 1
         Js, Rs = [], []
         for k in range(sampling.per_pixel):
-            J, R, _ = surface_pass(self, view, items, lighting, None, sampling, False, k,
+            J, R, _ = surface_pass(self, view, items, lighting, None, sampling, only_sample=k,
                                    sample_range=True).fetch(self.readback)
             Js.append(J)
             Rs.append(R[..., 0])
@@ -368,11 +352,13 @@ class GLRenderer:
         log = [] if log is None else log
         w, h = view.width, view.height
         t = self.targets.ids(w, h, want_ids, want_range)
-        self._bind_and_clear(t, ("ids",) * want_ids + ("range",) * want_range)
-        prog, locs = self._ids_program(want_ids, want_range)
+        self.bind_and_clear(t, ("ids",) * want_ids + ("range",) * want_range)
+        # ids at slot 0 and/or range at the slot after them, as targets.ids lays them out
+        prog, locs = self.programs.get(shaders.VERTEX, shaders.IDS, WITH_IDS=want_ids, WITH_RANGE=want_range,
+                                       RANGE_LOCATION=int(want_ids))
         GL.glUseProgram(prog)
-        self._set_view(locs, view, w, h)
-        self._draw(view, items, locs, lit=False, ids=want_ids)
+        self.set_view(locs, view, w, h)
+        self.draw(view, items, locs, lit=False, ids=want_ids)
         log.append("+".join(["ids"] * want_ids + ["range"] * want_range))
         ids = rng = None
         if want_ids:

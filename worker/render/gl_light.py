@@ -31,7 +31,7 @@ def defines(light: PhysicalLight) -> dict[str, object]:
 
 
 def _shadow_target(r, size: int, slot: int):
-    GL = r._gl
+    GL = r.gl
 
     def build():
         t = r.targets.new_fbo()
@@ -56,19 +56,19 @@ def _shadow_target(r, size: int, slot: int):
 
 def _draw_depth(r, clip_from_world: np.ndarray, items: list[DrawItem], size: int, slot: int) -> int:
     """Draw a shadow map; returns its depth texture."""
-    GL = r._gl
+    GL = r.gl
     t = _shadow_target(r, size, slot)
     with r.clip_control.conventional():  # the maps' samplers compare GL's own depth (LEQUAL)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, t.fbo)
         GL.glViewport(0, 0, size, size)
         GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-        prog, locs = r._program(VERTEX, DEPTH_ONLY)
+        prog, locs = r.programs.get(VERTEX, DEPTH_ONLY)
         GL.glUseProgram(prog)
         GL.glUniformMatrix4fv(locs["u_proj"], 1, GL.GL_TRUE, np.eye(4, dtype=np.float32))
         GL.glEnable(GL.GL_POLYGON_OFFSET_FILL)
         GL.glPolygonOffset(2.0, 4.0)
         for it in items:
-            gpu = r._mesh(it.mesh)
+            gpu = r.mesh(it.mesh)
             M = (clip_from_world @ it.world_from_obj).astype(np.float32)
             GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, M)
             GL.glBindVertexArray(gpu.vao)
@@ -127,7 +127,7 @@ def _common(GL, locs, light: PhysicalLight) -> None:
 
 
 def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, maps: dict) -> None:
-    GL = r._gl
+    GL = r.gl
     world_from_cam = np.linalg.inv(view.cam_from_world)
     _common(GL, locs, light)
     row = world_from_cam[2].astype(np.float32)
@@ -171,7 +171,7 @@ def _caustic_uniforms(GL, locs: dict[str, int], light: PhysicalLight, world_from
 
 
 def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -> None:
-    GL = r._gl
+    GL = r.gl
     world_from_cam = np.linalg.inv(view.cam_from_world)
     _common(GL, locs, light)
     _vec3(GL, locs, "u_sun_world", light.sun_dir_world)

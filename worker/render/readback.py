@@ -38,7 +38,7 @@ class Readback:
     def queue(self, slot: int, w: int, h: int, fmt: int, typ: int, dtype, channels: int, x: int = 0,
               y: int = 0) -> Pending:
         """Queue a read of colour attachment `slot` of the bound read framebuffer (rows in framebuffer order)."""
-        from OpenGL.raw.GL.VERSION.GL_1_0 import glReadPixels
+        from OpenGL.raw.GL.VERSION.GL_1_0 import glReadPixels  # here: PyOpenGL picks its platform at its first import
 
         GL = self._gl
         dtype = np.dtype(dtype)

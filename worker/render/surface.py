@@ -1,6 +1,6 @@
 """The surface pass and its resolve: the frame shaded (with range) into a multisampled float target, then the water
-applied to each sample, each pixel's samples averaged and the outputs read back. Used by GLRenderer (seasynth.worker.render.gl).
-"""
+applied to each sample, each pixel's samples averaged and the outputs read back. Used by GLRenderer
+(seasynth.worker.render.gl)."""
 
 from __future__ import annotations
 
@@ -9,19 +9,29 @@ from dataclasses import dataclass
 import numpy as np
 
 from seasynth.service.errors import RenderError
+from seasynth.worker.frame.formation import GLSL_HAZE
+from seasynth.worker.frame.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 from seasynth.worker.light import PhysicalLight
+from seasynth.worker.light.glsl import SURFACE as PHYSICAL_SURFACE
+from seasynth.worker.light.glsl import VOLUME
 from seasynth.worker.render import depth, gl_light, shaders
 from seasynth.worker.render.readback import Pending, Readback
 
 
 def surface_pass(
-    r, view, items, lighting, water, sampling, want_clean, only_sample, sample_range=False, want_nearest=False,
-    done=None, log=None, srgb8=False,
+    r, view, items, lighting, water, sampling, *, want_clean=False, only_sample=-1, sample_range=False,
+    want_nearest=False, srgb8=False, done=None, log=None,
 ):
     """Draw the surface pass and resolve it on GLRenderer `r` (its context current), and queue the reads of its
     outputs: SurfaceReads, whose fetch gives (image, clean or the one sample's range, nearest sample range), the last
-    two None unless asked. log (if given) gets the passes drawn and attachments read."""
-    GL = r._gl
+    two None unless asked.
+
+    only_sample: -1 averages each pixel's samples; k >= 0 takes sample k alone (audits). sample_range: the second
+    output is that sample's range, before any water (audits), instead of the clean image. want_nearest: the nearest
+    range any of a pixel's samples hits. srgb8: the image as 8-bit sRGB codes. done (if given) is called with
+    "render" and "formation" as each part's GL commands are issued; log (if given) gets the passes drawn and
+    attachments read."""
+    GL = r.gl
     log = [] if log is None else log
     if sampling.msaa > r.max_samples:
         raise RenderError(f"{sampling.msaa}x MSAA asked for, {r.name} supports at most {r.max_samples}")
@@ -34,21 +44,19 @@ def surface_pass(
     # With range, the resolve reads where anything was drawn from the depth (still the clear's far where nothing
     # was) and takes colour 0 and range +inf there, so colour is not cleared: on an H100 a clear of 4 samples a
     # pixel took 1.2 ms of a 1080p frame's 6.2 (the pass costs the bytes it writes, not its shading).
-    r._bind_and_clear(surf, ("keep",) if with_range else ("colour",))
+    r.bind_and_clear(surf, ("keep",) if with_range else ("colour",))
     positions = r.sample_positions.get(msaa)
     if positions is None:  # the pattern is the implementation's, read once from a bound target of msaa samples
         positions = r.sample_positions[msaa] = depth.sample_positions(GL, msaa)
     if physical:
-        from seasynth.worker.light.glsl import SURFACE as PHYSICAL_SURFACE
-
-        prog, locs = r._program(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting))
+        prog, locs = r.programs.get(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting))
         GL.glUseProgram(prog)
-        r._set_view(locs, view, W, H)
+        r.set_view(locs, view, W, H)
         gl_light.surface_uniforms(r, locs, view, lighting, maps)
     else:
-        prog, locs = r._program(shaders.VERTEX, shaders.SURFACE)
+        prog, locs = r.programs.get(shaders.VERTEX, shaders.SURFACE)
         GL.glUseProgram(prog)
-        r._set_view(locs, view, W, H)
+        r.set_view(locs, view, W, H)
         sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
         GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
         GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
@@ -56,14 +64,11 @@ def surface_pass(
     if msaa > 1 and sampling.per_sample_shading:
         GL.glEnable(GL.GL_SAMPLE_SHADING)
         GL.glMinSampleShading(1.0)
-    r._draw(view, items, locs, lit=True, ids=False)
+    r.draw(view, items, locs, lit=True, ids=False)
     GL.glDisable(GL.GL_SAMPLE_SHADING)
     log.append("surface+range" if len(surf.textures) > 1 else "surface")  # range: from the depth it keeps
     if done is not None:
         done("render")
-
-    from seasynth.worker.frame.formation import GLSL_HAZE
-    from seasynth.worker.frame.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 
     second = want_clean or sample_range
     # 8-bit codes are read back packed as RGB (unpacking RGBA on the CPU cost 23 ms a 1080p frame on llvmpipe,
@@ -75,8 +80,6 @@ def surface_pass(
     compute = r.compute_resolve
     volume = physical and not sample_range  # audits (samples()) read J and range before any water
     if volume:
-        from seasynth.worker.light.glsl import VOLUME
-
         src = shaders.RESOLVE.replace("HAZE_FUNCTION", VOLUME)
         extra_defines = {"PHYSICAL": True, **gl_light.defines(lighting)}
     else:
@@ -85,7 +88,7 @@ def surface_pass(
     src = src.replace("SRGB8_FUNCTION", GLSL_SRGB8).replace("RANGE_FUNCTION", depth.RANGE_FUNCTION)
     if compute:
         src = src.replace("#version 330 core", r.compute_header, 1)
-    prog, locs = r._program(
+    prog, locs = r.programs.get(
         None if compute else shaders.FULLSCREEN,
         src,
         **extra_defines,
@@ -133,7 +136,7 @@ def surface_pass(
         GL.glDrawBuffers([GL.GL_COLOR_ATTACHMENT0 + slot for slot in range(len(formats))])
         GL.glDisable(GL.GL_DEPTH_TEST)
         GL.glViewport(0, 0, w, h)
-        GL.glBindVertexArray(r._empty_vao)
+        GL.glBindVertexArray(r.empty_vao)
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glBindVertexArray(0)
         GL.glEnable(GL.GL_DEPTH_TEST)
@@ -168,7 +171,9 @@ class SurfaceReads:
     nan: Pending | None  # 8-bit frames: where the linear colour was NaN
 
     def fetch(self, rb: Readback) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """(image, clean or the one sample's range, nearest sample range), as surface_pass describes them."""
+        """(image, clean or the one sample's range, nearest sample range), as surface_pass describes them: image
+        (h, w, 3) float32 linear, or uint8 sRGB codes; clean (h, w, 3) float32 linear, or the sample's range in
+        channel 0 (metres); nearest (h, w) float32 metres, +inf where no sample hits."""
         image = rb.fetch(self.image)
         extra = None if self.extra is None else rb.fetch(self.extra)
         nearest = None if self.nearest is None else rb.fetch(self.nearest)
