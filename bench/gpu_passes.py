@@ -18,7 +18,7 @@ import seasynth.worker.render.gl_light as gl_light
 def main(w: int, h: int) -> None:
     spec = load_spec("examples/urchins.yaml", {"camera.width": w, "camera.height": h})
     with RenderSession() as s:
-        r = s.renderer; GL = r._gl
+        r = s.renderer; GL = r.gl
         times = collections.defaultdict(list)
         pending = []
         def timed(name, fn):

@@ -63,8 +63,8 @@ def apply_variants(variants: list[str]) -> None:
 
     targets.Targets.surface = surface
     if "clear-colour" in variants:
-        real = gl_renderer.GLRenderer._bind_and_clear
-        gl_renderer.GLRenderer._bind_and_clear = lambda self, t, clears: real(
+        real = gl_renderer.GLRenderer.bind_and_clear
+        gl_renderer.GLRenderer.bind_and_clear = lambda self, t, clears: real(
             self, t, ("colour",) if clears == ("keep",) else clears)
 
 
@@ -101,8 +101,8 @@ def main(w: int, h: int, preset_name: str, variants: list[str], seconds: float =
     spec = load_spec("examples/urchins.yaml", {"camera.width": w, "camera.height": h})
     with RenderSession() as s:
         r = s.renderer
-        GL = r._gl
-        real_maps, real_clear = gl_light.shadow_maps, r._bind_and_clear
+        GL = r.gl
+        real_maps, real_clear = gl_light.shadow_maps, r.bind_and_clear
         current: list[Stamps] = []
 
         def maps(*a, **k):
@@ -115,7 +115,7 @@ def main(w: int, h: int, preset_name: str, variants: list[str], seconds: float =
             if clears[0] in ("keep", "colour"):
                 current[-1]("clear")
 
-        gl_light.shadow_maps, r._bind_and_clear = maps, bind_and_clear
+        gl_light.shadow_maps, r.bind_and_clear = maps, bind_and_clear
         stage_name = {"render": "surface", "formation": "resolve", "ids": "ids"}
 
         def submit(view, items, light, water):

@@ -19,6 +19,7 @@ from typing import Any
 
 import httpx
 
+from seasynth.bench.meters import CpuMeter, GpuSampler, rates
 from seasynth.service.gpus import GpuChoice
 from seasynth.service.spec.dataset import MAX_SHARD_MEGAPIXELS, DatasetSpec
 
@@ -39,7 +40,6 @@ def service_shard_size(frames_per_worker: int, pixels_per_frame: int = 0) -> int
 def run_service(spec: DatasetSpec, workers: int, platform: str, gpus: GpuChoice | None,
                 storage: str = "s3") -> dict[str, Any]:
     """frames, wall and steady fps, utilisation, and frames_stored (what the bucket holds) of one service run."""
-    from seasynth.bench.scale import CpuMeter, GpuSampler, rates
     from seasynth.bench.stack import local_stack
 
     worker_env = {"SEASYNTH_GL_PLATFORM": platform, **({"SEASYNTH_GPUS": str(gpus)} if gpus is not None else {})}

@@ -94,7 +94,7 @@ def time_stock(scenes: list, spec: DatasetSpec) -> float:
 
 def time_stages(session, spec: DatasetSpec, frames: int, out: Path) -> dict[str, float]:
     """Median seconds per stage over frames WARMUP..frames-1 (GL work is waited for at each stage)."""
-    from seasynth.worker.local.generate import write_frame
+    from seasynth.worker.local.folder import write_frame
     from seasynth.worker.frame.function import frame_paths
 
     per_stage: dict[str, list[float]] = {s: [] for s in STAGES}

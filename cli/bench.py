@@ -7,7 +7,7 @@ from typing import Annotated, Optional, get_args
 
 import typer
 
-from seasynth.cli import PlatformOpt, bench_app
+from seasynth.cli.app import PlatformOpt, bench_app
 
 
 @bench_app.command("throughput")

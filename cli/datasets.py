@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from seasynth.cli import (
+from seasynth.cli.app import (
     FramesOpt,
     HeightOpt,
     Interrupted,

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from seasynth.cli import PlatformOpt, app, count_or_auto
+from seasynth.cli.app import PlatformOpt, app, count_or_auto
 
 
 @app.command()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from seasynth.bench import scale
+from seasynth.bench import meters, scale
 from seasynth.bench.scale_service import service_shard_size
 
 FIELDS = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "first_frame_s", "wall_fps", "steady_fps",
@@ -38,10 +38,10 @@ def test_scale_rows_and_files(tmp_path):
 def test_rates_count_the_steady_part_after_a_quarter_of_the_frames():
     # 8 frames: two at 1 s, then one a second from 2 s to 7 s; the steady part is frames 3..8 after the 2nd one.
     stamps = [1.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]
-    got = scale.rates(stamps, t0=0.0, wall=8.0)
+    got = meters.rates(stamps, t0=0.0, wall=8.0)
     assert got == {"wall_s": 8.0, "first_frame_s": 1.0, "wall_fps": 1.0, "steady_fps": 1.0,
                    "done_at_s": {"10": 1.0, "25": 1.0, "50": 3.0, "75": 5.0, "90": 7.0, "100": 7.0}}
-    assert scale.rates([2.0, 2.0], t0=0.0, wall=4.0)["steady_fps"] == 0.5  # no span: the whole run's rate
+    assert meters.rates([2.0, 2.0], t0=0.0, wall=4.0)["steady_fps"] == 0.5  # no span: the whole run's rate
 
 
 def test_more_gpus_than_found_stop_before_any_row(monkeypatch):

@@ -11,7 +11,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from test_calibration import BETA_D, B_INF, full_spec, photo
+from calibration_helpers import BETA_D, B_INF, full_spec, photo
 
 
 def seasynth(*args) -> subprocess.CompletedProcess:

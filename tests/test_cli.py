@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from seasynth import service
-from seasynth.worker.local.generate import RECORD
+from seasynth.worker.local.folder import RECORD
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 

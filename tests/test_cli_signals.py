@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from seasynth.service.spec.dataset import load_spec
-from seasynth.worker.local.generate import RECORD, generate
+from seasynth.worker.local.folder import RECORD
+from seasynth.worker.local.generate import generate
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 FRAMES = 100  # seconds of work at 48 x 36: still going when the signal comes

@@ -17,7 +17,7 @@ from seasynth.service.errors import ExportError
 from seasynth.worker.frame import kitti
 from seasynth.worker.export import SPLITS, plan_export, run_export, split_of
 from seasynth.worker.export.files import EXPORT_RECORD
-from seasynth.worker.local.generate import RECORD
+from seasynth.worker.local.folder import RECORD
 
 pytest.importorskip("mcap")
 pytest.importorskip("mcap_ros2")

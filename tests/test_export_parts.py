@@ -17,7 +17,8 @@ from seasynth.worker.export import GENERATED_EXPORTS, SPLITS, plan_export, run_e
 from seasynth.worker.export.files import EXPORT_RECORD
 from seasynth.worker.export.merge import PartMerger, mcap_name
 from seasynth.worker.export.parts import REBUILT_AT_MERGE, kitti_names, parts_render_spec, write_part
-from seasynth.worker.local.generate import RECORD, generate
+from seasynth.worker.local.folder import RECORD
+from seasynth.worker.local.generate import generate
 
 FRAMES = 7
 SPEC = {"camera.width": 48, "camera.height": 36, "frames": FRAMES, "outputs.split": [0.5, 0.25, 0.25]}

@@ -8,7 +8,7 @@ from test_hard_cases import LIGHT, camera_view, fronto_quad, label_frame, pinhol
 from seasynth.worker.scene.assets.procedural import procedural_asset
 from seasynth.worker.frame.function import PRESETS
 from seasynth.worker.render import Passes, View
-from seasynth.worker.scene.sample import look_at_pose, rigid_inverse
+from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 
 W, H = 24, 16
 K = pinhole(W, H, 60.0)

@@ -19,7 +19,8 @@ from seasynth import service
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame import kitti
 from seasynth.worker.frame.formation import haze
-from seasynth.worker.local.generate import RECORD, generate, reproduce
+from seasynth.worker.local.folder import RECORD
+from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.frame.function import frame_paths
 from seasynth.worker.frame.labels import tight_boxes
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8

@@ -23,7 +23,7 @@ from selenium.webdriver.support.ui import Select
 
 from browser import chromium, playground_server, prefix_proxy, set_value, wait
 from seasynth.service.spec.dataset import parse_spec
-from seasynth.worker.local.generate import RECORD
+from seasynth.worker.local.folder import RECORD
 
 SPEC = {
     "seed": 5,

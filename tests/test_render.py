@@ -9,7 +9,7 @@ import trimesh
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame.function import DEPTH_SCALE, PRESETS, depth_png16, ray_norms, to_render_mesh
 from seasynth.worker.render import DrawItem, Lighting, Passes, Sampling, View, WaterParams
-from seasynth.worker.scene.sample import rotation_between
+from seasynth.worker.scene.poses import rotation_between
 
 EXAMPLE = "examples/urchins.yaml"
 LIGHT = Lighting(sun_dir_world=np.array([0.0, -1.0, 0.0]), sun_intensity=1.0, ambient=0.2)

@@ -18,7 +18,7 @@ from seasynth.service.spec.dataset import load_spec, parse_spec
 from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.frame.function import to_render_mesh
 from seasynth.worker.render import DrawItem
-from seasynth.worker.scene.sample import look_at_pose
+from seasynth.worker.scene.poses import look_at_pose
 from seasynth.worker.sensors import vehicle_from_sensor
 from seasynth.worker.sensors.nav import G, P_ATM, RHO, cast, dvl_record, imu_record, janus_directions, pressure_record
 from seasynth.worker.scene.trajectory import GRAVITY, lawnmower_state

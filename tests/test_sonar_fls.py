@@ -17,7 +17,7 @@ from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.frame.function import to_render_mesh
 from seasynth.worker.render import DrawItem
-from seasynth.worker.scene.sample import look_at_pose, rigid_inverse
+from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 from seasynth.worker.sensors.fls import (
     FULL_SCALE,
     absorption_db_per_m,

@@ -16,7 +16,7 @@ from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.frame.function import to_render_mesh
 from seasynth.worker.render import DrawItem
-from seasynth.worker.scene.sample import look_at_pose
+from seasynth.worker.scene.poses import look_at_pose
 from seasynth.worker.sensors.fls import absorption_db_per_m
 from seasynth.worker.sensors.sss import side_echo, sss_frame, sss_grid, waterfall
 

@@ -27,7 +27,8 @@ from seasynth.service.sheet import (
     tile_origin,
 )
 from seasynth.service.spec.dataset import load_spec
-from seasynth.worker.local.generate import RECORD, generate
+from seasynth.worker.local.folder import RECORD
+from seasynth.worker.local.generate import generate
 from seasynth.worker.frame.function import frame_paths
 from seasynth.worker.preview.sheet import make_preview
 

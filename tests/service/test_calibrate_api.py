@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from service_stack import Stack
-from test_calibration import B_INF, BETA_D, bomb_png, full_spec, photo
+from calibration_helpers import B_INF, BETA_D, bomb_png, full_spec, photo
 
 MAX_BODY = 3_000_000  # SEASYNTH_MAX_ASSET_BYTES of this API: the whole multipart body may be 64 KiB more
 

@@ -94,7 +94,8 @@ def test_a_worker_of_another_version_republishes_a_shard_untouched_to_its_versio
     with isolated(stack, 14) as (env, services):
         ds = record_only(services, tiny_spec(frames=4, shard_size=2))
         # A worker whose code says it is another version: it consumes that version's queue only.
-        code = ("import sys, service; seasynth.service.__version__ = sys.argv[1]; from seasynth.cli import main; "
+        code = ("import sys; import seasynth.service as service; service.__version__ = sys.argv[1]; "
+                "from seasynth.cli.main import main; "
                 "sys.argv = ['seasynth', 'worker', '--concurrency', '1', '--queues', 'shards']; main()")
         worker = stack.start("worker-other-version", [sys.executable, "-c", code, OTHER_VERSION], env=env)
         try:

@@ -22,7 +22,9 @@ from typing import BinaryIO
 import numpy as np
 
 from seasynth.service.errors import ExportError
-from seasynth.worker.export import SPLITS, ExportInfo, Frame
+from seasynth.service.spec.outputs import SPLITS
+from seasynth.worker.export.base import ExportInfo
+from seasynth.worker.export.dataset import Frame
 from seasynth.worker.export.files import atomic_writer, make_dirs, place_file, tmp_name
 
 ANN_ID_STRIDE = 1 << 16  # instance ids are uint16, so frame * stride + id never collides

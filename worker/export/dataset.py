@@ -10,11 +10,16 @@ from pathlib import Path
 
 import numpy as np
 
+from seasynth import service
 from seasynth.service.errors import AssetError, ExportError, SpecError
 from seasynth.service.shards import FRAME_PARTS, SENSOR_PARTS, frame_file, frame_name, frame_parts
 from seasynth.service.spec.dataset import DatasetSpec, parse_spec, spec_digest
+from seasynth.worker.frame.function import DEPTH_SCALE, RenderSession, frame_paths
+from seasynth.worker.frame.kitti import parse_calib, parse_label_file
+from seasynth.worker.frame.labels import tight_box_arrays
+from seasynth.worker.scene.assets.user import check_assets
 
-LOCAL_RECORD = "seasynth.json"  # written by `seasynth generate` (seasynth.worker.local.generate.RECORD)
+LOCAL_RECORD = "seasynth.json"  # written by `seasynth generate` (seasynth.worker.local.folder.RECORD)
 FETCHED_RECORD = "manifest.json"  # written by `seasynth fetch`
 MISSING_NAMED = 10  # missing files named in an error; the rest are counted
 
@@ -92,7 +97,6 @@ class FrameScan:
 
 def scan_frames(ds: LocalDataset) -> FrameScan:
     """Check every frame's files exist (the rule `generate --resume` uses: a file exists only once whole)."""
-    from seasynth.worker.frame.function import frame_paths
 
     complete = np.ones(ds.spec.frames, dtype=bool)
     missing, named = 0, []
@@ -189,9 +193,6 @@ class FrameReader:
             raise ExportError(f"{self.ds.root}: no instance/ to take masks from, and its spec names uploaded "
                               f"assets ({', '.join(uploaded)}) that cannot be re-rendered here; generate it with "
                               "outputs.instance on")
-        from seasynth.worker.local.generate import check_assets
-        from seasynth.worker.frame.function import RenderSession
-
         try:
             check_assets(self.ds.spec)
         except AssetError as err:
@@ -274,7 +275,6 @@ def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
 
 def camera_projection(path: Path) -> np.ndarray:
     """(3, 4) float64 P2 of a calib file: K [I | 0] of the frame's camera, pixels."""
-    from seasynth.worker.frame.kitti import parse_calib
 
     try:
         text = _read_bytes(path).decode("utf-8")
@@ -301,7 +301,6 @@ def depth_metres(path: Path, width: int, height: int) -> np.ndarray:
     """(height, width) float32 z-depth in metres of a KITTI depth PNG (uint16 metres * 256); NaN where 0."""
     from PIL import Image, UnidentifiedImageError
 
-    from seasynth.worker.frame.function import DEPTH_SCALE
 
     try:
         with Image.open(io.BytesIO(_read_bytes(path))) as img:
@@ -318,8 +317,6 @@ def depth_metres(path: Path, width: int, height: int) -> np.ndarray:
 
 
 def _code_version() -> str:
-    from seasynth import service
-
     return service.__version__
 
 
@@ -350,7 +347,6 @@ def decode_instance(data: bytes, where: str) -> np.ndarray:
 
 def _label_objects(path: Path, text: str, class_name: str) -> list[FrameObject]:
     """The label_2 lines as objects (no masks yet); boxes must be whole pixel indices of the target class."""
-    from seasynth.worker.frame.kitti import parse_label_file
 
     try:
         parsed = parse_label_file(text)
@@ -373,7 +369,6 @@ def _with_masks(objects: list[FrameObject], instance: np.ndarray, meta: dict, wh
                 distractors: bool) -> list[FrameObject]:
     """Give each label line its instance id (meta's objects[].label_line) and pixel count, checking that the
     tight box of that id's pixels is the line's box; then add the visible distractors when asked."""
-    from seasynth.worker.frame.labels import tight_box_arrays
 
     ids, boxes, counts = tight_box_arrays(instance)
     present = {int(i): (tuple(int(v) for v in b), int(c)) for i, b, c in zip(ids, boxes, counts)}

@@ -50,7 +50,9 @@ import numpy as np
 
 from seasynth.service.errors import ExportError
 from seasynth.service.spec.sensors import Trajectory
-from seasynth.worker.export import SPLITS, ExportInfo, Frame
+from seasynth.service.spec.outputs import SPLITS
+from seasynth.worker.export.base import ExportInfo
+from seasynth.worker.export.dataset import Frame
 from seasynth.worker.export.dataset import camera_pose, camera_projection, depth_metres
 from seasynth.worker.export.files import make_dirs, tmp_name
 from seasynth.worker.export.mcap_sensors import SENSOR_DEFS, SENSOR_TOPICS, sensor_messages

@@ -10,7 +10,9 @@ relative to it; Ultralytics finds the labels by replacing images/ with labels/) 
 from __future__ import annotations
 
 from seasynth.service.errors import ExportError
-from seasynth.worker.export import SPLITS, ExportInfo, Frame
+from seasynth.service.spec.outputs import SPLITS
+from seasynth.worker.export.base import ExportInfo
+from seasynth.worker.export.dataset import Frame
 from seasynth.worker.export.files import make_dirs, place_file, write_atomic
 
 DECIMALS = 10

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 from collections.abc import Callable
-from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -91,14 +90,6 @@ def depth_png16(range_m: np.ndarray, norms: np.ndarray) -> np.ndarray:
 def scene_light(scene: Scene):
     """What the renderer shades with: the physical model's light, else the paper's lighting."""
     return scene.light if scene.light is not None else scene.lighting
-
-
-@dataclass(frozen=True)
-class FrameLabels:
-    objects: list[labels.KittiObject]
-    line_of: dict[int, int]  # instance id -> 0-based label line
-    visible: dict[int, int]  # instance id -> visible pixels
-    alone: dict[int, int]  # instance id -> pixels when rendered alone
 
 
 class RenderSession:
@@ -283,7 +274,7 @@ class RenderSession:
         mark("encode")
         return files
 
-    def labels(self, view: View, scene: Scene, items: list[DrawItem], result: RenderResult) -> FrameLabels:
+    def labels(self, view: View, scene: Scene, items: list[DrawItem], result: RenderResult) -> labels.FrameLabels:
         """KITTI objects of the targets with at least one visible pixel, in instance-id order."""
         boxes = labels.tight_boxes(result.instance)
         objects, line_of, visible, alone = [], {}, {}, {}
@@ -301,9 +292,9 @@ class RenderSession:
             visible[p.instance_id] = box.pixels
             alone[p.instance_id] = alone_px
             objects.append(labels.kitti_object(p.class_name, box, labels.box3d(pts), truncated, occluded))
-        return FrameLabels(objects=objects, line_of=line_of, visible=visible, alone=alone)
+        return labels.FrameLabels(objects=objects, line_of=line_of, visible=visible, alone=alone)
 
-    def meta(self, spec, index, scene: Scene, view: View, fl: FrameLabels | None, noise,
+    def meta(self, spec, index, scene: Scene, view: View, fl: labels.FrameLabels | None, noise,
              sensors: SensorFrame | None = None) -> str:
         """The frame's audit record (seasynth.worker.frame.meta.frame_meta) as JSON text."""
         return frame_meta(spec, index, scene, view, PRESETS[spec.quality], fl, noise, sensors, self.renderer_name,

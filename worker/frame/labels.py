@@ -286,3 +286,13 @@ def kitti_object(name: str, box2d: Box2D, box: Box3D, truncated: float, occluded
         location=(box.x, box.y, box.z),
         rotation_y=box.rotation_y,
     )
+
+
+@dataclass(frozen=True)
+class FrameLabels:
+    """A frame's label lines and the pixel counts they were judged on."""
+
+    objects: list[KittiObject]
+    line_of: dict[int, int]  # instance id -> 0-based label line
+    visible: dict[int, int]  # instance id -> visible pixels
+    alone: dict[int, int]  # instance id -> pixels when rendered alone

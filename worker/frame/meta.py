@@ -4,16 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from typing import TYPE_CHECKING
 
 from seasynth import service
 from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.frame.labels import FrameLabels
 from seasynth.worker.render import Sampling, View
 from seasynth.worker.scene.sample import Placed, Scene
 from seasynth.worker.sensors.outputs import SensorFrame
-
-if TYPE_CHECKING:
-    from seasynth.worker.frame.function import FrameLabels
 
 
 def frame_meta(spec: DatasetSpec, index: int, scene: Scene, view: View, sampling: Sampling, fl: FrameLabels | None,

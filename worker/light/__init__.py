@@ -120,3 +120,9 @@ class PhysicalLight:
             "terms": self.terms.names(),
             "caustics": self.caustics.record() if self.terms.caustics else None,
         }
+
+
+def hg(cos_theta: np.ndarray, g: float) -> np.ndarray:
+    """Henyey-Greenstein phase function (1/sr) of the scattering angle's cosine."""
+    denom = np.maximum(1.0 + g * g - 2.0 * g * cos_theta, 1e-12)
+    return (1.0 - g * g) / (4.0 * math.pi * denom**1.5)

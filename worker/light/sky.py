@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from seasynth.worker.light import SNELL_CONE_DEG
+from seasynth.worker.light import SNELL_CONE_DEG, hg
 
 SKY_PHASE_NODES = 129  # w_z = -1, -1 + 2/128, ..., 1
 _POLAR_NODES, _AZIMUTH_NODES = 48, 96  # quadrature over the window: < 1e-4 relative for g <= 0.95, ~20 ms
@@ -31,8 +31,6 @@ def window_radiance(sky_irradiance: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=32)
 def _table(g: float) -> np.ndarray:
-    from seasynth.worker.light.volume import hg
-
     cos_c = math.cos(math.radians(SNELL_CONE_DEG))
     x, wx = np.polynomial.legendre.leggauss(_POLAR_NODES)
     mu = cos_c + (1.0 - cos_c) * (x + 1.0) / 2.0  # cos of the light's angle to the zenith

@@ -17,19 +17,13 @@ import math
 
 import numpy as np
 
-from seasynth.worker.light import SNELL_CONE_DEG, PhysicalLight
+from seasynth.worker.light import SNELL_CONE_DEG, PhysicalLight, hg
 from seasynth.worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
                                 cone_interval, light_factor, reach)
 from seasynth.worker.light.sky import sky_phase, sky_phase_table, window_radiance
 
 MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
 _SMALL = 1e-2  # |alpha z| below this: the series of (1 - exp(-x)) / x to x^3 (truncation < 1e-10)
-
-
-def hg(cos_theta: np.ndarray, g: float) -> np.ndarray:
-    """Henyey-Greenstein phase function (1/sr) of the scattering angle's cosine."""
-    denom = np.maximum(1.0 + g * g - 2.0 * g * cos_theta, 1e-12)
-    return (1.0 - g * g) / (4.0 * math.pi * denom**1.5)
 
 
 def segment(x1: np.ndarray, alpha: np.ndarray, z: np.ndarray) -> np.ndarray:

@@ -13,9 +13,11 @@ from pathlib import Path
 from seasynth.service.errors import OutputError, SeasynthError
 from seasynth.service.gpus import GpuChoice
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.local.generate import CHUNK, write_frame, wrong_renderer
+from seasynth.worker.local.folder import write_frame, wrong_renderer
 from seasynth.worker.frame.function import RenderSession
 from seasynth.worker.local.pool_start import pool_context, sigint_blocked_for_children
+
+CHUNK = 4  # frames a local worker takes at a time: small enough to balance, large enough to amortise IPC
 
 
 def run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, timeline: str | None = None) -> str:

@@ -17,6 +17,8 @@ from seasynth.worker.scene.assets.terrain import Terrain
 from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.build import sample_physical
 from seasynth.worker.render import Lighting, WaterParams
+from seasynth.worker.scene.poses import look_at_pose, rigid_inverse, rotation_between
+from seasynth.worker.scene.trajectory import vehicle_state
 from seasynth.worker.sensors import world_from_sensor
 
 PLACEMENT_TRIES = 24  # per object, before it is left out
@@ -71,40 +73,6 @@ class Scene:
 
 
 AssetSource = Callable[[AssetRef, int], Asset]
-
-
-def rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of a (4, 4) rotation + translation."""
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation taking unit vector a onto unit vector b (the shortest arc)."""
-    v = np.cross(a, b)
-    c = float(np.dot(a, b))
-    if c < -1 + 1e-12:  # opposite: rotate by pi about any axis perpendicular to a
-        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1 + c)
-
-
-def look_at_pose(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(4, 4) world_from_cam in KITTI axes, looking from eye at target with world +z as up."""
-    f = target - eye
-    f = f / np.linalg.norm(f)
-    right = np.cross(f, [0.0, 0.0, 1.0])
-    if np.linalg.norm(right) < 1e-6:  # looking straight up or down: take world +y as the image's up
-        right = np.cross(f, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(f, right)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = right, down, f, eye
-    return T
 
 
 def in_box(points: np.ndarray, box: Box) -> np.ndarray:
@@ -271,8 +239,6 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
     if spec.trajectory.kind == "random":
         world_from_cam, look_at, look_id, tries = _draw_camera(spec, rng, terrain, placed, spheres)
     else:  # a survey's pose is its trajectory's (frame 0 here, see on_trajectory): no draw, so no workspace fails it
-        from seasynth.worker.scene.trajectory import vehicle_state
-
         world_from_cam = vehicle_state(spec.trajectory, 0).world_from_vehicle
         look_at, look_id, tries = world_from_cam[:3, 3] + world_from_cam[:3, 2], None, 0
 
@@ -372,8 +338,6 @@ def on_trajectory(scene: Scene, spec: DatasetSpec, index: int) -> Scene:
     """The scene seen from the trajectory's vehicle pose at frame `index` (seasynth.worker.scene.trajectory), which must lie above
     the terrain and outside every object, as must each enabled sensor."""
     import dataclasses
-
-    from seasynth.worker.scene.trajectory import vehicle_state
 
     state = vehicle_state(spec.trajectory, index)
     T = state.world_from_vehicle

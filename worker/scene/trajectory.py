@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from seasynth.service.spec.sensors import Trajectory
-from seasynth.worker.scene.sample import look_at_pose
+from seasynth.worker.scene.poses import look_at_pose
 
 GRAVITY = np.array([0.0, 0.0, -9.80665])  # m/s^2, world (z up)
 

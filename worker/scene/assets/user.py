@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.scene.assets import Asset, AssetError, freeze, read_source
 from seasynth.worker.scene.assets.terrain import Terrain, Texture, decode_texture
 
@@ -175,3 +176,22 @@ def top_surface(vertices: np.ndarray, faces: np.ndarray, extent: tuple[float, fl
         nearest = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
         grid = grid[tuple(nearest)]
     return grid
+
+
+def check_assets(spec: DatasetSpec) -> dict[str, str]:
+    """Fail before any rendering if a user mesh or texture named by the spec cannot be used.
+
+    Returns the sha256 of each local user file by the spec field that names it.
+    """
+    files = {}
+    for field, ref in spec.file_refs():
+        if ref.path is None:
+            continue
+        if field == "terrain.texture":
+            # Decoded, not only read: a bad image fails here, not at a frame.
+            files[field] = load_user_texture(Path(ref.path)).sha256
+        elif field == "terrain.mesh":
+            files[field] = load_user_terrain(Path(ref.path)).sha256
+        else:
+            files[field] = load_user_asset(Path(ref.path)).sha256
+    return files
