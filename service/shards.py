@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from seasynth.service.spec.dataset import MAX_FRAMES
 
 DATASET_ID = re.compile(r"^[0-9a-f]{32}$")
 ASSET_ID = re.compile(r"^[0-9a-f]{64}$")
@@ -237,8 +238,6 @@ def media_type(path: str) -> str:
 
 def frame_name(index: int) -> str:
     """KITTI's six-digit file stem of frame `index` (the spec's frame limit keeps every index below 10^6)."""
-    from seasynth.service.spec.dataset import MAX_FRAMES
-
     if not 0 <= index < MAX_FRAMES:
         raise ValueError(f"frame index {index} is outside 0..{MAX_FRAMES - 1}")
     return f"{index:06d}"

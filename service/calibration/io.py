@@ -10,6 +10,7 @@ from pathlib import PurePath
 import numpy as np
 
 from seasynth.service.errors import CalibrationError
+from seasynth.service.calibration.estimate import estimate_water
 
 MAX_PHOTO_PIXELS = 64 * 2**20  # a photo or range map over this many pixels is refused before it is decoded
 RANGE_FORMATS = {
@@ -118,8 +119,6 @@ def read_inputs(photo: bytes, photo_name: str, depth: bytes | None = None, depth
 def estimate_files(photo: bytes, photo_name: str, depth: bytes | None = None, depth_name: str = "depth", **options):
     """seasynth.service.calibration.estimate.estimate_water of a photo file and optional range map file (read_inputs), its errors
     naming the file at fault where estimate_water names its argument (image, range_m)."""
-    from seasynth.service.calibration.estimate import estimate_water
-
     image, range_m = read_inputs(photo, photo_name, depth, depth_name)
     try:
         return estimate_water(image, range_m, **options)

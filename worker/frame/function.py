@@ -24,6 +24,9 @@ from seasynth.worker.scene.sample import Placed, Scene, on_trajectory, sample_sc
 from seasynth.worker.sensors.outputs import SensorFrame, sensor_frame, sensors_on
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 from seasynth.worker.scene.variant_cache import VariantCache
+from seasynth.worker.scene.assets.user import load_user_asset
+from seasynth.worker.scene.assets.user import load_user_terrain
+from seasynth.worker.scene.assets.user import load_user_texture
 
 # Quality presets: how many samples make a pixel and where they are shaded. The water is always applied per
 # sample, in float32, before samples are averaged in linear light. `fast` shades once per pixel at its centre
@@ -143,23 +146,17 @@ class RenderSession:
     def asset_for(self, ref: AssetRef, variant: int | None) -> Asset:
         if ref.procedural is not None:
             return procedural_asset(ref.procedural, variant)
-        from seasynth.worker.scene.assets.user import load_user_asset
-
         return load_user_asset(self._file(ref))
 
     def terrain_for(self, spec: DatasetSpec, rng: np.random.Generator) -> Terrain:
         t = spec.terrain
         if t.mesh is not None:
-            from seasynth.worker.scene.assets.user import load_user_terrain
-
             terrain = load_user_terrain(self._file(t.mesh))
         else:
             style = t.styles[rng.integers(len(t.styles))]
             variant = int(rng.integers(t.variants))
             terrain = self.variants.terrain(style, variant, t.size_m, t.cells, t.relief_m)
         if t.texture is not None:
-            from seasynth.worker.scene.assets.user import load_user_texture
-
             terrain = apply_texture(terrain, load_user_texture(self._file(t.texture)), t.texture_tile_m)
         return terrain
 

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from seasynth.service.gpus import GpuChoice
+from seasynth.worker.render.devices import resolve_gpus
 
 PROCESSES_PER_CORE_ON_GPU = 1.5
 
@@ -73,8 +74,6 @@ def gpus_found(platform: str, choice: GpuChoice | None) -> int:
     if ":" in platform:  # egl:N, one device named
         return 1
     try:
-        from seasynth.worker.render.devices import resolve_gpus
-
         return len(resolve_gpus(choice or GpuChoice(), "egl"))
     except Exception:  # no EGL library, no device, more GPUs asked for than found
         return 0

@@ -22,6 +22,7 @@ from seasynth.worker.local.folder import (
 )
 from seasynth.worker.local.pool import run_pool
 from seasynth.worker.scene.assets.user import check_assets
+from seasynth.worker.render.devices import platform_for_worker
 
 
 @dataclass(frozen=True)
@@ -118,8 +119,6 @@ def _run(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, timel
     if not todo:
         return ""
     if workers == 1:
-        from seasynth.worker.render.devices import platform_for_worker
-
         with RenderSession(platform=platform_for_worker(platform, gpus, 0)) as session:
             pin(session.renderer_name)
             for i in todo:

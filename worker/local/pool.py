@@ -16,6 +16,9 @@ from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.local.folder import write_frame, wrong_renderer
 from seasynth.worker.frame.function import RenderSession
 from seasynth.worker.local.pool_start import pool_context, sigint_blocked_for_children
+from seasynth.service import errors
+from seasynth.worker.render.devices import platform_for_worker
+from seasynth.worker.scene.sample import SceneError
 
 CHUNK = 4  # frames a local worker takes at a time: small enough to balance, large enough to amortise IPC
 
@@ -139,9 +142,7 @@ def _pool_main(payload: str, out: str, conn, platform: str, gpus: GpuChoice | No
     note = Timeline(timeline, k)
     note("start")
     spec = DatasetSpec.model_validate_json(payload)
-    try:
-        from seasynth.worker.render.devices import platform_for_worker  # lists EGL devices here, never in the parent
-
+    try:  # platform_for_worker lists the EGL devices: here, in the render process, never in the parent
         with RenderSession(platform=platform_for_worker(platform, gpus, k), variant_folder=variants) as session:
             note("renderer")
             if pinned is not None and session.renderer_name != pinned:  # checked here: workers write frames
@@ -192,12 +193,8 @@ class Timeline:
 
 def _rebuild_error(value: tuple[str, str, str]) -> Exception:
     module, name, message = value
-    from seasynth.service import errors
-
     cls = getattr(errors, name, None) if module == errors.__name__ else None
     if cls is None:
-        from seasynth.worker.scene.sample import SceneError
-
         cls = SceneError if name == "SceneError" else SeasynthError
         message = message if cls is SceneError else f"{name}: {message}"
     return cls(message)

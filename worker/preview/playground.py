@@ -20,6 +20,8 @@ from seasynth.service.kitti import parse_label_file
 from seasynth.service.shards import frame_file, media_type
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.frame.function import RenderSession
+from seasynth.service.spec.dataset import parse_spec
+from seasynth.worker.scene.sample import INPUT_ERRORS
 
 log = logging.getLogger(__name__)
 
@@ -179,9 +181,6 @@ def preview_reply(session: RenderSession, kind: str, spec_json: dict, args: list
     """A frames-queue worker's answer to the API's preview request: (header, JSON body), or an error header
     with the status the API answers (422: the spec or its assets cannot render; 500: rendering failed)."""
     import json
-
-    from seasynth.service.spec.dataset import parse_spec
-    from seasynth.worker.scene.sample import INPUT_ERRORS
 
     try:
         spec = parse_spec(spec_json)

@@ -28,6 +28,7 @@ from seasynth.service.sheet import (
     markdown,
     tile_size,
 )
+from seasynth.worker.export.dataset import TARGET, FrameReader, open_local_dataset, scan_frames
 
 
 @dataclass(frozen=True)
@@ -78,8 +79,6 @@ def make_preview(dataset: Path, out: Path, frames: int = 12,
     complete frames to `out` with suffix .md, each atomically. Frames wider than `tile_width` px (None:
     TILE_WIDTH) are drawn scaled down. on_total gets the complete frame count once it is known, on_frames the
     frames read since its last call."""
-    from seasynth.worker.export.dataset import TARGET, FrameReader, open_local_dataset, scan_frames
-
     if frames < 1:
         raise ExportError(f"--frames must be at least 1, got {frames}")
     tile_width = TILE_WIDTH if tile_width is None else tile_width

@@ -17,6 +17,8 @@ import numpy as np
 
 from seasynth.service.errors import ExportError
 from seasynth.service.sheet import BOX_COLOURS, decode_png, draw_boxes, sonar_grey
+from seasynth.worker.export.dataset import open_local_dataset
+from seasynth.worker.preview.sheet import _write_atomic
 
 Box = tuple[int, int, int, int]  # (left, top, right, bottom), inclusive: columns and frame rows
 
@@ -49,8 +51,6 @@ def waterfall_boxes(labels: list[list[dict]]) -> list[tuple[str, int, str, Box]]
 def read_waterfall(dataset: Path) -> Waterfall:
     """Every frame's sss/ row and sss_label/ objects of a local dataset (generate or fetch); ExportError naming
     the file for a missing or malformed one."""
-    from seasynth.worker.export.dataset import open_local_dataset
-
     ds = open_local_dataset(dataset)
     sss = ds.spec.sensors.sss
     if not sss.enabled:
@@ -95,8 +95,6 @@ def draw_waterfall(w: Waterfall, row_height: int, labels: bool) -> np.ndarray:
 def write_waterfall(dataset: Path, out: Path, row_height: int = 1, labels: bool = False) -> tuple[Waterfall, Path]:
     """Write the waterfall of `dataset` to `out` (.png), atomically."""
     from PIL import Image
-
-    from seasynth.worker.preview.sheet import _write_atomic
 
     out = Path(out)
     if row_height < 1:

@@ -52,7 +52,8 @@ import numpy as np
 
 from seasynth.service.spec.sensors import FLS, FLS_STEPS_PER_BEAM, SSS, Acoustics
 from seasynth.worker.render import View
-from seasynth.worker.scene.sample import rigid_inverse
+from seasynth.worker.scene.poses import rigid_inverse
+from seasynth.worker.sensors.fan import fan_geometry, fan_image, label_records
 
 FINE_PER_BEAM = 4  # azimuth sub-bins per beam spacing, at least (fine_per_beam)
 TVG_PLAIN_MAX_DECADES = 100.0  # alpha r / 5 at the last bin edge up to which TVG multiplies the bins (folds_tvg)
@@ -318,8 +319,6 @@ def fls_frame(fls: FLS, acoustics: Acoustics, renderer, items: list, world_from_
               objects: dict[int, tuple[str, str | None]], depth_m: float, rng: np.random.Generator) -> FlsFrame:
     """One ping of the sonar at world_from_sonar (4, 4) float64 over the frame's draw items. objects: instance id
     -> (role, class name); depth_m: the sonar's depth below the surface (for alpha); rng: the frame's FLS stream."""
-    from seasynth.worker.sensors.fan import fan_geometry, fan_image, label_records
-
     grid = fls_grid(fls)
     instance, range_m = renderer.geometry(fls_view(fls, grid, world_from_sonar), items)
     rho = {"target": fls.reflectivity_target, "distractor": fls.reflectivity_distractor}

@@ -26,7 +26,8 @@ import numpy as np
 from seasynth.service.seeds import STREAM_NAV, STREAM_NAV_BIAS, frame_rng
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.render import View
-from seasynth.worker.scene.sample import Scene, look_at_pose, rigid_inverse
+from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
+from seasynth.worker.scene.sample import Scene
 from seasynth.worker.sensors import vehicle_from_sensor, world_from_sensor
 from seasynth.worker.scene.trajectory import GRAVITY, VehicleState, vehicle_state
 

@@ -13,6 +13,9 @@ from seasynth.service.shards import frame_file
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.scene.sample import Scene
 from seasynth.worker.sensors import world_from_sensor
+from seasynth.worker.sensors.fls import fls_frame
+from seasynth.worker.sensors.nav import nav_record
+from seasynth.worker.sensors.sss import sss_frame
 
 
 def sensors_on(s: Sensors) -> bool:
@@ -48,8 +51,6 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
     surface = surface_z(spec, scene, index)
     objects = {p.instance_id: (p.role, p.class_name) for p in scene.objects}
     if s.fls.enabled:
-        from seasynth.worker.sensors.fls import fls_frame
-
         pose = world_from_sensor(scene.world_from_cam, s.fls.pose)
         fr = fls_frame(s.fls, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
                        frame_rng(spec.seed, index, STREAM_FLS))
@@ -58,8 +59,6 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
         outputs[path("fls_label")] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
         record["fls"] = fr.record
     if s.sss.enabled:
-        from seasynth.worker.sensors.sss import sss_frame
-
         pose = world_from_sensor(scene.world_from_cam, s.sss.pose)
         fr = sss_frame(s.sss, s.acoustics, renderer, items, pose, objects, surface - float(pose[2, 3]),
                        frame_rng(spec.seed, index, STREAM_SSS))
@@ -67,8 +66,6 @@ def sensor_frame(spec: DatasetSpec, index: int, scene: Scene, items: list, rende
         outputs[path("sss_label")] = json.dumps({"objects": fr.labels}, indent=1, sort_keys=True) + "\n"
         record["sss"] = fr.record
     if s.any_nav:
-        from seasynth.worker.sensors.nav import nav_record
-
         nav = nav_record(spec, index, scene, items, renderer, surface)
         outputs[path("nav")] = json.dumps(nav, indent=1, sort_keys=True) + "\n"
         record["nav"] = nav

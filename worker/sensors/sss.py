@@ -28,7 +28,7 @@ import numpy as np
 
 from seasynth.service.spec.sensors import SSS, SSS_ANGLE_STEP_DEG, SSS_DEPRESSION_SPAN_DEG, Acoustics
 from seasynth.worker.render import View
-from seasynth.worker.scene.sample import rigid_inverse
+from seasynth.worker.scene.poses import rigid_inverse
 from seasynth.worker.sensors.fls import (
     absorption_db_per_m,
     beam_pattern,
