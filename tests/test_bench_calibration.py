@@ -108,9 +108,10 @@ def test_committed_table_is_this_bench_on_every_scene_and_water():
     assert table == calibration.format_table(result) + "\n"
 
 
-def test_committed_table_meets_the_targets_with_range_as_the_readme_says():
+def test_committed_table_meets_the_targets_with_range_as_the_docs_say():
     """The default estimator on the Jerlov waters: B_inf within 0.02 and beta_D, beta_B within 10% per channel (median
-    over the estimates that identify them), as the README quotes; off the prior it misses some, as it also says."""
+    over the estimates that identify them), as docs/calibration.md quotes; off the prior it misses some, as it also
+    says."""
     result = json.loads((RESULTS / "calibration.json").read_text())
     assert result["targets_met"] == {f"{q} {c}": True for q in ("B_inf", "beta_D", "beta_B") for c in "RGB"}
     off = result["targets_met_other"]["default, off-family waters"]
@@ -121,7 +122,7 @@ def test_committed_table_meets_the_targets_with_range_as_the_readme_says():
 
 def test_committed_physical_light_table_is_this_bench_on_physically_lit_frames():
     """`seasynth bench calibration --light physical --out bench/results/cpu/calibration-physical`: the same waters on
-    clean frames whose J falls with depth (the physical model's sun), the README's robustness figures."""
+    clean frames whose J falls with depth (the physical model's sun), docs/calibration.md's robustness figures."""
     folder = RESULTS / "calibration-physical"
     result = json.loads((folder / "calibration.json").read_text())
     assert result["clean_light"] == "physical"

@@ -1,4 +1,4 @@
-"""The committed accuracy tables: they are of the current scenes, and they meet the targets the README quotes."""
+"""The committed accuracy tables: they are of the current scenes, and they meet the targets bench/README.md quotes."""
 
 import json
 from pathlib import Path
@@ -98,9 +98,9 @@ def test_committed_fidelity_table_is_of_the_pinned_configurations_and_their_stor
 
 @pytest.mark.parametrize("machine", ["cpu", "gpu"])
 def test_committed_scale_tables_have_every_column_and_count_every_frame(machine):
-    """bench/results/{cpu,gpu}/scale: rows through the CLI and the service, each with the columns the README quotes;
-    a row's rates follow from its frames and seconds, a service row stored every frame, and the table opens with the
-    JSON's rows."""
+    """bench/results/{cpu,gpu}/scale: rows through the CLI and the service, each with the columns bench/README.md
+    quotes; a row's rates follow from its frames and seconds, a service row stored every frame, and the table opens
+    with the JSON's rows."""
     from seasynth.bench import scale
 
     result = json.loads((RESULTS / machine / "scale.json").read_text())
@@ -119,8 +119,8 @@ def test_committed_scale_tables_have_every_column_and_count_every_frame(machine)
 
 
 def test_committed_preset_throughput_puts_defaults_extra_time_in_the_render():
-    """bench/results/cpu/throughput-presets: the same example, size and machine at `draft` and `default`; what the
-    README says of them holds: the render stage is where `default` spends its extra time."""
+    """bench/results/cpu/throughput-presets: the same example, size and machine at `draft` and `default`; what
+    bench/README.md says of them holds: the render stage is where `default` spends its extra time."""
     runs = {p: json.loads((RESULTS / "cpu" / "throughput-presets" / p / "throughput.json").read_text())
             for p in ("draft", "default")}
     assert {p: r["preset"] for p, r in runs.items()} == {"draft": "draft", "default": "default"}

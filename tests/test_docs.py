@@ -20,7 +20,8 @@ RUN_TESTS = "bash .ci/run"
 
 
 def test_spec_reference_is_what_the_models_generate():
-    """docs/spec.md is exactly `python -m seasynth.service.spec.reference`'s output (regenerate it after a spec change)."""
+    """docs/spec.md is exactly `python -m seasynth.service.spec.reference`'s output (regenerate it after a spec
+    change)."""
     written = (ROOT / "docs" / "spec.md").read_text(encoding="utf-8")
     assert written == reference.reference_markdown(), (
         "docs/spec.md is stale: python -m seasynth.service.spec.reference > docs/spec.md")

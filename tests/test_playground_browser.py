@@ -3,7 +3,7 @@ the page loads and previews, a water type and a count change the preview to exac
 for that spec, a bad value shows its error next to its field, and the downloaded YAML is the spec on the page.
 
 The tests run in file order as one person's session on one page (each starts from where the last left it).
-Set SEASYNTH_SCREENSHOTS=DIR to keep the run's screenshots (the README's come from there)."""
+Set SEASYNTH_SCREENSHOTS=DIR to keep the run's screenshots (docs/playground.md's come from there)."""
 
 from __future__ import annotations
 

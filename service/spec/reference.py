@@ -224,7 +224,8 @@ def _field_comments(cls: type) -> dict[str, str]:
         while line in comments and comments[line][1]:
             above.insert(0, comments[line][0])
             line -= 1
-        inline = [comments[n][0] for n in range(node.lineno, node.end_lineno + 1) if n in comments and not comments[n][1]]
+        lines = range(node.lineno, node.end_lineno + 1)
+        inline = [comments[n][0] for n in lines if n in comments and not comments[n][1]]
         if above or inline:
             out[node.target.id] = " ".join(above + inline)
     return out
