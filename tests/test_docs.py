@@ -176,3 +176,20 @@ def test_readme_headline_numbers_are_the_benchmark_pages():
     assert len(numbers) >= 6
     missing = sorted(n for n in numbers if n not in sources)
     assert not missing, f"README quotes {missing}, which bench/README.md and docs/service.md do not"
+
+
+# A path from the repository root: a top-level folder, then no placeholder ({id}) or glob but a trailing `*`.
+REPO_PATH = re.compile(r"(?<![\w/.{-])((?:\.ci|cli|service|worker|api|bench|tests|docker|deploy|examples)/"
+                       r"[\w./-]*[\w/])(\*?)")
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_file_a_page_names_exists(page):
+    """A module, test or result a page names by its path from the repository root (in a code span or not) exists, so
+    the manual cannot keep naming a module that moved (a path up to a placeholder such as {id} is checked that far)."""
+    gone = []
+    for path, glob in REPO_PATH.findall(page.read_text()):
+        found = list(ROOT.glob(path + "*")) if glob else [p for p in (ROOT / path, page.parent / path) if p.exists()]
+        if not found:
+            gone.append(path + glob)
+    assert not gone, f"{page.relative_to(ROOT)} names files that do not exist: {gone}"
