@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from seasynth.service import __version__
@@ -14,6 +14,14 @@ from seasynth.service.gpus import GpuChoice, parse_gpus
 
 # Memory the check of an uploaded mesh may use by default (SEASYNTH_UPLOAD_CHECK_MEMORY_MIB, seasynth.api.uploads).
 UPLOAD_CHECK_MEMORY_MIB = 768
+
+# A pool process whose resident memory has passed this is replaced after its current task (Celery's
+# worker_max_memory_per_child; billiard reads the process's peak RSS, or the current one where psutil is
+# installed). Render caches (terrains, meshes, GL buffers) and heap fragmentation grow with what a process has
+# drawn; a fresh process starts at about 0.25 GiB. So a process starts each task at most this big, and a
+# Deployment's memory limit holds, per process, this plus one frame's working set (service/shards.py
+# frame_memory_bytes) plus the caches one task adds (deploy/base/worker.yaml does the arithmetic).
+WORKER_MAX_MEMORY_PER_CHILD_MB = 1536
 
 
 class Settings(BaseSettings):
@@ -60,6 +68,8 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1)  # executions of one shard before it is marked failed
     plan_batch: int = Field(2000, ge=1)  # shard messages published per planner task
     worker_max_tasks_per_child: int = Field(50, ge=1)
+    # MiB; blank: the default (see WORKER_MAX_MEMORY_PER_CHILD_MB); at least 256, a fresh render process.
+    worker_max_memory_per_child_mb: int = WORKER_MAX_MEMORY_PER_CHILD_MB
     worker_soft_shutdown_s: float = Field(30.0, ge=0)
     gl_platform: Literal["egl", "osmesa"] = "egl"  # headless GL of the render processes
     # The GPU of this worker's render processes (EGL device index; SEASYNTH_GPU), or the GPUs its pool processes
@@ -76,10 +86,45 @@ class Settings(BaseSettings):
     # A live dataset with nothing started, committed or failed for this long and no shard running gets its
     # pending shards published again by the reconciler (default: 2x the hard task time limit).
     stall_timeout_s: int | None = Field(None, ge=60)  # above the longest retry delay (30 s)
+    # How long a dataset waits for a live shard worker with the renderer it is pinned to before its pending shards
+    # fail (seasynth.worker.queue.pinning); seconds > 0, None or blank: the stall timeout.
+    renderer_wait_s: float | None = None
 
     # --- client (`seasynth fetch`)
     api_url: str = "http://localhost:8000"
     api_key: str | None = None
+
+    @field_validator("worker_max_memory_per_child_mb", mode="before")
+    @classmethod
+    def _max_memory_mb(cls, value: object) -> object:
+        if isinstance(value, str):
+            text = value.strip()
+            if not text:
+                return WORKER_MAX_MEMORY_PER_CHILD_MB
+            try:
+                value = int(text)
+            except ValueError:
+                raise ValueError(
+                    f"SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB: not a whole number of MiB: {text!r}") from None
+        if value < 256:
+            raise ValueError(f"worker_max_memory_per_child_mb: {value} MiB is below a fresh render process (256)")
+        return value
+
+    @field_validator("renderer_wait_s", mode="before")
+    @classmethod
+    def _renderer_wait(cls, value: object) -> object:
+        shown = value
+        if isinstance(value, str):
+            shown = value = value.strip()
+            if not value:
+                return None
+            try:
+                value = float(value)
+            except ValueError:
+                raise ValueError(f"SEASYNTH_RENDERER_WAIT_S: not a number of seconds: {shown!r}") from None
+        if value is not None and not value > 0:
+            raise ValueError(f"SEASYNTH_RENDERER_WAIT_S: must be > 0, got {shown!r}")
+        return value
 
     @model_validator(mode="after")
     def _limits_consistent(self) -> Settings:

@@ -332,7 +332,7 @@ def test_k8s_worker_memory_holds_its_processes_at_the_spec_limits(rendered, name
     c = _container(_by(rendered[kustomization], "Deployment", name))
     shards = _load_file("service/shards.py")
     side = _settings_default("max_side")
-    carried = _module_constant("worker/queue/app.py", "WORKER_MAX_MEMORY_PER_CHILD_MB") / 1024
+    carried = _module_constant("service/settings.py", "WORKER_MAX_MEMORY_PER_CHILD_MB") / 1024
     if c["image"].split(":")[0] == IMAGES["worker-gpu"]["k8s_image"]:
         frame = shards.FRAME_BYTES_PER_PIXEL * side * side / 2**30
     else:

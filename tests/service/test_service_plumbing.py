@@ -1,5 +1,6 @@
 """Shard plumbing on real Redis and both object stores, with a stand-in frame source: determinism of shard tars,
-exactly-once counting, the attempt counter, finalising once, reconciliation, and the Celery configuration."""
+exactly-once counting, the attempt counter, finalising once, reconciliation. The Celery app:
+tests/service/test_worker_app.py."""
 
 from __future__ import annotations
 
@@ -238,26 +239,6 @@ def test_presigned_urls_use_the_public_endpoint(infra):
     )
 
 
-def test_celery_configuration_guards_against_lost_and_duplicated_work(infra):
-    from seasynth.service.queues import frame_queue, shard_queue
-    from seasynth.worker.queue.app import create_app, worker_argv
-
-    s = infra.settings(task_time_limit_s=600)
-    conf = create_app(s).conf
-    assert conf.task_acks_late and conf.task_reject_on_worker_lost and conf.worker_prefetch_multiplier == 1
-    assert conf.worker_cancel_long_running_tasks_on_connection_loss
-    assert conf.task_time_limit == 600 and conf.task_soft_time_limit == 540
-    assert conf.broker_transport_options["visibility_timeout"] >= 3 * conf.task_time_limit
-    assert conf.task_ignore_result and not conf.result_backend
-    a, b = worker_argv(2, ["shards", "frames"]), worker_argv(2, ["shards", "frames"])
-    name = next(x for x in a if x.startswith("--hostname="))
-    assert name != next(x for x in b if x.startswith("--hostname=")) and "--pool=prefork" in a
-    from seasynth.service import __version__
-
-    assert f"--queues={shard_queue(__version__)},{frame_queue(__version__)}" in a
-    assert __version__ in shard_queue(__version__)
-
-
 def test_shard_dataclass_frames():
     assert list(Shard(3, 6, 2).frames) == [6, 7]
 
@@ -313,25 +294,6 @@ def test_pending_shards_and_running_leases(infra, records, tmp_path):
     attempts = records.get(ds).attempts
     assert run_shard(ctx, ds, 2, sweep=True) is Outcome.RUNNING_ELSEWHERE and records.get(ds).attempts == attempts
     assert run_shard(ctx, ds, 3, sweep=True) is Outcome.COMMITTED
-
-
-def test_hard_time_limit_requeues_the_message(infra):
-    """Celery acks a late-acked message at the hard time limit by default: the shard would be lost."""
-    from celery.contrib.testing.mocks import TaskMessage
-    from celery.worker.request import Request
-
-    from seasynth.service.queues import TASK_SHARD
-    from seasynth.worker.queue.app import create_app
-
-    app = create_app(infra.settings())
-    task = app.tasks[TASK_SHARD]
-    assert task.acks_late and task.acks_on_timeout is False and task.acks_on_failure is False
-    message = TaskMessage(TASK_SHARD, args=["a" * 32, 0])
-    request = Request(message, app=app, task=task, on_ack=message.ack_log_error, on_reject=message.reject_log_error)
-    request.on_timeout(soft=False, timeout=300)
-    assert not message.ack_log_error.called
-    (_, _, requeue), _ = message.reject_log_error.call_args  # (logger, connection errors, requeue)
-    assert requeue is True
 
 
 def test_sample_counts_follow_the_presets():
@@ -397,17 +359,6 @@ def test_frame_memory_model_bounds_the_measured_peaks():
                 (4096, 4096, "high"): 5.95, (640, 480, "default"): 0.32}
     for (w, h, q), gib in measured.items():
         assert gib <= frame_memory_bytes(w, h, q) / 2**30 <= 1.5 * gib + 0.1, (w, h, q)
-
-
-def test_pool_processes_are_recycled_by_memory(infra, monkeypatch):
-    from seasynth.worker.queue.app import WORKER_MAX_MEMORY_PER_CHILD_MB, create_app
-
-    assert create_app(infra.settings()).conf.worker_max_memory_per_child == WORKER_MAX_MEMORY_PER_CHILD_MB * 1024
-    monkeypatch.setenv("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "3000")
-    assert create_app(infra.settings()).conf.worker_max_memory_per_child == 3000 * 1024
-    monkeypatch.setenv("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "lots")
-    with pytest.raises(ValueError, match="SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB"):
-        create_app(infra.settings())
 
 
 def test_a_record_read_leaves_its_spec_unparsed_until_asked_for(records):

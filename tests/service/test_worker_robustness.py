@@ -159,8 +159,7 @@ def test_hand_backs_are_counted_shown_and_keep_the_dataset_from_stalling(infra, 
 
 def test_no_worker_of_the_renderer_for_the_wait_fails_the_dataset_naming_it(infra, records, tmp_path):
     gpu = make_ctx(infra, records, tmp_path, Named(GPU))
-    cpu = make_ctx(infra, records, tmp_path, Named(CPU))
-    cpu.renderer_wait_s = 30
+    cpu = make_ctx(infra, records, tmp_path, Named(CPU), renderer_wait_s=30)
     ds = new_dataset(records, frames=7, shard_size=2, dataset_id="f" * 32)
     assert run_shard(gpu, ds, 0) is Outcome.COMMITTED  # pins the dataset to the GPU, then the GPU workers leave
     t0 = time.time()
@@ -182,8 +181,7 @@ def test_no_worker_of_the_renderer_for_the_wait_fails_the_dataset_naming_it(infr
 
 
 def test_a_live_worker_of_the_renderer_keeps_the_dataset_waiting(infra, records, tmp_path):
-    cpu = make_ctx(infra, records, tmp_path, Named(CPU))
-    cpu.renderer_wait_s = 30
+    cpu = make_ctx(infra, records, tmp_path, Named(CPU), renderer_wait_s=30)
     ds = pinned(records, GPU)
     t0 = time.time()
     note_renderer(records.r, records.p, __version__, GPU, t0)  # a GPU worker's heartbeat

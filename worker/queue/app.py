@@ -12,7 +12,6 @@ failure escape uncounted (seasynth.worker.queue.shard.run_shard), so no message 
 
 from __future__ import annotations
 
-import os
 import sys
 import tempfile
 import uuid
@@ -24,32 +23,6 @@ from seasynth.service.queues import broker_options, frame_queue, shard_queue
 from seasynth.service.settings import Settings
 
 QUEUE_KINDS = ("shards", "frames")
-
-# A pool process whose resident memory has passed this is replaced after its current task (Celery's
-# worker_max_memory_per_child; billiard reads the process's peak RSS, or the current one where psutil is
-# installed). Render caches (terrains, meshes, GL buffers) and heap fragmentation grow with what a process has
-# drawn; a fresh process starts at about 0.25 GiB. So a process starts each task at most this big, and a
-# Deployment's memory limit holds, per process, this plus one frame's working set (service/shards.py
-# frame_memory_bytes) plus the caches one task adds (deploy/base/worker.yaml does the arithmetic).
-WORKER_MAX_MEMORY_PER_CHILD_MB = 1536
-
-
-def max_memory_per_child_mb(settings: Settings) -> int:
-    """settings.worker_max_memory_per_child_mb where Settings has it, else SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB,
-    else WORKER_MAX_MEMORY_PER_CHILD_MB."""
-    value = getattr(settings, "worker_max_memory_per_child_mb", None)
-    if value is None:
-        text = os.environ.get("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "").strip()
-        if not text:
-            return WORKER_MAX_MEMORY_PER_CHILD_MB
-        try:
-            value = int(text)
-        except ValueError:
-            raise ValueError(f"SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB: not a whole number of MiB: {text!r}") from None
-    if value < 256:
-        raise ValueError(f"worker_max_memory_per_child_mb: {value} MiB is below a fresh render process (256)")
-    return int(value)
-
 
 def create_app(settings: Settings) -> Celery:
     """A worker app with its tasks registered; per-process resources open in each pool process after fork."""
@@ -72,7 +45,8 @@ def _build(settings: Settings):
         task_acks_on_failure=False,
         worker_prefetch_multiplier=1,
         worker_max_tasks_per_child=settings.worker_max_tasks_per_child,
-        worker_max_memory_per_child=max_memory_per_child_mb(settings) * 1024,  # Celery counts KiB
+        # Celery counts KiB (service/settings.py WORKER_MAX_MEMORY_PER_CHILD_MB says why this size)
+        worker_max_memory_per_child=settings.worker_max_memory_per_child_mb * 1024,
         worker_cancel_long_running_tasks_on_connection_loss=True,
         task_soft_time_limit=settings.task_soft_time_limit_s,
         task_time_limit=settings.task_time_limit_s,

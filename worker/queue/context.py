@@ -68,9 +68,6 @@ class ShardContext:
     session: FrameSource
     host: str = field(default_factory=socket.gethostname)
     code_version: str = __version__
-    # How long a dataset waits for a live shard worker with its pinned renderer before it fails; None: the
-    # settings' renderer_wait_s where it exists (SEASYNTH_RENDERER_WAIT_S), else the stall timeout.
-    renderer_wait_s: float | None = None
     _specs: dict[str, DatasetSpec] = field(default_factory=dict)
 
     def spec(self, dataset_id: str, spec_json: dict[str, Any]) -> DatasetSpec:

@@ -33,9 +33,9 @@ def deferred_key(ctx: ShardContext, dataset_id: str) -> str:
 
 
 def renderer_wait_s(ctx: ShardContext) -> float:
-    wait = getattr(ctx.settings, "renderer_wait_s", None)
-    if wait is None:
-        wait = ctx.renderer_wait_s
+    """How long a dataset waits for a live shard worker with its pinned renderer: settings.renderer_wait_s
+    (SEASYNTH_RENDERER_WAIT_S), else the stall timeout."""
+    wait = ctx.settings.renderer_wait_s
     return float(ctx.settings.stall_s if wait is None else wait)
 
 

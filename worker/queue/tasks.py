@@ -38,20 +38,6 @@ log = logging.getLogger(__name__)
 OTHER_RENDERER_DELAY_S = 5
 
 
-def renderer_wait_from_env() -> float | None:
-    """SEASYNTH_RENDERER_WAIT_S, read at the worker's entry until Settings has the field (None: not set)."""
-    text = os.environ.get("SEASYNTH_RENDERER_WAIT_S", "").strip()
-    if not text:
-        return None
-    try:
-        wait = float(text)
-    except ValueError:
-        raise ValueError(f"SEASYNTH_RENDERER_WAIT_S: not a number of seconds: {text!r}") from None
-    if not wait > 0:
-        raise ValueError(f"SEASYNTH_RENDERER_WAIT_S: must be > 0, got {text!r}")
-    return wait
-
-
 class Heartbeat:
     """A thread that notes this process's renderer in Redis every HEARTBEAT_S, so that workers of other renderers
     can tell whether a dataset pinned to it still has a live shard worker
@@ -92,9 +78,8 @@ class ProcessResources:
     of one that drains the queue.
     """
 
-    def __init__(self, settings: Settings, renderer_wait_s: float | None = None):
+    def __init__(self, settings: Settings):
         self.settings = settings
-        self.renderer_wait_s = renderer_wait_s
         # Whether this worker consumes the shard queue (run_worker sets it before the pool forks): only shard
         # workers count as live workers of their renderer.
         self.takes_shards = True
@@ -131,7 +116,7 @@ class ProcessResources:
             metrics = WorkerMetrics()  # after the fork: multiprocess mode writes this process's own files
             frames = TimedFrames(session, metrics)
             ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=TimedStore(store, metrics),
-                               session=frames, renderer_wait_s=self.renderer_wait_s)
+                               session=frames)
             if self.takes_shards:
                 stack.enter_context(Heartbeat(records.r, s.key_prefix, ctx.code_version, session.renderer_name))
             self._ctx, self.metrics, self.frames = ctx, metrics, frames
@@ -194,7 +179,7 @@ class ProcessResources:
 
 def register(app: Celery, settings: Settings) -> ProcessResources:
     """Register the tasks on `app`; they share one ProcessResources per pool process."""
-    res = ProcessResources(settings, renderer_wait_from_env())
+    res = ProcessResources(settings)
     worker_process_init.connect(lambda **_: res.open_in_pool_process(), weak=False)
     worker_process_shutdown.connect(lambda **_: res.close(), weak=False)
     bulk = shard_queue(__version__)
