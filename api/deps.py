@@ -11,7 +11,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Path, Request
 
 from seasynth.service.errors import NotFound
-from seasynth.service.records.store import Records
+from seasynth.service.records.store import Records, raw_client
 from seasynth.service.settings import Settings
 from seasynth.service.shards import DATASET_ID
 from seasynth.service.storage import ObjectStore
@@ -28,12 +28,11 @@ class Services:
     producer: Any  # a Celery app used only to publish tasks by name
 
     def close(self) -> None:
-        self.records.r.close()
+        self.records.close()
         self.raw_redis.close()
 
 
 def open_services(settings: Settings) -> Services:
-    import redis
     from celery import Celery
 
     from seasynth.service.queues import broker_options
@@ -49,9 +48,9 @@ def open_services(settings: Settings) -> Services:
     )
     return Services(
         settings=settings,
-        records=Records(redis.Redis.from_url(settings.redis_url, decode_responses=True), settings.key_prefix),
+        records=Records.from_url(settings.redis_url, settings.key_prefix),
         # BLPOP waits up to frame_timeout_s for a frame: the socket must outwait it (redis-py's default is 5 s).
-        raw_redis=redis.Redis.from_url(settings.redis_url, socket_timeout=settings.frame_timeout_s + 10),
+        raw_redis=raw_client(settings.redis_url, socket_timeout=settings.frame_timeout_s + 10),
         store=open_store(settings),
         producer=producer,
     )

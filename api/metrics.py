@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
 
 from fastapi import FastAPI, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Histogram, generate_latest
@@ -15,6 +14,7 @@ from starlette.routing import Match
 
 from seasynth.api.gate import METRICS_PATH, ASGIApp, Message, Receive, Scope, Send
 from seasynth.service.queues import frame_queue, shard_queue
+from seasynth.service.records.store import Records
 from seasynth.service.settings import Settings
 
 UNMATCHED = "<unmatched>"  # a path no route takes: one label value, so scanners cannot grow the series
@@ -34,12 +34,12 @@ class BrokerCollector(Collector):
     """Gauges read from Redis on each scrape: messages waiting per Celery queue of the workers' version, and the
     datasets the API lists. A Redis that does not answer gives no samples (the scrape itself still succeeds).
 
-    `redis_of` returns the client, which the app opens in its lifespan, after the collector is registered."""
+    `records_of` returns the app's Records, which the app opens in its lifespan, after the collector is
+    registered."""
 
-    def __init__(self, redis_of: Callable[[], Any], settings: Settings):
-        self.redis_of = redis_of
+    def __init__(self, records_of: Callable[[], Records], settings: Settings):
+        self.records_of = records_of
         self.queues = {"shards": shard_queue(settings.worker_version), "frames": frame_queue(settings.worker_version)}
-        self.datasets_key = f"{settings.key_prefix}:datasets"  # seasynth.service.records.store: the ZSET GET /datasets pages
 
     def describe(self) -> Iterator[GaugeMetricFamily]:
         """The families without samples (the registry checks names with it; collect would need Redis)."""
@@ -57,18 +57,14 @@ class BrokerCollector(Collector):
 
         depth, datasets = self._families()
         try:
-            with self.redis_of().pipeline(transaction=False) as pipe:
-                for queue in self.queues.values():
-                    for name in queue_lists(queue):
-                        pipe.llen(name)
-                pipe.zcard(self.datasets_key)
-                got = pipe.execute()
+            lengths, listed = self.records_of().queue_lengths_and_datasets(
+                [name for queue in self.queues.values() for name in queue_lists(queue)])
         except redis.RedisError:
             return
         steps = len(PRIORITY_STEPS)
         for i, (kind, queue) in enumerate(self.queues.items()):
-            depth.add_metric([queue, kind], sum(got[i * steps:(i + 1) * steps]))
-        datasets.add_metric([], got[-1])
+            depth.add_metric([queue, kind], sum(lengths[i * steps:(i + 1) * steps]))
+        datasets.add_metric([], listed)
         yield depth
         yield datasets
 
@@ -114,7 +110,7 @@ def install(app: FastAPI, settings: Settings) -> None:
     registry = CollectorRegistry()
     histogram = Histogram("seasynth_api_request_seconds", "HTTP request latency to the last body byte",
                           ["route", "method", "status"], buckets=REQUEST_BUCKETS, registry=registry)
-    registry.register(BrokerCollector(lambda: app.state.services.records.r, settings))
+    registry.register(BrokerCollector(lambda: app.state.services.records, settings))
 
     @app.get(METRICS_PATH, include_in_schema=False)
     def metrics() -> Response:

@@ -210,7 +210,7 @@ def sweep_if_stalled(services: Services, rec: DatasetRecord, now: float, force: 
         # (With no shard pending, the sweep's reconcile only finalises: nothing to pile up.)
         pending = rec.shards_total - rec.shards_done - rec.shards_failed
         if pending > 0 and services.records.swept(rec.id):
-            if services.records.r.llen(shard_queue(rec.code_version)) >= pending:
+            if services.records.queue_length(shard_queue(rec.code_version)) >= pending:
                 return False
         if not services.records.claim_sweep(rec.id, s.stall_s):
             return False

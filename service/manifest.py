@@ -11,12 +11,6 @@ from seasynth.service.records.types import DatasetRecord, ShardCommit
 MANIFEST_FORMAT = "seasynth-manifest/1"
 
 
-def pending_manifests_key(prefix: str) -> str:
-    """Redis SET of the datasets whose final state is decided and whose manifest.json is not written yet (the
-    write failed, or is under way). Workers add and remove them; the periodic reconciler nudges the ones left."""
-    return f"{prefix}:manifests:pending"
-
-
 def build_manifest(
     record: DatasetRecord, commits: list[ShardCommit], url: Callable[[str], str] | None = None
 ) -> dict[str, Any]:

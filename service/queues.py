@@ -51,34 +51,29 @@ class ReconcileRound:
     manifests: list[str]  # finished datasets whose manifest.json was still unwritten: a worker writes it
 
 
-def reconciler_round_key(prefix: str) -> str:
-    return f"{prefix}:reconciler:round"
-
-
 def reconcile_round(services: Any, every_s: float, sweep: Callable[[], list[str]]) -> ReconcileRound | None:
     """One round, unless another reconciler ran one within the last RECONCILER_ROUND_SHARE * every_s (None).
 
     `services` is the API's (records, producer); `sweep` sweeps every stalled live dataset (seasynth.api.operations.sweep_all),
     each at most once per stall timeout whoever asks (a per-dataset lock), so the round lock only spares work:
     rounds of several reconcilers racing are still safe. Then each dataset left in the set of pending manifests
-    (seasynth.service.manifest) gets a reconcile task, which writes its manifest.
+    (seasynth.service.records.coordination) gets a reconcile task, which writes its manifest.
     """
     from seasynth.service.errors import NotFound
-    from seasynth.service.manifest import pending_manifests_key
 
     records = services.records
     ttl_ms = max(1, int(every_s * RECONCILER_ROUND_SHARE * 1000))
-    if not records.r.set(reconciler_round_key(records.p), str(time.time()), nx=True, px=ttl_ms):
+    if not records.claim_reconciler_round(ttl_ms, time.time()):
         return None
     swept = sweep()
     manifests = []
-    for dataset_id in sorted(records.r.smembers(pending_manifests_key(records.p))):
+    for dataset_id in sorted(records.pending_manifests()):
         if records.is_finalising(dataset_id):  # a finaliser holds it now
             continue
         try:
             version = records.get(dataset_id).code_version
         except NotFound:
-            records.r.srem(pending_manifests_key(records.p), dataset_id)
+            records.drop_pending_manifest(dataset_id)
             continue
         services.producer.send_task(TASK_RECONCILE, args=[dataset_id, False], queue=shard_queue(version))
         manifests.append(dataset_id)

@@ -24,7 +24,7 @@ def readyz(services: ServicesDep):
     """Redis and the bucket are reachable."""
     checks, ok = {}, True
     try:
-        services.records.r.ping()
+        services.records.ping()
         checks["redis"] = "ok"
     except Exception as err:  # any failure means not ready; the reason is reported, not hidden
         checks["redis"], ok = f"unreachable: {err}", False

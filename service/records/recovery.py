@@ -27,8 +27,7 @@ from seasynth.service.storage import ObjectStore
 
 def scope(records: Records) -> str:
     """This deployment's part of the bucket: its key prefix and Redis database."""
-    db = records.r.connection_pool.connection_kwargs.get("db", 0)
-    return f"records/{records.p}.db{db}/"
+    return f"records/{records.namespace()}/"
 
 
 def record_key(records: Records, dataset_id: str) -> str:
@@ -87,10 +86,6 @@ class RedisCheck:
     cut_off: list[str]  # live datasets whose executions the restart cut off (their running entries were cleared)
 
 
-def run_key(records: Records) -> str:
-    return f"{records.p}:redis:run"
-
-
 def check_redis(records: Records, store: ObjectStore, now: float | None = None) -> RedisCheck:
     """Notice a Redis restart since the last check and recover from it; the reconciler runs this each round.
 
@@ -101,9 +96,9 @@ def check_redis(records: Records, store: ObjectStore, now: float | None = None) 
     publishes those shards again now instead of after the stall timeout.
     """
     now = time.time() if now is None else now
-    info = records.r.info("server")
-    run_id, started = info["run_id"], now - float(info["uptime_in_seconds"])
-    seen = records.r.get(run_key(records))
+    run_id, uptime_s = records.redis_run()
+    started = now - uptime_s
+    seen = records.seen_redis_run()
     if seen == run_id:
         return RedisCheck(False, False, [], [])
     restored, cut_off = [], []
@@ -115,7 +110,7 @@ def check_redis(records: Records, store: ObjectStore, now: float | None = None) 
                     restored.append(dataset_id)
     else:
         cut_off = _clear_cut_off(records, started)
-    records.r.set(run_key(records), run_id)
+    records.note_redis_run(run_id)
     return RedisCheck(True, seen is None, restored, cut_off)
 
 
@@ -130,7 +125,7 @@ def _clear_cut_off(records: Records, started: float) -> list[str]:
                 continue
             dead = [i for i, who in records.running(dataset_id).items() if float(who.get("since", 0)) < started]
             if dead:
-                records.r.hdel(records._k(dataset_id, "running"), *dead)
+                records.clear_running(dataset_id, dead)
                 out.append(dataset_id)
         offset += len(ids)
         if not ids or offset >= total:

@@ -1,4 +1,5 @@
-"""The Lua scripts that make each change of a dataset record (seasynth.service.records.store) atomic in Redis."""
+"""The Lua scripts that make each change of a dataset record (seasynth.service.records.store) and of the queue side's
+coordination (seasynth.service.records.coordination) atomic in Redis."""
 
 # Counts an execution unless the shard has used up its attempts (then returns -1 and counts nothing), or the
 # record is gone (-2: Redis lost it; nothing is written, so no partial record appears).
@@ -91,4 +92,42 @@ if redis.call('EXISTS', KEYS[1]) == 1 then return 0 end
 redis.call('HSET', KEYS[1], unpack(ARGV, 3))
 redis.call('ZADD', KEYS[2], ARGV[1], ARGV[2])
 return 1
+"""
+
+# Decides a complete dataset's final state in one step, unless it is final already (a cancel came first): the
+# state, finished_at, and the dataset's entry in the set of manifests still to write (KEYS[2]). Returns the state
+# after.
+DECIDE = """
+local s = redis.call('HGET', KEYS[1], 'state')
+if not s then return nil end
+if s == 'queued' or s == 'running' then
+  redis.call('HSET', KEYS[1], 'state', ARGV[1], 'finished_at', ARGV[2])
+  redis.call('SADD', KEYS[2], ARGV[3])
+  return ARGV[1]
+end
+return s
+"""
+
+# Counts a hand-back of a shard to a worker of the pinned renderer and keeps the dataset from looking stalled (a
+# sweep would publish the shard again while its message goes round); KEYS[2]: the dataset's handed-back shards.
+# waiting_since: the first hand-back since a live worker of the pinned renderer was last seen (ARGV[3] == '1': one
+# is live now). Returns {hand-backs, waiting_since or ''}, nil for no such dataset.
+HAND_BACK = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return nil end
+local n = redis.call('HINCRBY', KEYS[1], 'handbacks', 1)
+redis.call('HSET', KEYS[1], 'touched_at', ARGV[2])
+redis.call('HSET', KEYS[2], ARGV[1], ARGV[2])
+if ARGV[3] == '1' then
+  redis.call('HDEL', KEYS[1], 'waiting_since')
+  return {n, ''}
+end
+redis.call('HSETNX', KEYS[1], 'waiting_since', ARGV[2])
+return {n, redis.call('HGET', KEYS[1], 'waiting_since')}
+"""
+
+# A worker of the pinned renderer took a shard: nothing is waiting for one any more.
+FOUND = """
+redis.call('HDEL', KEYS[2], ARGV[1])
+if redis.call('HEXISTS', KEYS[1], 'notice') == 1 then redis.call('HDEL', KEYS[1], 'notice', 'waiting_since') end
+return 0
 """

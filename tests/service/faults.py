@@ -256,10 +256,8 @@ def open_fault_stack(tmp: Path, workers: int = 2) -> FaultStack:
     for _ in range(workers):
         wait_worker_ready(st.start_worker(1), 1)
     st.start_reconciler(1.0)  # as compose and the k8s manifests deploy it, with a shorter period
-    from seasynth.service.records.recovery import run_key
-
     # Its first round notes which Redis process it checked (a restart is noticed against that).
-    wait_for(lambda: st.services.records.r.get(run_key(st.services.records)), 60, "the reconciler's first round")
+    wait_for(lambda: st.services.records.seen_redis_run(), 60, "the reconciler's first round")
     return st
 
 

@@ -34,7 +34,7 @@ def dead_store(bucket: str) -> S3Store:
 
 
 def hardening_keys(services) -> set[str]:
-    return set(services.records.r.scan_iter(match="hardening:ds:*"))
+    return set(services.records._r.scan_iter(match="hardening:ds:*"))
 
 
 def test_a_dataset_the_broker_cannot_take_is_503_and_leaves_no_record(serve, services, settings):
@@ -159,8 +159,8 @@ def test_a_record_restored_with_committed_shards_is_swept_at_once(serve, service
                                              "frames": 3, "shard_size": 1, "shards": 3, "created_at": rec.created_at})
     shard = commit(records, dataset_id, 0, b"tar 0", store)
     store.put_bytes(commit_key(dataset_id, 0), shard.to_json().encode())
-    for key in records.r.scan_iter(match=f"{records.p}:ds:{dataset_id}*"):  # Redis loses the dataset
-        records.r.delete(key)
+    for key in records._r.scan_iter(match=f"{records._prefix}:ds:{dataset_id}*"):  # Redis loses the dataset
+        records._r.delete(key)
 
     url = serve()
     r = httpx.get(f"{url}/datasets/{dataset_id}", headers={"X-API-Key": KEY})

@@ -31,7 +31,7 @@ def test_a_record_carries_the_errors_of_the_first_failed_shards_and_counts_them_
         rec = records.get(ds)
         assert (rec.shards_failed, rec.errors) == (700, want)
         # What a record holds stays bounded: ERRORS_SHOWN shard indices, whatever the failures.
-        assert records.r.zcard(records._k(ds, "shown")) == ERRORS_SHOWN
+        assert records._r.zcard(records._key(ds, "shown")) == ERRORS_SHOWN
         with api_on(services) as client:
             got = client.get(f"/datasets/{ds}").json()
         assert got["shards_failed"] == 700
@@ -43,8 +43,8 @@ def test_a_record_written_before_the_bound_shows_its_first_failed_shards(infra: 
     with isolated(infra, 10) as (_, services):
         records = services.records
         ds = new_dataset(records, frames=50, shard_size=1, dataset_id=uuid.uuid4().hex)
-        records.r.sadd(records._k(ds, "failed"), *range(10, 50))
-        records.r.hset(records._k(ds, "errors"), mapping={i: f"error {i}" for i in range(5, 50)})
+        records._r.sadd(records._key(ds, "failed"), *range(10, 50))
+        records._r.hset(records._key(ds, "errors"), mapping={i: f"error {i}" for i in range(5, 50)})
         rec = records.get(ds)
         assert (rec.shards_failed, rec.errors) == (40, {i: f"error {i}" for i in range(10, 10 + ERRORS_SHOWN)})
         records.fail(ds, 3, "error 3")  # a lower index takes its place among the first

@@ -241,8 +241,6 @@ def test_reconciler_sigkilled_mid_round(fstack: FaultStack, client, tmp_path):
     """Redis comes back empty while the bucket stalls: the reconciler's round hangs listing the bucket's records
     and is SIGKILLed there; a new reconciler does the whole round again once the bucket answers."""
     dataset_id = mid_dataset(fstack, client)
-    from seasynth.service.records.recovery import run_key
-
     [old] = [p for p in fstack.procs if p.name == "reconciler" and p.popen.poll() is None]
     fstack.proxy.set("stall")
     fstack.kill_redis()
@@ -250,7 +248,7 @@ def test_reconciler_sigkilled_mid_round(fstack: FaultStack, client, tmp_path):
     # Rounds come every second; one that got past Redis hangs listing the stalled bucket, its check unrecorded.
     time.sleep(4)
     records = fstack.services.records
-    assert old.popen.poll() is None and records.r.get(run_key(records)) is None
+    assert old.popen.poll() is None and records.seen_redis_run() is None
     assert not records.exists(dataset_id)
     old.stop(signal.SIGKILL)
     fstack.proxy.set("pass")

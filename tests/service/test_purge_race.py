@@ -11,7 +11,7 @@ import pytest
 
 from seasynth.api.deps import Services
 from seasynth.api.operations import delete_dataset
-from seasynth.service.manifest import pending_manifests_key
+from seasynth.service.records.coordination import pending_manifests_key
 from seasynth.service.shards import commit_key, dataset_prefix, manifest_key, shard_key
 from seasynth.service.storage import LocalStore, open_store
 from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
@@ -159,8 +159,8 @@ def test_a_manifest_a_dead_finaliser_wrote_after_the_purge_is_deleted_by_the_nex
     # A finaliser that decided before the purge writes the manifest after the purge's delete, then dies with the
     # dataset still in the set of manifests to write.
     store.put_bytes(manifest_key(ds), b"{}", "application/json")
-    records.r.sadd(pending_manifests_key(records.p), ds)
+    records._r.sadd(pending_manifests_key(records._prefix), ds)
     records.release_finalise(ds)  # the dead finaliser's lock expires
     assert reconcile(ctx, ds) == []
     assert [o.key for o in store.list(dataset_prefix(ds))] == []
-    assert ds not in records.r.smembers(pending_manifests_key(records.p))
+    assert ds not in records.pending_manifests()

@@ -160,10 +160,10 @@ def test_a_shard_rendered_again_uploads_identical_parts(stack, dataset, services
     services.store.delete(commit_key(dataset_id, 1))
     for key in keys:
         services.store.delete(key)
-    r, records = services.records.r, services.records
-    r.srem(records._k(dataset_id, "done"), 1)  # as if Redis had lost its commit too
-    r.hdel(records._k(dataset_id, "shards"), 1)
-    r.hincrby(records._k(dataset_id), "frames_done", -2)
+    r, records = services.records._r, services.records
+    r.srem(records._key(dataset_id, "done"), 1)  # as if Redis had lost its commit too
+    r.hdel(records._key(dataset_id, "shards"), 1)
+    r.hincrby(records._key(dataset_id), "frames_done", -2)
     services.producer.send_task(TASK_SHARD, args=[dataset_id, 1], queue=shard_queue(__version__))
     wait_for(lambda: services.store.head(commit_key(dataset_id, 1)), 60, "shard 1 to commit again", interval=0.2)
     assert {k: services.store.get_bytes(k) for k in keys} == before

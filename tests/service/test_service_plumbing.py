@@ -185,9 +185,9 @@ def test_reconcile_adopts_markers_redis_lost(infra, records, tmp_path):
     run_shard(ctx, ds, 0)
     run_shard(ctx, ds, 1)
     # Redis forgets shard 1's commit and the final state (as after a restore from an old snapshot).
-    records.r.srem(f"{records.p}:ds:{ds}:done", 1)
-    records.r.hdel(f"{records.p}:ds:{ds}:shards", 1)
-    records.r.hset(f"{records.p}:ds:{ds}", mapping={"state": "running", "frames_done": 2})
+    records._r.srem(f"{records._prefix}:ds:{ds}:done", 1)
+    records._r.hdel(f"{records._prefix}:ds:{ds}:shards", 1)
+    records._r.hset(f"{records._prefix}:ds:{ds}", mapping={"state": "running", "frames_done": 2})
     records.release_finalise(ds)
     assert reconcile(ctx, ds) == []
     rec = records.get(ds)

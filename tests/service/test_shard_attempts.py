@@ -68,7 +68,7 @@ def test_failures_before_the_render_are_counted_and_bounded(infra, records, tmp_
     assert records.running(ds) == {}
 
     # Redis failing before the attempt started: counted as well, then the shard renders.
-    flaky = FlakyRecords(records.r, records.p)
+    flaky = FlakyRecords(records._r, records._prefix)
     ctx = make_ctx(infra, flaky, tmp_path, FakeSession())
     ds = new_dataset(flaky, frames=2, shard_size=2, dataset_id="c" * 32)
     with pytest.raises(RetryShard) as retry:

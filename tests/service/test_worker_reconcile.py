@@ -11,7 +11,7 @@ import time
 
 from isolated_stacks import api_on, isolated, queued_tasks, record_only
 from seasynth.service import __version__
-from seasynth.service.manifest import pending_manifests_key
+from seasynth.service.records.coordination import pending_manifests_key
 from seasynth.service.queues import TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
 from seasynth.service.records.types import ShardCommit
 from seasynth.service.shards import shard_key
@@ -30,7 +30,7 @@ def test_concurrent_reconcilers_sweep_each_stalled_dataset_once(stack: Stack, tm
         fresh = record_only(services, tiny_spec())
         finished = record_only(services, tiny_spec())
         services.records.finish(finished, "succeeded", time.time())
-        services.records.r.sadd(pending_manifests_key(services.records.p), finished)  # its manifest write failed
+        services.records._r.sadd(pending_manifests_key(services.records._prefix), finished)  # its manifest write failed
         from seasynth.api.deps import open_services
 
         peers = [open_services(services.settings) for _ in range(3)]

@@ -12,7 +12,6 @@ import pytest
 
 from isolated_stacks import api_on, isolated, queued_tasks, record_only
 from seasynth.service import __version__
-from seasynth.service.manifest import pending_manifests_key
 from seasynth.service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, shard_queue
 from seasynth.service.records.store import Records
 from seasynth.service.shards import manifest_key
@@ -20,7 +19,7 @@ from seasynth.service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
 from seasynth.worker.queue.finalise import maybe_finalise
-from seasynth.worker.queue.pinning import RENDERER_LIVE_S, defer_to_renderer, note_renderer
+from seasynth.worker.queue.pinning import RENDERER_LIVE_S, defer_to_renderer
 from seasynth.worker.queue.shard import reconcile, run_shard, sweepable
 from seasynth.worker.queue.context import Outcome, WrongRenderer
 
@@ -70,7 +69,7 @@ def test_a_cancel_while_the_manifest_is_written_finds_the_dataset_finished(infra
     rec = records.get(ds)
     manifest = json.loads(store.get_bytes(manifest_key(ds)))
     assert rec.state == manifest["state"] == "succeeded" and manifest["complete"]
-    assert not records.r.sismember(pending_manifests_key(records.p), ds)
+    assert not records.manifest_pending(ds)
 
 
 class CancelOnClaim(Records):
@@ -83,13 +82,13 @@ class CancelOnClaim(Records):
 
 
 def test_a_cancel_before_the_decision_leaves_no_manifest(infra, records, tmp_path):
-    racing = CancelOnClaim(records.r, records.p)
+    racing = CancelOnClaim(records._r, records._prefix)
     ctx = make_ctx(infra, racing, tmp_path, FakeSession())
     ds = new_dataset(racing, frames=2, shard_size=2)
     assert run_shard(ctx, ds, 0) is Outcome.COMMITTED
     rec = racing.get(ds)
     assert (rec.state, rec.shards_done) == ("cancelled", 1)
-    assert ctx.store.head(manifest_key(ds)) is None and not racing.r.sismember(pending_manifests_key(racing.p), ds)
+    assert ctx.store.head(manifest_key(ds)) is None and not racing.manifest_pending(ds)
     assert maybe_finalise(ctx, ds) is False and ctx.store.head(manifest_key(ds)) is None
 
 
@@ -113,12 +112,12 @@ def test_a_manifest_the_bucket_refused_is_written_by_the_next_reconcile(infra, r
     ds = new_dataset(records, frames=2, shard_size=2)
     assert run_shard(ctx, ds, 0) is Outcome.COMMITTED  # the shard's outcome stands
     assert store.refused == 1 and records.get(ds).state == "succeeded" and store.head(manifest_key(ds)) is None
-    assert records.r.smembers(pending_manifests_key(records.p)) == {ds}
+    assert records.pending_manifests() == {ds}
     assert not records.is_finalising(ds), "a failed write gives the finalise lock back"
     assert reconcile(ctx, ds) == []
     manifest = json.loads(store.get_bytes(manifest_key(ds)))
     assert manifest["state"] == "succeeded" and [s["index"] for s in manifest["shards"]] == [0]
-    assert records.r.smembers(pending_manifests_key(records.p)) == set()
+    assert records.pending_manifests() == set()
     assert maybe_finalise(ctx, ds) is False
 
 
@@ -145,7 +144,7 @@ def test_hand_backs_are_counted_shown_and_keep_the_dataset_from_stalling(infra, 
     for _ in range(3):
         assert hand_back(ctx, ds, 0) is Outcome.DEFERRED
     rec = records.get(ds)
-    h = records.r.hgetall(records._k(ds))
+    h = records._r.hgetall(records._key(ds))
     assert (rec.state, rec.attempts, rec.shards_done, session.calls) == ("queued", 0, 0, [])
     assert h["handbacks"] == "3" and time.time() - rec.touched_at < 5, "a hand-back is activity: no sweep"
     assert h["notice"].startswith(f"waiting for a shard worker with renderer {GPU!r}: none has run for ")
@@ -184,9 +183,9 @@ def test_a_live_worker_of_the_renderer_keeps_the_dataset_waiting(infra, records,
     cpu = make_ctx(infra, records, tmp_path, Named(CPU), renderer_wait_s=30)
     ds = pinned(records, GPU)
     t0 = time.time()
-    note_renderer(records.r, records.p, __version__, GPU, t0)  # a GPU worker's heartbeat
+    records.note_renderer(__version__, GPU, t0)  # a GPU worker's heartbeat
     assert hand_back(cpu, ds, 0, now=t0 + 1) is Outcome.DEFERRED
-    h = records.r.hgetall(records._k(ds))
+    h = records._r.hgetall(records._key(ds))
     assert "waiting_since" not in h and "one is running (all its processes busy)" in h["notice"]
     assert hand_back(cpu, ds, 0, now=t0 + RENDERER_LIVE_S - 1) is Outcome.DEFERRED
     # The heartbeats stop: the wait starts at the first hand-back that finds none, and runs out 30 s later.
@@ -202,9 +201,9 @@ def test_a_worker_of_the_renderer_clears_the_notice(infra, records, tmp_path):
     ds = pinned(records, GPU, frames=2, shard_size=2)
     assert hand_back(cpu, ds, 0) is Outcome.DEFERRED
     assert run_shard(gpu, ds, 0) is Outcome.COMMITTED
-    h = records.r.hgetall(records._k(ds))
+    h = records._r.hgetall(records._key(ds))
     assert "notice" not in h and "waiting_since" not in h and h["state"] == "succeeded"
-    assert records.r.hgetall(records._k(ds, "deferred")) == {}
+    assert records._r.hgetall(records._key(ds, "deferred")) == {}
 
 
 def test_a_real_worker_hands_back_an_absent_renderers_shards_then_the_dataset_fails(stack: Stack):
@@ -222,9 +221,9 @@ def test_a_real_worker_hands_back_an_absent_renderers_shards_then_the_dataset_fa
             def shard_messages() -> int:
                 return sum(1 for task, args in queued_tasks(raw, queue) if task == TASK_SHARD and args[0] == ds)
 
-            wait_for(lambda: int(services.records.r.hget(services.records._k(ds), "handbacks") or 0) >= 3, 30,
+            wait_for(lambda: int(services.records._r.hget(services.records._key(ds), "handbacks") or 0) >= 3, 30,
                      "three hand-backs")
-            notice = services.records.r.hget(services.records._k(ds), "notice")
+            notice = services.records.get(ds).notice
             assert notice.startswith(f"waiting for a shard worker with renderer {GPU!r}: none has run for "), notice
             with api_on(services) as client:  # the status read says why nothing progresses
                 shown = client.get(f"/datasets/{ds}").json()["notice"]

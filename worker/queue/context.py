@@ -1,5 +1,5 @@
 """What shard and frame tasks work with: the per-process ShardContext, a shard's outcomes, the exceptions that send
-a shard back (RetryShard, WrongVersion, WrongRenderer), and Lua scripts on the records' Redis."""
+a shard back (RetryShard, WrongVersion, WrongRenderer)."""
 
 from __future__ import annotations
 
@@ -77,8 +77,3 @@ class ShardContext:
                 self._specs.pop(next(iter(self._specs)))
             self._specs[dataset_id] = parse_spec(spec_json, source=f"dataset {dataset_id}")
         return self._specs[dataset_id]
-
-
-def script(ctx: ShardContext, source: str):
-    """A Lua script on the records' Redis, run by its sha (registering computes it locally; no round trip)."""
-    return ctx.records.r.register_script(source)

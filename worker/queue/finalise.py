@@ -6,10 +6,10 @@ from __future__ import annotations
 import logging
 import time
 
-from seasynth.service.manifest import build_manifest, manifest_bytes, pending_manifests_key
+from seasynth.service.manifest import build_manifest, manifest_bytes
 from seasynth.service.records.types import FAILED, SUCCEEDED, TERMINAL
 from seasynth.service.shards import manifest_key
-from seasynth.worker.queue.context import ShardContext, script
+from seasynth.worker.queue.context import ShardContext
 
 log = logging.getLogger(__name__)
 
@@ -30,20 +30,6 @@ def finalise_or_defer(ctx: ShardContext, dataset_id: str) -> None:
         log.exception("dataset %s: finalising failed; left to the reconciler", dataset_id)
 
 
-# Decides a complete dataset's final state in one step, unless it is final already (a cancel came first): the
-# state, finished_at, and the dataset's entry in the set of manifests still to write. Returns the state after.
-_DECIDE = """
-local s = redis.call('HGET', KEYS[1], 'state')
-if not s then return nil end
-if s == 'queued' or s == 'running' then
-  redis.call('HSET', KEYS[1], 'state', ARGV[1], 'finished_at', ARGV[2])
-  redis.call('SADD', KEYS[2], ARGV[3])
-  return ARGV[1]
-end
-return s
-"""
-
-
 def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
     """When every shard is committed or failed, decide the final state and write manifest.json, exactly once.
 
@@ -56,19 +42,17 @@ def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
     rec = ctx.records.get(dataset_id)
     if rec.shards_done + rec.shards_failed < rec.shards_total:
         return False
-    pending = pending_manifests_key(ctx.records.p)
-    if rec.state in TERMINAL and not ctx.records.r.sismember(pending, dataset_id):
+    if rec.state in TERMINAL and not ctx.records.manifest_pending(dataset_id):
         return False
     if not ctx.records.claim_finalise(dataset_id, FINALISE_LOCK_S):
         return False
     try:
         if rec.state not in TERMINAL:
             state = SUCCEEDED if rec.shards_failed == 0 else FAILED
-            decided = script(ctx, _DECIDE)(keys=[ctx.records._k(dataset_id), pending],
-                                            args=[state, repr(time.time()), dataset_id])
+            decided = ctx.records.decide(dataset_id, state, time.time())
             if decided != state:  # cancelled (or finished by another finaliser) before we decided
                 return False
-        elif not ctx.records.r.sismember(pending, dataset_id):  # another finaliser wrote it meanwhile
+        elif not ctx.records.manifest_pending(dataset_id):  # another finaliser wrote it meanwhile
             return False
         rec = ctx.records.get(dataset_id)  # as decided: state and finished_at
         key = manifest_key(dataset_id)
@@ -78,7 +62,7 @@ def maybe_finalise(ctx: ShardContext, dataset_id: str) -> bool:
         # A purge that began while we wrote, or before a finaliser that died between its write and this check.
         if ctx.records.purge_started(dataset_id):
             ctx.store.delete(key)
-        ctx.records.r.srem(pending, dataset_id)
+        ctx.records.drop_pending_manifest(dataset_id)
     except BaseException:
         ctx.records.release_finalise(dataset_id)
         raise

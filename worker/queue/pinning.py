@@ -6,30 +6,16 @@ from __future__ import annotations
 import time
 
 from seasynth.worker.queue.finalise import finalise_or_defer
-from seasynth.worker.queue.context import Outcome, ShardContext, WrongRenderer, script
+from seasynth.worker.queue.context import Outcome, ShardContext, WrongRenderer
 
 HEARTBEAT_S = 15  # a shard worker's render process notes its renderer this often
 RENDERER_LIVE_S = 60  # a renderer not noted for this long has no live shard worker
 
 
-def renderers_key(prefix: str, version: str) -> str:
-    """ZSET renderer name -> last time a render process of a shard worker of `version` noted it (epoch s)."""
-    return f"{prefix}:renderers:{version}"
-
-
-def note_renderer(redis, prefix: str, version: str, renderer: str, now: float) -> None:
-    redis.zadd(renderers_key(prefix, version), {renderer: now})
-
-
 def renderer_live(ctx: ShardContext, renderer: str, now: float) -> bool:
     """Whether a shard worker of this code version with `renderer` has noted itself within RENDERER_LIVE_S."""
-    seen = ctx.records.r.zscore(renderers_key(ctx.records.p, ctx.code_version), renderer)
-    return seen is not None and now - float(seen) < RENDERER_LIVE_S
-
-
-def deferred_key(ctx: ShardContext, dataset_id: str) -> str:
-    """HASH shard index -> last time a worker of another renderer handed it back (epoch s)."""
-    return ctx.records._k(dataset_id, "deferred")
+    seen = ctx.records.renderer_seen(ctx.code_version, renderer)
+    return seen is not None and now - seen < RENDERER_LIVE_S
 
 
 def renderer_wait_s(ctx: ShardContext) -> float:
@@ -37,37 +23,6 @@ def renderer_wait_s(ctx: ShardContext) -> float:
     (SEASYNTH_RENDERER_WAIT_S), else the stall timeout."""
     wait = ctx.settings.renderer_wait_s
     return float(ctx.settings.stall_s if wait is None else wait)
-
-
-# Counts a hand-back and keeps the dataset from looking stalled (a sweep would publish the shard again while its
-# message goes round). waiting_since: the first hand-back since a live worker of the pinned renderer was last
-# seen. Returns {hand-backs, waiting_since or ''}, nil for no such dataset.
-_HAND_BACK = """
-if redis.call('EXISTS', KEYS[1]) == 0 then return nil end
-local n = redis.call('HINCRBY', KEYS[1], 'handbacks', 1)
-redis.call('HSET', KEYS[1], 'touched_at', ARGV[2])
-redis.call('HSET', KEYS[2], ARGV[1], ARGV[2])
-if ARGV[3] == '1' then
-  redis.call('HDEL', KEYS[1], 'waiting_since')
-  return {n, ''}
-end
-redis.call('HSETNX', KEYS[1], 'waiting_since', ARGV[2])
-return {n, redis.call('HGET', KEYS[1], 'waiting_since')}
-"""
-
-# Sets fields of an existing record only (a late writer never recreates a discarded dataset's hash).
-_SET_IF_EXISTS = """
-if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
-redis.call('HSET', KEYS[1], unpack(ARGV))
-return 1
-"""
-
-# A worker of the pinned renderer took a shard: nothing is waiting for one any more.
-_FOUND = """
-redis.call('HDEL', KEYS[2], ARGV[1])
-if redis.call('HEXISTS', KEYS[1], 'notice') == 1 then redis.call('HDEL', KEYS[1], 'notice', 'waiting_since') end
-return 0
-"""
 
 
 def defer_to_renderer(ctx: ShardContext, dataset_id: str, index: int, wrong: WrongRenderer,
@@ -82,11 +37,10 @@ def defer_to_renderer(ctx: ShardContext, dataset_id: str, index: int, wrong: Wro
     now = time.time() if now is None else now
     ours = ctx.session.renderer_name
     live = renderer_live(ctx, wrong.pinned, now)
-    got = script(ctx, _HAND_BACK)(keys=[ctx.records._k(dataset_id), deferred_key(ctx, dataset_id)],
-                                  args=[index, repr(now), "1" if live else "0"])
+    got = ctx.records.hand_back(dataset_id, index, now, live)
     if got is None:
         return Outcome.MISSING
-    handbacks, since = int(got[0]), (float(got[1]) if got[1] else None)
+    handbacks, since = got
     wait = renderer_wait_s(ctx)
     if since is not None and now - since >= wait:
         message = (f"no shard worker with renderer {wrong.pinned!r}, which this dataset was started with, ran for "
@@ -102,7 +56,7 @@ def defer_to_renderer(ctx: ShardContext, dataset_id: str, index: int, wrong: Wro
         state = f"none has run for {now - since:.0f} s; the dataset fails if none comes within {left:.0f} s"
     notice = (f"waiting for a shard worker with renderer {wrong.pinned!r}: {state}; {handbacks} hand-backs by "
               f"workers running {ours!r}")
-    script(ctx, _SET_IF_EXISTS)(keys=[ctx.records._k(dataset_id)], args=["notice", notice])
+    ctx.records.set_notice(dataset_id, notice)
     return Outcome.DEFERRED
 
 
@@ -116,10 +70,6 @@ def give_up_pending(ctx: ShardContext, dataset_id: str, message: str, now: float
         for i in ctx.records.pending(dataset_id, batch, now, ctx.settings.running_lease_s):
             ctx.records.fail(dataset_id, i, message)
             failed += 1
-    script(ctx, _SET_IF_EXISTS)(keys=[ctx.records._k(dataset_id)], args=["notice", message])
+    ctx.records.set_notice(dataset_id, message)
     finalise_or_defer(ctx, dataset_id)
     return failed
-
-
-def renderer_found(ctx: ShardContext, dataset_id: str, index: int) -> None:
-    script(ctx, _FOUND)(keys=[ctx.records._k(dataset_id), deferred_key(ctx, dataset_id)], args=[index])

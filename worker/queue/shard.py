@@ -25,7 +25,6 @@ from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.export.parts import kitti_names, parts_render_spec
 from seasynth.worker.queue.finalise import fail_shard, finalise_or_defer, maybe_finalise
 from seasynth.worker.queue.packing import pack_tar
-from seasynth.worker.queue.pinning import deferred_key, renderer_found
 from seasynth.worker.scene.sample import INPUT_ERRORS
 from seasynth.worker.queue.context import FrameSource, Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 from seasynth.worker.queue.shard_exports import keep_frame, pack_parts, part_keys, upload_parts
@@ -112,7 +111,7 @@ def _attempt(ctx: ShardContext, dataset_id: str, index: int, attempt: int) -> Ou
     frames takes about 1.8 s). Nothing is uploaded before the read has answered.
     """
     try:
-        renderer_found(ctx, dataset_id, index)
+        ctx.records.renderer_found(dataset_id, index)
         return _render_and_commit(ctx, dataset_id, index, MarkerLookup(ctx, dataset_id, index))
     except _Cancelled:
         return Outcome.CANCELLED
@@ -330,9 +329,9 @@ def sweepable(ctx: ShardContext, dataset_id: str, indices: list[int], now: float
     pending = ctx.records.pending(dataset_id, indices, now, ctx.settings.running_lease_s)
     if not pending:
         return []
-    handed_back = ctx.records.r.hmget(deferred_key(ctx, dataset_id), pending)
+    handed_back = ctx.records.handed_back(dataset_id, pending)
     stall = ctx.settings.stall_s
-    return [i for i, t in zip(pending, handed_back) if t is None or now - float(t) >= stall]
+    return [i for i, t in zip(pending, handed_back) if t is None or now - t >= stall]
 
 
 # --- single frames

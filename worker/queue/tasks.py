@@ -20,14 +20,14 @@ from seasynth.service import __version__
 from seasynth.service.errors import NotFound, Unreachable
 from seasynth.service.queues import TASK_FRAME, TASK_PLAN, TASK_PREVIEW, TASK_RECONCILE, TASK_SHARD, frame_queue, shard_queue
 from seasynth.service.records.types import TERMINAL
-from seasynth.service.records.store import Records, push_reply
+from seasynth.service.records.store import Records, push_reply, raw_client
 from seasynth.service.settings import Settings
 from seasynth.service.shards import shard_at
 from seasynth.service.storage import open_store
 from seasynth.worker.queue.asset_cache import AssetCache
 from seasynth.worker.queue.metrics import TimedFrames, TimedStore, WorkerMetrics
 from seasynth.worker.preview.playground import preview_reply
-from seasynth.worker.queue.pinning import HEARTBEAT_S, defer_to_renderer, note_renderer
+from seasynth.worker.queue.pinning import HEARTBEAT_S, defer_to_renderer
 from seasynth.worker.queue.shard import frame_reply, reconcile, run_shard, sweepable
 from seasynth.worker.queue.context import Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 
@@ -43,13 +43,15 @@ class Heartbeat:
     can tell whether a dataset pinned to it still has a live shard worker
     (seasynth.worker.queue.pinning.defer_to_renderer)."""
 
-    def __init__(self, redis, prefix: str, version: str, renderer: str):
-        self._args = (redis, prefix, version, renderer)
+    def __init__(self, records: Records, version: str, renderer: str):
+        self._records = records
+        self._args = (version, renderer)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="seasynth-heartbeat", daemon=True)
 
     def __enter__(self) -> Heartbeat:
-        note_renderer(*self._args, time.time())  # at once: the first shard may arrive before the first beat
+        # At once: the first shard may arrive before the first beat.
+        self._records.note_renderer(*self._args, time.time())
         self._thread.start()
         return self
 
@@ -60,7 +62,7 @@ class Heartbeat:
     def _run(self) -> None:
         while not self._stop.wait(HEARTBEAT_S):
             try:
-                note_renderer(*self._args, time.time())
+                self._records.note_renderer(*self._args, time.time())
             except Exception as err:  # Redis briefly away: the next beat tries again; a long outage shows as gone
                 log.warning("renderer heartbeat not noted: %s: %s", type(err).__name__, err)
 
@@ -93,8 +95,6 @@ class ProcessResources:
         self.variant_folder: str | None = None  # set before the pool forks (seasynth.worker.queue.app)
 
     def open(self) -> None:
-        import redis
-
         from celery.utils.log import current_process_index
 
         from seasynth.worker.frame.function import RenderSession  # GL comes up here, in the pool process, never before fork
@@ -111,14 +111,14 @@ class ProcessResources:
             )
             session = stack.enter_context(RenderSession(fetch_asset=AssetCache(store, folder), platform=platform,
                                                         variant_folder=self.variant_folder))
-            records = Records(redis.Redis.from_url(s.redis_url, decode_responses=True), s.key_prefix)
-            raw = redis.Redis.from_url(s.redis_url)
+            records = Records.from_url(s.redis_url, s.key_prefix)
+            raw = raw_client(s.redis_url)
             metrics = WorkerMetrics()  # after the fork: multiprocess mode writes this process's own files
             frames = TimedFrames(session, metrics)
             ctx = ShardContext(settings=s, records=records, raw_redis=raw, store=TimedStore(store, metrics),
                                session=frames)
             if self.takes_shards:
-                stack.enter_context(Heartbeat(records.r, s.key_prefix, ctx.code_version, session.renderer_name))
+                stack.enter_context(Heartbeat(records, ctx.code_version, session.renderer_name))
             self._ctx, self.metrics, self.frames = ctx, metrics, frames
             self._stack = stack.pop_all()
         log.info("render session ready: %s (%s)", session.renderer_name, platform)
