@@ -7,7 +7,6 @@ import random
 import uuid
 
 import pytest
-from celery import Celery
 
 from isolated_stacks import api_on, isolated, queued_tasks
 from seasynth.service import __version__
@@ -53,14 +52,12 @@ def test_a_record_written_before_the_bound_shows_its_first_failed_shards(infra: 
 
 @pytest.mark.parametrize("final", ["failed", "succeeded", "cancelled"])
 def test_the_planner_publishes_nothing_for_a_final_dataset(infra: Stack, tmp_path, final):
-    from seasynth.worker.queue.tasks import register
+    from seasynth.worker.queue.app import create_app
 
     with isolated(infra, 10) as (_, services):
         records = services.records
-        app = Celery("planner-test", broker=services.settings.redis_url, set_as_current=False)
-        resources = register(app, services.settings)
-        resources._ctx = make_ctx(infra, records, tmp_path, FakeSession())  # no GL: the planner renders nothing
-        plan = app.tasks[TASK_PLAN]
+        plan = create_app(services.settings).tasks[TASK_PLAN]
+        plan.resources._ctx = make_ctx(infra, records, tmp_path, FakeSession())  # no GL: the planner renders nothing
         queue = shard_queue(__version__)
         ds = new_dataset(records, frames=6, shard_size=2, dataset_id=uuid.uuid4().hex)
         # Live, it publishes every shard.

@@ -1,11 +1,12 @@
-"""The workers' Celery app: its configuration guards against lost and duplicated work, and the settings it reads
-(SEASYNTH_*) parse as the worker always parsed them."""
+"""The workers' Celery app: its configuration guards against lost and duplicated work, its tasks are defined at
+module level on one base that holds the process's resources, and the settings it reads (SEASYNTH_*) parse as the
+worker always parsed them."""
 
 from __future__ import annotations
 
 import pytest
 
-from seasynth.service.queues import TASK_SHARD
+from seasynth.service.queues import TASK_FRAME, TASK_PLAN, TASK_PREVIEW, TASK_RECONCILE, TASK_SHARD
 from seasynth.service.settings import WORKER_MAX_MEMORY_PER_CHILD_MB, Settings
 
 
@@ -56,6 +57,37 @@ def test_pool_processes_are_recycled_by_memory(infra, monkeypatch):
     monkeypatch.setenv("SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB", "lots")
     with pytest.raises(ValueError, match="SEASYNTH_WORKER_MAX_MEMORY_PER_CHILD_MB"):
         create_app(infra.settings())
+
+
+def test_the_tasks_live_at_module_level_on_one_base_with_their_options(infra):
+    from seasynth.worker.queue import tasks
+    from seasynth.worker.queue.app import create_app
+
+    app = create_app(infra.settings())
+    options = {name: (type(t).__mro__[1], t.run.__module__, t.acks_late, t.reject_on_worker_lost, t.max_retries)
+               for name, t in app.tasks.items() if name.startswith("seasynth.")}
+    base, module = tasks.SeasynthTask, tasks.__name__
+    assert options == {TASK_SHARD: (base, module, True, True, None), TASK_PLAN: (base, module, True, True, 3),
+                       TASK_FRAME: (base, module, False, True, 3), TASK_PREVIEW: (base, module, False, True, 3),
+                       TASK_RECONCILE: (base, module, True, True, 3)}
+    assert {name: getattr(tasks, t.run.__name__) for name, t in app.tasks.items() if name.startswith("seasynth.")} \
+        == {name: t for name, t in app.tasks.items() if name.startswith("seasynth.")}
+    # One ProcessResources per process, for the settings the app was configured with, shared by every task.
+    shared = {id(t.resources) for name, t in app.tasks.items() if name.startswith("seasynth.")}
+    assert shared == {id(tasks.SeasynthTask._process)} and tasks.SeasynthTask._process.settings == infra.settings()
+
+
+def test_configuring_again_publishes_to_the_new_broker(infra):
+    from seasynth.worker.queue.app import create_app
+
+    first, second = (infra.settings().redis_url.rsplit("/", 1)[0] + f"/{db}" for db in (7, 8))
+    app = create_app(infra.settings(redis_url=first))
+    with app.producer_or_acquire() as producer:
+        assert producer.connection.as_uri().endswith("/7")
+    assert create_app(infra.settings(redis_url=second)) is app
+    with app.producer_or_acquire() as producer:
+        assert producer.connection.as_uri().endswith("/8")
+    assert app.pool.connection.as_uri().endswith("/8")
 
 
 def test_settings_read_the_worker_variables_as_the_worker_did(monkeypatch):

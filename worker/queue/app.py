@@ -24,16 +24,28 @@ from seasynth.service.settings import Settings
 
 QUEUE_KINDS = ("shards", "frames")
 
+
 def create_app(settings: Settings) -> Celery:
-    """A worker app with its tasks registered; per-process resources open in each pool process after fork."""
+    """The workers' app configured for `settings`, its tasks registered; per-process resources open in each pool
+    process after fork."""
     return _build(settings)[0]
 
 
 def _build(settings: Settings):
+    """Configure the module-level app (seasynth.worker.queue.celery_app) and make this process's resources.
+
+    A worker configures it once, before its first task binds its options. Tests configure it again for other
+    settings: the broker connections Celery keeps for an earlier broker URL are dropped then."""
     from seasynth.worker.queue import tasks
 
-    app = Celery("seasynth", broker=settings.redis_url, set_as_current=False)
+    app = tasks.app
+    if app.conf.broker_url not in (None, settings.redis_url):
+        # Celery keeps its broker connection and producer pools per app: drop those of the earlier URL, as Celery
+        # itself does after a fork (Celery._after_fork).
+        app._pool = None
+        app.amqp._producer_pool = None
     app.conf.update(
+        broker_url=settings.redis_url,
         task_serializer="json",
         accept_content=["json"],
         task_ignore_result=True,  # status lives in our Redis records
@@ -57,8 +69,7 @@ def _build(settings: Settings):
         worker_hijack_root_logger=True,
         worker_redirect_stdouts=False,
     )
-    resources = tasks.register(app, settings)
-    return app, resources
+    return app, tasks.SeasynthTask.use(settings)
 
 
 def worker_argv(concurrency: int, queues: list[str], loglevel: str = "INFO") -> list[str]:
