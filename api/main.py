@@ -12,15 +12,14 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 
 from seasynth.api import errors, metrics
+from seasynth.api.admission import check_files, check_limits
 from seasynth.api.deps import Services, open_services
 from seasynth.api.gate import Gate
-from seasynth.api.admission import check_files, check_limits
 from seasynth.api.playground import ServicePreviewer, playground_router
 from seasynth.api.routes import assets, calibrate, datasets, health
 from seasynth.api.waits import FrameWaits
 from seasynth.service import __version__
 from seasynth.service.settings import Settings
-
 
 # Seconds an idle keep-alive connection stays open. Longer than the clients' and proxies' own idle limits (httpx
 # 5 s, nginx 60 s, AWS load balancers 60 s), so that they, not the API, retire an idle connection: uvicorn's

@@ -16,9 +16,9 @@ from seasynth.api.models import DatasetCreated, DatasetLinks, DatasetPublic, Sha
 from seasynth.service.errors import AssetError, Conflict, NotFound, RenderError, Unavailable
 from seasynth.service.manifest import build_manifest
 from seasynth.service.queues import TASK_FRAME, TASK_PLAN, TASK_RECONCILE, frame_queue, shard_queue
-from seasynth.service.records.types import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord
-from seasynth.service.records.store import wait_reply
 from seasynth.service.records.recovery import cancelled_key, check_redis, forget, restore, save_record
+from seasynth.service.records.store import wait_reply
+from seasynth.service.records.types import CANCELLED, QUEUED, RUNNING, TERMINAL, DatasetRecord
 from seasynth.service.shards import (
     FRAME_PARTS,
     dataset_prefix,

@@ -19,8 +19,8 @@ from fastapi import APIRouter, Header, Request
 from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from seasynth.api.slots import RenderGate
 from seasynth.api.models import error_responses
+from seasynth.api.slots import RenderGate
 from seasynth.service import __version__
 from seasynth.service.errors import NotFound, RenderError, SpecError, Unavailable
 from seasynth.service.spec.dataset import DatasetSpec, parse_spec

@@ -146,8 +146,8 @@ class Reference:
 
 
 def reference(session, spec: DatasetSpec) -> Reference:
-    from seasynth.worker.frame.srgb import encode_srgb8
     from seasynth.worker.frame.function import scene_light
+    from seasynth.worker.frame.srgb import encode_srgb8
     from seasynth.worker.render import Sampling, View
 
     scene = session.scene(spec, 0)
@@ -187,8 +187,8 @@ def errors(session, s: DatasetSpec, ref: Reference) -> dict:
 
     from PIL import Image
 
-    from seasynth.worker.frame.srgb import encode_srgb8
     from seasynth.worker.frame.function import PRESETS, Passes, scene_light
+    from seasynth.worker.frame.srgb import encode_srgb8
 
     preset = s.quality
     files = session.frame_files(s, 0)

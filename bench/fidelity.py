@@ -265,8 +265,8 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
     recorded beside them)."""
     from seasynth.bench.reference import render_reference
     from seasynth.bench.throughput import machine_description
-    from seasynth.worker.frame.srgb import encode_srgb8
     from seasynth.worker.frame.function import RenderSession
+    from seasynth.worker.frame.srgb import encode_srgb8
 
     rows, pictures, sources = [], [], {}
     with RenderSession(platform=platform) as session:

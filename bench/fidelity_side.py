@@ -14,15 +14,23 @@ import time
 from pathlib import Path
 
 from seasynth.bench.accuracy import psnr_db
-from seasynth.bench.fidelity import CONFIGS, FRAME, config_spec, equal_error_spp, mse, path_traced_scene, stored_reference
+from seasynth.bench.fidelity import (
+    CONFIGS,
+    FRAME,
+    config_spec,
+    equal_error_spp,
+    mse,
+    path_traced_scene,
+    stored_reference,
+)
 
 REFERENCES = Path(__file__).resolve().parent / "results" / "cpu" / "fidelity-references"
 
 
 def main(names: list[str], presets: list[str]) -> None:
     from seasynth.worker.frame.function import PRESETS, RenderSession
-    from seasynth.worker.render import Passes
     from seasynth.worker.frame.srgb import encode_srgb8
+    from seasynth.worker.render import Passes
 
     with RenderSession() as s:
         for name in names:

@@ -8,8 +8,11 @@ reads are fetched (GLRenderer.queue and fetch, as seasynth.bench.gpu_timeline us
 VARIANT: default (the default preset, ids pass, 8-bit codes), fragment (the same with the fragment resolve),
 no-ids, draft, no-sun-shadow, no-scatter (sun and sky scattering off). Results: bench/results/gpu/passes.md.
 """
-import collections, dataclasses, multiprocessing as mp, sys, time
-
+import collections
+import dataclasses
+import multiprocessing as mp
+import sys
+import time
 
 VARIANTS = ("default", "fragment", "no-ids", "draft", "no-sun-shadow", "no-scatter")
 

@@ -9,10 +9,10 @@ import collections
 import statistics
 import sys
 
+import seasynth.worker.render.gl_light as gl_light
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame.function import PRESETS, RenderSession, scene_light
 from seasynth.worker.render import Passes
-import seasynth.worker.render.gl_light as gl_light
 
 
 def main(w: int, h: int) -> None:

@@ -19,10 +19,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from seasynth.service.gpus import GpuChoice
 from seasynth.bench.meters import STEADY_AFTER, CpuMeter, GpuSampler, rates
 from seasynth.bench.scale_service import run_service, service_shard_size
+from seasynth.service.gpus import GpuChoice
 from seasynth.service.spec.dataset import load_spec
+
 
 def run_cli(spec, workers: int, platform: str, gpus: GpuChoice | None = None) -> dict:
     """One fresh local generate of spec with `workers` processes: frames, wall and steady fps, utilisation."""

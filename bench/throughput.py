@@ -94,8 +94,8 @@ def time_stock(scenes: list, spec: DatasetSpec) -> float:
 
 def time_stages(session, spec: DatasetSpec, frames: int, out: Path) -> dict[str, float]:
     """Median seconds per stage over frames WARMUP..frames-1 (GL work is waited for at each stage)."""
-    from seasynth.worker.local.folder import write_frame
     from seasynth.worker.frame.function import frame_paths
+    from seasynth.worker.local.folder import write_frame
 
     per_stage: dict[str, list[float]] = {s: [] for s in STAGES}
     for rel in frame_paths(spec, 0):

@@ -11,7 +11,7 @@ from typing import NoReturn
 import typer
 
 from seasynth.cli import bench, datasets, servers  # noqa: F401 (importing them registers their commands)
-from seasynth.cli.app import STOP_SIGNALS, Interrupted, stop_command, app, stopped_by
+from seasynth.cli.app import STOP_SIGNALS, Interrupted, app, stop_command, stopped_by
 from seasynth.service.errors import SeasynthError, SpecError
 
 

@@ -14,8 +14,8 @@ from pathlib import Path
 from seasynth.service import __version__
 from seasynth.service.errors import ExportError, NotFound, ParameterError
 from seasynth.service.kitti import parse_label_file
-from seasynth.service.records.types import DatasetRecord, ShardCommit
 from seasynth.service.records.store import Records
+from seasynth.service.records.types import DatasetRecord, ShardCommit
 from seasynth.service.shards import FRAME_PARTS, named_file, preview_key
 from seasynth.service.sheet import (
     COLUMNS,

@@ -11,7 +11,6 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from seasynth.service import __version__
 from seasynth.service.gpus import GpuChoice, parse_gpus
 
-
 # Memory the check of an uploaded mesh may use by default (SEASYNTH_UPLOAD_CHECK_MEMORY_MIB, seasynth.api.uploads).
 UPLOAD_CHECK_MEMORY_MIB = 768
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+
 from seasynth.service.spec.dataset import MAX_FRAMES
 
 DATASET_ID = re.compile(r"^[0-9a-f]{32}$")

@@ -5,7 +5,15 @@ import numpy as np
 import pytest
 
 from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
-from seasynth.bench.reference import Reference, load_reference, load_scene, merge, save_reference, save_scene, scene_digest
+from seasynth.bench.reference import (
+    Reference,
+    load_reference,
+    load_scene,
+    merge,
+    save_reference,
+    save_scene,
+    scene_digest,
+)
 
 
 def scene(**change) -> PTScene:

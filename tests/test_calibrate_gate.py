@@ -14,8 +14,8 @@ from fastapi import FastAPI
 from PIL import Image
 
 from seasynth.api.errors import install
-from seasynth.api.slots import RenderGate
 from seasynth.api.routes import calibrate
+from seasynth.api.slots import RenderGate
 
 
 def png() -> bytes:

@@ -3,16 +3,15 @@ degenerate inputs refused or reported, never NaN."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
+from calibration_helpers import B_INF, BETA_B, BETA_D, assert_no_nan, photo, rel, seabed
 
 from seasynth.service.calibration.estimate import estimate_water, half_code, srgb8_to_linear_table
 from seasynth.service.calibration.output import describe
 from seasynth.service.errors import CalibrationError
 from seasynth.worker.frame.formation import haze
 from seasynth.worker.frame.srgb import SRGB8_TO_LINEAR, encode_srgb8
-from calibration_helpers import B_INF, BETA_B, BETA_D, assert_no_nan, photo, rel, seabed
 
 
 def test_the_decode_table_is_the_workers_exactly():
@@ -186,7 +185,7 @@ def test_stage_two_fits_the_direct_signal_exactly_once_the_backscatter_is_known(
     """Bin means of a water with a known backscatter (and J drifting with range as RangeData.with_drift states):
     stage 2, told the drift, returns beta_D on the fine grid's step, whatever stage 1's beta_D was, and leaves a
     channel with no direct signal not identified."""
-    from seasynth.service.calibration.fit import BETA_GRID, FINE_POINTS, RangeData, RangeFit, Z_NODES
+    from seasynth.service.calibration.fit import BETA_GRID, FINE_POINTS, Z_NODES, RangeData, RangeFit
     from seasynth.service.calibration.refine import refine_beta_D
 
     nodes = np.geomspace(1.0, 20.0, Z_NODES)

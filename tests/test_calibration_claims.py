@@ -7,12 +7,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+from calibration_helpers import B_INF, BETA_B, BETA_D, assert_no_nan, full_spec, photo, seabed
 
 from seasynth.service.calibration.estimate import estimate_water
 from seasynth.service.calibration.io import read_photo
 from seasynth.service.calibration.output import to_spec_water
 from seasynth.service.errors import CalibrationError
-from calibration_helpers import B_INF, BETA_B, BETA_D, assert_no_nan, full_spec, photo, seabed
 from seasynth.worker.frame.formation import haze
 from seasynth.worker.frame.srgb import encode_srgb8
 

@@ -9,9 +9,8 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from calibration_helpers import B_INF, BETA_D, full_spec, photo
 from PIL import Image
-
-from calibration_helpers import BETA_D, B_INF, full_spec, photo
 
 
 def seasynth(*args) -> subprocess.CompletedProcess:

@@ -17,7 +17,6 @@ from seasynth.service.calibration.io import MAX_PHOTO_PIXELS, read_photo, read_r
 from seasynth.service.calibration.output import to_spec_water
 from seasynth.service.errors import CalibrationError
 
-
 # ------------------------------------------------------------------ the spec's water section
 
 

@@ -11,8 +11,8 @@ from test_render_light import FLOOR, ONE, SHADOW_VIEW, SHADOW_WORLD_FROM_CAM, hi
 
 from seasynth.service.seeds import frame_rng
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.light.caustics import contrast, factor, pattern, sample_caustics
 from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.light.caustics import contrast, factor, pattern, sample_caustics
 from seasynth.worker.render import Passes
 from seasynth.worker.scene.sample import sample_scene
 

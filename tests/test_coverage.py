@@ -3,8 +3,8 @@ id pass marks, whatever its triangles' overlap, its region or the other objects 
 
 import numpy as np
 import trimesh
-
 from test_hard_cases import GREY, camera_view, fronto_quad, pinhole
+
 from seasynth.worker.frame.function import to_render_mesh
 from seasynth.worker.render import DrawItem
 from seasynth.worker.render.coverage import clipped

@@ -20,7 +20,6 @@ import sys
 import zipfile
 
 import pytest
-
 from deploy_helpers import (
     GL_PACKAGE_RE,
     IMAGES,
@@ -32,7 +31,6 @@ from deploy_helpers import (
     _env,
     parse_dockerfile,
 )
-
 
 # --------------------------------------------------------------------------------------------
 # Dockerfiles

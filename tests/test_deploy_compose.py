@@ -7,7 +7,6 @@ import re
 from pathlib import Path
 
 import pytest
-
 from deploy_helpers import (  # noqa: F401 (fixtures)
     IMAGES,
     KUSTOMIZATIONS,
@@ -30,7 +29,6 @@ from deploy_helpers import (  # noqa: F401 (fixtures)
     rendered,
     yaml,
 )
-
 
 # --------------------------------------------------------------------------------------------
 # docker-compose.yml

@@ -15,9 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
-
 from deploy_helpers import HEALTHCHECK, IMAGES, ROOT, _build_context, parse_dockerfile
-
 
 # ---- what each image installs, and what its modules import
 

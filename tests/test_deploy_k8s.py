@@ -11,7 +11,6 @@ import subprocess
 from pathlib import Path
 
 import pytest
-
 from deploy_helpers import (  # noqa: F401 (fixtures)
     CLUSTER_SCOPED,
     DEPLOY,
@@ -44,7 +43,6 @@ from deploy_helpers import (  # noqa: F401 (fixtures)
     rendered,
     yaml,
 )
-
 
 # --------------------------------------------------------------------------------------------
 # Kubernetes manifests (deploy/)

@@ -11,12 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from PIL import Image
 from export_fixtures import FRACTIONS, SMALL, coco, datasets, yolo  # noqa: F401 (fixtures)
 from local_datasets import tree
+from PIL import Image
 
 from seasynth.service.errors import ExportError
-from seasynth.worker.frame import kitti
 from seasynth.worker.export import (
     SPLITS,
     STREAM_SPLIT,
@@ -31,8 +30,9 @@ from seasynth.worker.export import (
 from seasynth.worker.export.coco import coco_bbox, instance_runs, rle_counts, rle_string
 from seasynth.worker.export.files import EXPORT_RECORD
 from seasynth.worker.export.yolo import YoloExporter
-from seasynth.worker.local.folder import RECORD
+from seasynth.worker.frame import kitti
 from seasynth.worker.frame.labels import tight_boxes
+from seasynth.worker.local.folder import RECORD
 
 pycocotools = pytest.importorskip("pycocotools")
 from pycocotools import mask as mask_utils  # noqa: E402

@@ -9,15 +9,14 @@ import shutil
 from pathlib import Path
 
 import pytest
-from PIL import Image
 from export_fixtures import FRACTIONS, SPLIT, coco, datasets, yolo  # noqa: F401 (fixtures)
 from local_datasets import seasynth, tree
+from PIL import Image
 
 from seasynth.service.errors import ExportError
 from seasynth.worker.export import SPLITS, plan_export, run_export
 from seasynth.worker.export.files import EXPORT_RECORD
 from seasynth.worker.local.folder import RECORD
-
 
 # ------------------------------------------------------------------ incomplete datasets, missing masks
 

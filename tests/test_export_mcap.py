@@ -14,18 +14,18 @@ import pytest
 from PIL import Image
 
 from seasynth.service.errors import ExportError
-from seasynth.worker.frame import kitti
 from seasynth.worker.export import SPLITS, plan_export, run_export, split_of
 from seasynth.worker.export.files import EXPORT_RECORD
+from seasynth.worker.frame import kitti
 from seasynth.worker.local.folder import RECORD
 
 pytest.importorskip("mcap")
 pytest.importorskip("mcap_ros2")
+from local_datasets import generate_variants, seasynth, tree  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
 from seasynth.worker.export.mcap import FRAME_RATE_HZ, detection_box  # noqa: E402
-from local_datasets import generate_variants, seasynth, tree  # noqa: E402
 
 SMALL = {"camera.width": 64, "camera.height": 48, "frames": 8}
 FRACTIONS = (0.5, 0.25, 0.25)

@@ -15,8 +15,8 @@ from scipy.spatial.transform import Rotation
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.export import plan_export, run_export
 from seasynth.worker.local.generate import generate
-from seasynth.worker.sensors.fls import fls_grid
 from seasynth.worker.scene.trajectory import GRAVITY
+from seasynth.worker.sensors.fls import fls_grid
 from seasynth.worker.sensors.sss import sss_grid
 
 pytest.importorskip("mcap")

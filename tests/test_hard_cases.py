@@ -7,10 +7,10 @@ import trimesh
 
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame import kitti, labels
-from seasynth.worker.scene.assets import Asset
-from seasynth.worker.scene.assets.terrain import procedural_terrain
 from seasynth.worker.frame.function import PRESETS, to_render_mesh
 from seasynth.worker.render import DrawItem, Lighting, Passes, View, WaterParams
+from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets.terrain import procedural_terrain
 from seasynth.worker.scene.sample import (
     Placed,
     Scene,

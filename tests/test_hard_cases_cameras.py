@@ -7,7 +7,6 @@ import pytest
 from seasynth.service.spec.dataset import load_spec, parse_spec
 from seasynth.worker.scene.sample import CAMERA_CLEARANCE_M, CAMERA_TRIES, Placed, SceneError, sample_scene
 
-
 # --- cameras drawn inside geometry ------------------------------------------------------------------------------
 
 SMALL_WORLD = {

@@ -19,8 +19,8 @@ from spec_helpers import refusal
 
 from seasynth.service.spec.dataset import DatasetSpec, load_spec, parse_spec, spec_digest
 from seasynth.worker.export import export_generated
-from seasynth.worker.local.generate import generate
 from seasynth.worker.frame.function import frame_paths
+from seasynth.worker.local.generate import generate
 
 BASE = {"frames": 4, "camera.width": 64, "camera.height": 48, "quality": "default", "outputs.instance": True,
         "terrain.variants": 1}

@@ -9,7 +9,14 @@ from hypothesis import strategies as st
 
 from seasynth.service.shards import frame_name
 from seasynth.service.spec.dataset import MAX_FRAMES
-from seasynth.worker.frame.kitti import CALIB_SHAPES, format_calib, format_label_file, format_label_line, parse_calib, parse_label_file
+from seasynth.worker.frame.kitti import (
+    CALIB_SHAPES,
+    format_calib,
+    format_label_file,
+    format_label_line,
+    parse_calib,
+    parse_label_file,
+)
 from seasynth.worker.frame.labels import KittiObject
 
 TWO_DECIMALS = re.compile(r"-?\d+\.\d{2}")

@@ -153,9 +153,9 @@ def test_a_frame_spreads_lamp_light_only_where_the_water_keeps_forward_scattered
     """Terms.lamp_spread (and the shader's LAMP_SPREAD) is on with lamps in turbid water, off without lamps, in water
     that keeps no forward-scattered light (K = c) and in clear ocean water, where what it would move is under
     SPREAD_MIN_SHARE: a term a frame does not need costs nothing."""
+    from seasynth.service.spec.dataset import DatasetSpec
     from seasynth.worker.light.build import sample_physical
     from seasynth.worker.render import Lighting
-    from seasynth.service.spec.dataset import DatasetSpec
 
     lamps = [{"offset_m": [0.3, 0.0, 0.0], "direction": [0.0, 0.0, 1.0], "intensity": [2.0, 2.0]}]
     cases = [({"jerlov": ["3C"]}, lamps, True), ({"jerlov": ["3C"]}, [], False),

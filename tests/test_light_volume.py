@@ -9,8 +9,8 @@ from scipy.integrate import quad
 
 from seasynth.worker.light import SNELL_CONE_DEG, WATER_INDEX, Lamp, Medium, PhysicalLight, Terms
 from seasynth.worker.light.lamps import light_factor, profile
-from seasynth.worker.light.sun import fresnel_transmittance, refract_down, sun_in_water
 from seasynth.worker.light.sky import SKY_PHASE_NODES, sky_phase, sky_phase_table
+from seasynth.worker.light.sun import fresnel_transmittance, refract_down, sun_in_water
 from seasynth.worker.light.volume import MU_SKY, segment, volume
 
 SUN = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])  # towards the sun, in the water

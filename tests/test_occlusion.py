@@ -3,11 +3,11 @@ visible fraction and a box that is the tight box of their visible pixels."""
 
 import numpy as np
 import pytest
-
 from test_hard_cases import LIGHT, camera_view, fronto_quad, label_frame, pinhole, placed
-from seasynth.worker.scene.assets.procedural import procedural_asset
+
 from seasynth.worker.frame.function import PRESETS
 from seasynth.worker.render import Passes, View
+from seasynth.worker.scene.assets.procedural import procedural_asset
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 
 W, H = 24, 16

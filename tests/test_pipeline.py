@@ -19,11 +19,11 @@ from seasynth import service
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame import kitti
 from seasynth.worker.frame.formation import haze
-from seasynth.worker.local.folder import RECORD
-from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.frame.function import frame_paths
 from seasynth.worker.frame.labels import tight_boxes
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
+from seasynth.worker.local.folder import RECORD
+from seasynth.worker.local.generate import generate, reproduce
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SMALL = {"camera.width": 96, "camera.height": 72, "frames": 5}
@@ -193,8 +193,8 @@ def rehazed(spec, index: int, clean: np.ndarray, rng: np.ndarray, meta: dict) ->
     w = meta["water"]
     if w["model"] == "paper":
         return haze(clean, rng, np.array(w["beta_D"]), np.array(w["beta_B"]), np.array(w["B_inf"]), np.float64)
-    from seasynth.worker.light.volume import camera_depth, pixel_rays, volume
     from seasynth.worker.frame.function import RenderSession
+    from seasynth.worker.light.volume import camera_depth, pixel_rays, volume
 
     scene = RenderSession().scene(spec, index)  # scenes only: no GL
     np.testing.assert_array_equal(scene.world_from_cam, meta["camera"]["pose_world_from_camera"])

@@ -18,10 +18,10 @@ import httpx
 import numpy as np
 import pytest
 import yaml
+from browser import chromium, playground_server, prefix_proxy, set_value, wait
 from PIL import Image
 from selenium.webdriver.support.ui import Select
 
-from browser import chromium, playground_server, prefix_proxy, set_value, wait
 from seasynth.service.spec.dataset import parse_spec
 from seasynth.worker.local.folder import RECORD
 

@@ -8,11 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 from local_datasets import generate_variants, seasynth
+from PIL import Image
 
 from seasynth.service.errors import ExportError
-from seasynth.worker.frame import kitti
 from seasynth.service.sheet import (
     BOX_COLOURS,
     COLUMNS,
@@ -25,6 +24,7 @@ from seasynth.service.sheet import (
     summary_rows,
     tile_origin,
 )
+from seasynth.worker.frame import kitti
 from seasynth.worker.preview.sheet import make_preview
 
 W, H, FRAMES = 48, 36, 5

@@ -8,13 +8,13 @@ import pytest
 import trimesh
 from test_render import draw, pinhole
 
+from seasynth.worker.frame.srgb import encode_srgb8
 from seasynth.worker.light import Lamp, Medium, PhysicalLight, Terms
-from seasynth.worker.light.sun import sun_in_water
 from seasynth.worker.light.lamps import LAMP_Z_SPREAD
+from seasynth.worker.light.sun import sun_in_water
 from seasynth.worker.light.volume import volume
 from seasynth.worker.render import Passes, Sampling, View
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
-from seasynth.worker.frame.srgb import encode_srgb8
 
 ONE = Sampling(msaa=1, supersample=1)
 W, H = 48, 36

@@ -14,7 +14,6 @@ from seasynth.service.spec.scene import Box
 from seasynth.worker.frame.function import RenderSession
 from seasynth.worker.scene.sample import (
     CAMERA_CLEARANCE_M,
-    PLACEMENT_TRIES,
     Scene,
     footprint_radius,
     in_box,

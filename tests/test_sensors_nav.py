@@ -13,15 +13,15 @@ import trimesh
 from local_datasets import tree
 
 from seasynth.service.errors import SpecError
-from seasynth.service.spec.sensors import DVL, SensorPose
 from seasynth.service.spec.dataset import load_spec, parse_spec
-from seasynth.worker.local.generate import generate, reproduce
+from seasynth.service.spec.sensors import DVL, SensorPose
 from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.render import DrawItem
 from seasynth.worker.scene.poses import look_at_pose
-from seasynth.worker.sensors import vehicle_from_sensor
-from seasynth.worker.sensors.nav import G, P_ATM, RHO, cast, dvl_record, imu_record, janus_directions, pressure_record
 from seasynth.worker.scene.trajectory import GRAVITY, lawnmower_state
+from seasynth.worker.sensors import vehicle_from_sensor
+from seasynth.worker.sensors.nav import P_ATM, RHO, G, cast, dvl_record, imu_record, janus_directions, pressure_record
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 SEABED = trimesh.Trimesh(vertices=[[-40, -40, 0], [40, -40, 0], [40, 40, 0], [-40, 40, 0]],

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from seasynth.service.errors import SpecError
-from seasynth.service.spec.sensors import FLS, MAX_FLS_FAN_PIXELS, MAX_FLS_FAN_SIDE, Sensors
 from seasynth.service.spec.dataset import DatasetSpec, parse_spec, spec_digest
+from seasynth.service.spec.sensors import FLS, MAX_FLS_FAN_PIXELS, MAX_FLS_FAN_SIDE, Sensors
 
 
 def test_every_sensor_is_off_by_default_and_leaves_the_digest_alone():

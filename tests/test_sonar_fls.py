@@ -12,10 +12,10 @@ import trimesh
 from local_datasets import seasynth, tree
 from PIL import Image
 
-from seasynth.service.spec.sensors import FLS, Acoustics
 from seasynth.service.spec.dataset import load_spec
-from seasynth.worker.local.generate import generate, reproduce
+from seasynth.service.spec.sensors import FLS, Acoustics
 from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.render import DrawItem
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 from seasynth.worker.sensors.fls import (

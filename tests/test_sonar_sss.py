@@ -11,10 +11,10 @@ import pytest
 import trimesh
 from PIL import Image
 
-from seasynth.service.spec.sensors import SSS, Acoustics
 from seasynth.service.spec.dataset import load_spec
-from seasynth.worker.local.generate import generate, reproduce
+from seasynth.service.spec.sensors import SSS, Acoustics
 from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.local.generate import generate, reproduce
 from seasynth.worker.render import DrawItem
 from seasynth.worker.scene.poses import look_at_pose
 from seasynth.worker.sensors.fls import absorption_db_per_m

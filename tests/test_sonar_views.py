@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 from local_datasets import seasynth
+from PIL import Image
 
 from seasynth.service.errors import ExportError
 from seasynth.service.sheet import (
@@ -27,9 +27,9 @@ from seasynth.service.sheet import (
     tile_origin,
 )
 from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.frame.function import frame_paths
 from seasynth.worker.local.folder import RECORD
 from seasynth.worker.local.generate import generate
-from seasynth.worker.frame.function import frame_paths
 from seasynth.worker.preview.sheet import make_preview
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey-sonar.yaml"

@@ -9,11 +9,10 @@ import pytest
 import yaml
 from hypothesis import given
 from hypothesis import strategies as st
+from spec_helpers import EXAMPLE, MAPPING, refusal
 
 from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, load_spec, parse_spec, spec_digest
 from seasynth.service.spec.scene import MAX_SIDE
-from spec_helpers import EXAMPLE, MAPPING, refusal
-
 
 # --- defaults and the contract's key names -------------------------------------------------------------------
 

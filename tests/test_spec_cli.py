@@ -6,9 +6,7 @@ import subprocess
 import sys
 
 import pytest
-
 from spec_helpers import EXAMPLE
-
 
 # --- the CLI ---------------------------------------------------------------------------------------------------
 

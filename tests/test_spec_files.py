@@ -7,11 +7,17 @@ from pathlib import Path
 
 import pytest
 import yaml
-
-from seasynth.service.errors import SpecError
-from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, load_spec, parse_spec, read_spec_file, resolve_paths
 from spec_helpers import EXAMPLE, MAPPING
 
+from seasynth.service.errors import SpecError
+from seasynth.service.spec.dataset import (
+    DatasetSpec,
+    apply_overrides,
+    load_spec,
+    parse_spec,
+    read_spec_file,
+    resolve_paths,
+)
 
 # --- spec files ------------------------------------------------------------------------------------------------
 

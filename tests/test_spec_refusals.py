@@ -7,15 +7,14 @@ import sys
 import unicodedata
 
 import pytest
+from spec_helpers import refusal
 
 from seasynth.service.errors import SpecError
 from seasynth.service.spec.dataset import MAX_FRAMES, apply_overrides, load_spec, parse_spec
 from seasynth.service.spec.scene import MAX_ASSETS, MAX_OBJECTS, MAX_SIDE
 from seasynth.service.spec.types import MAX_CHOICES
-from spec_helpers import refusal
 from seasynth.worker.frame.kitti import format_label_line, parse_label_file
 from seasynth.worker.frame.labels import KittiObject
-
 
 # --- refusals, each naming the field by its dotted path --------------------------------------------------------
 

@@ -6,9 +6,9 @@ import pytest
 
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame.function import PRESETS, scene_light
+from seasynth.worker.frame.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
 from seasynth.worker.render import Passes
 from seasynth.worker.render.shaders import FULLSCREEN
-from seasynth.worker.frame.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32, encode_srgb8
 
 PROBE = """
 #version 330 core

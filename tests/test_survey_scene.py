@@ -11,8 +11,8 @@ from local_datasets import tree
 
 from seasynth.service.seeds import frame_rng
 from seasynth.service.spec.dataset import load_spec
-from seasynth.worker.local.generate import generate
 from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.local.generate import generate
 from seasynth.worker.scene.sample import SceneError, sample_scene
 from seasynth.worker.scene.trajectory import lawnmower_state
 

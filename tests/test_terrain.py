@@ -12,7 +12,14 @@ from PIL import Image
 from scipy.ndimage import gaussian_filter
 
 from seasynth.worker.scene.assets import AssetError
-from seasynth.worker.scene.assets.terrain import STYLES, Terrain, apply_texture, grid_faces, heightfield, procedural_terrain
+from seasynth.worker.scene.assets.terrain import (
+    STYLES,
+    Terrain,
+    apply_texture,
+    grid_faces,
+    heightfield,
+    procedural_terrain,
+)
 from seasynth.worker.scene.assets.user import load_user_terrain, load_user_texture
 
 SIZE, CELLS, RELIEF = 4.0, 64, 0.3

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from seasynth.service.spec.dataset import load_spec
-from tests.test_resolve_compute import SPECS
 from seasynth.worker.frame.function import PRESETS
 from seasynth.worker.render import Passes
+from tests.test_resolve_compute import SPECS
 
 CASES = {
     **SPECS,

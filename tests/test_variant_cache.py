@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seasynth.worker.scene.assets.terrain import procedural_terrain
 from seasynth.worker.frame.function import to_render_mesh
+from seasynth.worker.scene.assets.terrain import procedural_terrain
 from seasynth.worker.scene.variant_cache import VariantCache
 
 ARGS = ("pebbles", 3, 4.0, 24, 0.3)

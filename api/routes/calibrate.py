@@ -9,8 +9,8 @@ from fastapi import APIRouter, Query, UploadFile
 from seasynth.api.models import CalibrationPublic, WaterEstimatePublic, error_responses
 from seasynth.api.slots import RenderGate
 from seasynth.service.calibration.estimate import WaterEstimate
-from seasynth.service.calibration.output import to_spec_water
 from seasynth.service.calibration.io import estimate_files
+from seasynth.service.calibration.output import to_spec_water
 
 router = APIRouter(tags=["calibration"])
 # An estimate takes 0.4-3.5 s of one core (bench/results/cpu/calibration.md): at most this many run at once in an

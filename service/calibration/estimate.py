@@ -11,8 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from seasynth.service.calibration import fit
-from seasynth.service.calibration import refine
+from seasynth.service.calibration import fit, refine
 from seasynth.service.errors import CalibrationError
 from seasynth.service.water import JERLOV_TYPES, jerlov_beta
 

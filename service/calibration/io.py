@@ -9,8 +9,8 @@ from pathlib import PurePath
 
 import numpy as np
 
-from seasynth.service.errors import CalibrationError
 from seasynth.service.calibration.estimate import estimate_water
+from seasynth.service.errors import CalibrationError
 
 MAX_PHOTO_PIXELS = 64 * 2**20  # a photo or range map over this many pixels is refused before it is decoded
 RANGE_FORMATS = {

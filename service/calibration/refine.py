@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from seasynth.service.calibration.family import fit_range_family
 from seasynth.service.calibration.fit import (
     BETA_GRID,
     FINE_POINTS,
@@ -14,9 +15,7 @@ from seasynth.service.calibration.fit import (
     RangeFit,
     fit_range,
 )
-from seasynth.service.calibration.family import fit_range_family
 from seasynth.service.water import JERLOV_TYPES, jerlov_beta
-
 
 REFINE_MIN_DIRECT = 0.004  # linear: a bin whose direct signal (mean minus backscatter) is below this is left out
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from seasynth.service.errors import NotFound
-from seasynth.service.records.types import FAILED, SUCCEEDED, ShardCommit
 from seasynth.service.records.store import Records
+from seasynth.service.records.types import FAILED, SUCCEEDED, ShardCommit
 from seasynth.service.shards import commit_prefix, manifest_key
 from seasynth.service.storage import ObjectStore
 

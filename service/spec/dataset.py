@@ -10,7 +10,6 @@ from typing import Any, Literal
 from pydantic import Field, StrictInt, ValidationError, model_validator
 
 from seasynth.service.errors import SpecError
-from seasynth.service.spec.sensors import Sensors, Trajectory
 from seasynth.service.spec.light import Lighting, Water
 from seasynth.service.spec.outputs import Outputs
 from seasynth.service.spec.scene import (
@@ -24,6 +23,7 @@ from seasynth.service.spec.scene import (
     TextureRandomisation,
     Workspaces,
 )
+from seasynth.service.spec.sensors import Sensors, Trajectory
 from seasynth.service.spec.types import SpecModel
 
 # Documented limits (the scene's are in seasynth.service.spec.scene). They keep one shard inside the task time limit, and

@@ -9,8 +9,8 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-
 from service_stack import BUCKET, Stack, free_port, need, wait_for
+
 
 @pytest.fixture(scope="session")
 def infra(tmp_path_factory) -> Iterator[Stack]:

@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-
 from service_stack import BUCKET, Proc, Stack, free_port, need, tiny_spec, wait_for, wait_state
 
 RESULTS_ENV = "SEASYNTH_RELIABILITY_OUT"  # a JSON-lines file each scenario appends its record to
@@ -311,8 +310,9 @@ class Verdict:
 def verify_dataset(st: FaultStack, dataset_id: str, spec: dict, tmp: Path) -> Verdict:
     """Fetch the dataset through the API and compare it with a local generate; count frames in the manifest, the
     shard tars and the bucket listing."""
-    from seasynth.service.fetch import fetch_dataset
     from test_service_e2e import tree
+
+    from seasynth.service.fetch import fetch_dataset
 
     store = st.services.store
     frames = spec["frames"]

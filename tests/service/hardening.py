@@ -12,11 +12,11 @@ from contextlib import contextmanager
 
 import httpx
 import pytest
-
-from seasynth.service.records.types import ShardCommit
-from seasynth.service.records.store import Records
-from seasynth.service.shards import shard_count
 from service_stack import Stack, free_port, tiny_spec, wait_for
+
+from seasynth.service.records.store import Records
+from seasynth.service.records.types import ShardCommit
+from seasynth.service.shards import shard_count
 
 VERSION = "0.0.0-hardening"  # no worker consumes these queues: what the API publishes stays where it was put
 KEY = "k-hardening"

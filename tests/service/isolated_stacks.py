@@ -12,10 +12,10 @@ import uuid
 from collections.abc import Iterator
 
 import httpx
+from service_stack import Stack, wait_for
 
 from seasynth.service import __version__
 from seasynth.service.shards import shard_count
-from service_stack import Stack, wait_for
 
 
 def queued_tasks(raw, queue: str) -> list[tuple[str, list]]:
@@ -65,9 +65,9 @@ def record_only(services, spec: dict, *, age_s: float = 0, version: str = __vers
 def api_on(services) -> Iterator[httpx.Client]:
     """An API on `services`, served in this process."""
     import uvicorn
+    from service_stack import free_port
 
     from seasynth.api.main import create_app
-    from service_stack import free_port
 
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(create_app(services.settings, services), host="127.0.0.1", port=port,

@@ -8,12 +8,12 @@ import re
 from collections.abc import Iterator
 
 import httpx
-
 from isolated_stacks import api_on
-from seasynth.service.shards import shard_seconds, spec_shard_seconds
-from seasynth.service.spec.dataset import parse_spec
 from service_stack import Stack, tiny_spec
 from test_service_plumbing import HEAVY
+
+from seasynth.service.shards import shard_seconds, spec_shard_seconds
+from seasynth.service.spec.dataset import parse_spec
 
 REFUSAL = re.compile(
     r"shard_size: (\d+) frames of 640x480 at quality 'draft' \(up to 128 objects, 1024 terrain cells a side, "

@@ -12,11 +12,11 @@ import threading
 from collections.abc import Iterator
 
 import pytest
+from service_stack import Proc, Stack
 
 from seasynth.service.queues import TASK_PREVIEW, frame_queue
 from seasynth.service.records.store import push_reply
 from seasynth.service.shards import frame_file
-from service_stack import Proc, Stack
 
 VERSION = "0.0.0-fuzz"  # no render worker consumes these queues; the frame answerer below plays the frame worker
 MIN_REQUESTS = 1000

@@ -12,10 +12,10 @@ import urllib.parse
 
 import httpx
 import pytest
-
 from hardening import KEY, VERSION, api, new_record, serve, services, serving, settings  # noqa: F401 (fixtures)
-from seasynth.service.records.store import push_reply
 from service_stack import tiny_spec
+
+from seasynth.service.records.store import push_reply
 
 
 def raw_http(url: str, head: str, parts: list[bytes] = (), timeout: float = 5.0) -> tuple[int, dict, bytes]:

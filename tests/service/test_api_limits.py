@@ -12,11 +12,11 @@ import anyio.to_thread
 import httpx
 import pytest
 import redis
+from service_stack import Stack, tiny_spec, wait_for
 
 from seasynth.service.queues import frame_queue, shard_queue
 from seasynth.service.records.store import push_reply
 from seasynth.service.settings import Settings
-from service_stack import Stack, tiny_spec, wait_for
 
 VERSION = "0.0.0-framewaits"  # no worker consumes its queues: frame requests wait until this test answers them
 RETRY_AFTER_S = 7

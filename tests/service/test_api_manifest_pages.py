@@ -10,10 +10,8 @@ import tarfile
 import threading
 
 import httpx
-
 from hardening import KEY, VERSION, api, commit, new_record, serve, services, settings  # noqa: F401 (fixtures)
 from service_stack import tiny_spec
-
 
 # --- manifest pages
 

@@ -7,11 +7,11 @@ import time
 
 import httpx
 import pytest
-
 from hardening import KEY, api, commit, new_record, serve, services, settings  # noqa: F401 (fixtures)
+from service_stack import free_port, tiny_spec
+
 from seasynth.service.errors import Unavailable
 from seasynth.service.storage import S3Store
-from service_stack import free_port, tiny_spec
 
 
 def dead_producer():

@@ -14,12 +14,12 @@ import zlib
 
 import httpx
 import pytest
+from isolated_stacks import api_on, isolated
 from pydantic import ValidationError
+from service_stack import Stack, tiny_spec, wait_state, wait_worker_ready
 
 from seasynth.api.gate import api_key_ok
-from isolated_stacks import api_on, isolated
 from seasynth.service.settings import Settings
-from service_stack import Stack, tiny_spec, wait_state, wait_worker_ready
 
 KEY = "k-sec-3f9a1c77e2"  # distinctive: any occurrence in a log or record is this key
 OTHER_KEY = "k-sec-second-51b0"

@@ -13,13 +13,11 @@ import zlib
 
 import httpx
 import pytest
-
 from hardening import KEY, api, serve, services, settings  # noqa: F401 (fixtures)
-from seasynth.service.shards import asset_info_key, asset_key
-from seasynth.service.storage import LocalStore
 from service_stack import Stack, tiny_spec, wait_state
 
-
+from seasynth.service.shards import asset_info_key, asset_key
+from seasynth.service.storage import LocalStore
 
 # --- assets: formats fixed by the first upload, and checked
 
@@ -176,8 +174,9 @@ def test_a_mesh_too_large_to_load_within_the_check_budget_is_413_and_the_api_sta
     took 3.5 GB in the API process before. A small one passes under the same budget."""
     import dataclasses
 
-    from seasynth.api.main import create_app
     from hardening import serving
+
+    from seasynth.api.main import create_app
 
     roomy = settings.model_copy(update={"max_asset_bytes": 64 * 2**20, "upload_check_memory_mib": 256})
     with serving(create_app(roomy, dataclasses.replace(services, settings=roomy))) as url:

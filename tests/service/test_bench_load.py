@@ -8,10 +8,10 @@ import json
 from pathlib import Path
 
 import pytest
-
-from seasynth.bench import load as bench
 from isolated_stacks import isolated
 from service_stack import Stack, free_port, wait_worker_ready
+
+from seasynth.bench import load as bench
 
 RESULTS = Path(__file__).resolve().parents[2] / "bench" / "results" / "cpu"
 

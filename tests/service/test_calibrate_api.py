@@ -10,10 +10,9 @@ from collections.abc import Iterator
 import httpx
 import numpy as np
 import pytest
-from PIL import Image
-
-from service_stack import Stack
 from calibration_helpers import B_INF, BETA_D, bomb_png, full_spec, photo
+from PIL import Image
+from service_stack import Stack
 
 MAX_BODY = 3_000_000  # SEASYNTH_MAX_ASSET_BYTES of this API: the whole multipart body may be 64 KiB more
 

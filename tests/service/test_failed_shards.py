@@ -7,14 +7,14 @@ import random
 import uuid
 
 import pytest
-
 from isolated_stacks import api_on, isolated, queued_tasks
-from seasynth.service import __version__
-from seasynth.service.queues import TASK_PLAN, TASK_SHARD, shard_queue
-from seasynth.service.records.types import FAILED
-from seasynth.service.records.store import ERRORS_SHOWN
 from service_stack import Stack
 from test_service_plumbing import FakeSession, make_ctx, new_dataset
+
+from seasynth.service import __version__
+from seasynth.service.queues import TASK_PLAN, TASK_SHARD, shard_queue
+from seasynth.service.records.store import ERRORS_SHOWN
+from seasynth.service.records.types import FAILED
 
 
 def test_a_record_carries_the_errors_of_the_first_failed_shards_and_counts_them_all(infra: Stack):

@@ -13,7 +13,6 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-
 from faults import (
     FAULT_SHARDS,
     FAULT_SPEC,
@@ -30,10 +29,11 @@ from faults import (
     verify_dataset,
     wait_done,
 )
+from service_stack import tiny_spec, wait_for
+
 from seasynth.service import __version__
 from seasynth.service.errors import Unavailable
 from seasynth.service.queues import shard_queue
-from service_stack import tiny_spec, wait_for
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-
 from faults import (
     FAULT_SHARDS,
     FAULT_SPEC,

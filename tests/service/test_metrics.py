@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import httpx
 import pytest
+from isolated_stacks import isolated
 from prometheus_client.parser import text_string_to_metric_families
+from service_stack import Stack, free_port, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 from seasynth.api.metrics import queue_lists
-from isolated_stacks import isolated
 from seasynth.service import __version__
 from seasynth.service.queues import frame_queue, shard_queue
-from service_stack import Stack, free_port, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 KEY = "k-metrics"
 IDLE_VERSION = "0.0.0-metrics"  # no worker consumes its queues: what the API publishes stays there

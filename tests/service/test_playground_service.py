@@ -10,9 +10,9 @@ from pathlib import Path
 
 import httpx
 import pytest
+from service_stack import Stack, tiny_spec
 
 from seasynth.service.spec.dataset import parse_spec
-from service_stack import Stack, tiny_spec
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from browser import chromium, set_value, wait  # noqa: E402

@@ -8,15 +8,15 @@ import uuid
 from collections.abc import Callable
 
 import pytest
+from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
 
 from seasynth.api.deps import Services
 from seasynth.api.operations import delete_dataset
 from seasynth.service.records.coordination import pending_manifests_key
 from seasynth.service.shards import commit_key, dataset_prefix, manifest_key, shard_key
 from seasynth.service.storage import LocalStore, open_store
-from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
-from seasynth.worker.queue.shard import reconcile, run_shard
 from seasynth.worker.queue.context import Outcome
+from seasynth.worker.queue.shard import reconcile, run_shard
 
 
 def bucket(infra, tmp_path, kind: str):

@@ -8,11 +8,11 @@ import sys
 from pathlib import Path
 
 import yaml
-
 from isolated_stacks import isolated, queued_tasks, record_only
+from service_stack import Stack, tiny_spec, wait_for
+
 from seasynth.service import __version__
 from seasynth.service.queues import TASK_RECONCILE, shard_queue
-from service_stack import Stack, tiny_spec, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 

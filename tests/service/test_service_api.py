@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import httpx
 import pytest
-
 from service_stack import Stack, tiny_spec
 
 GARBAGE_IDS = ["0" * 32, "nope", "../../etc/passwd", "%00", "A" * 32, "0" * 33, "x" * 5000, "😀", "1;DROP"]

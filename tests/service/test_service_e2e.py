@@ -17,11 +17,11 @@ from pathlib import Path
 
 import httpx
 import pytest
+from service_stack import Stack, log_since, log_size, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 from seasynth.service import __version__
 from seasynth.service.fetch import STATE_DIR, fetch_dataset
 from seasynth.service.queues import shard_queue
-from service_stack import Stack, log_since, log_size, tiny_spec, wait_for, wait_state, wait_worker_ready
 
 LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, not frame files
 

@@ -16,17 +16,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from PIL import Image
-
 from isolated_stacks import api_on
+from PIL import Image
+from service_stack import Stack, tiny_spec, wait_for, wait_state
+from test_admission import unserved_api
+
 from seasynth.service import __version__
 from seasynth.service.fetch import STATE_DIR, fetch_dataset
 from seasynth.service.queues import TASK_SHARD, shard_queue
 from seasynth.service.records.types import ShardCommit
 from seasynth.service.shards import commit_key, export_part_key, shard_key
 from seasynth.service.spec.dataset import parse_spec
-from service_stack import Stack, tiny_spec, wait_for, wait_state
-from test_admission import unserved_api
 from seasynth.worker.export import SPLITS, plan_export, run_export
 from seasynth.worker.export.files import EXPORT_RECORD
 from seasynth.worker.export.merge import PartMerger, mcap_name

@@ -16,10 +16,10 @@ from seasynth.service.errors import NotFound
 from seasynth.service.records.store import Records
 from seasynth.service.shards import Shard, commit_key, manifest_key, shard_at, shard_count, shard_key
 from seasynth.service.storage import LocalStore, open_store
+from seasynth.worker.queue.context import Outcome, RetryShard, ShardContext
 from seasynth.worker.queue.finalise import maybe_finalise
 from seasynth.worker.queue.packing import pack_tar
 from seasynth.worker.queue.shard import reconcile, run_shard
-from seasynth.worker.queue.context import Outcome, RetryShard, ShardContext
 
 
 class FakeSession:
@@ -253,8 +253,8 @@ class NamedSession(FakeSession):
 
 
 def test_a_dataset_keeps_the_renderer_it_started_with(infra, records, tmp_path):
-    from seasynth.worker.queue.shard import render_frame
     from seasynth.worker.queue.context import WrongRenderer
+    from seasynth.worker.queue.shard import render_frame
 
     cpu, gpu = NamedSession("llvmpipe (fake)"), NamedSession("NVIDIA H100 (fake)")
     on_cpu, on_gpu = (make_ctx(infra, records, tmp_path, s) for s in (cpu, gpu))

@@ -8,13 +8,13 @@ import sys
 import time
 
 import pytest
+from service_stack import Stack, tiny_spec, wait_state
 
 from seasynth.service import __version__
 from seasynth.service.queues import TASK_SHARD, shard_queue
 from seasynth.service.records.store import Records
 from seasynth.service.shards import shard_count
 from seasynth.service.spec.dataset import parse_spec
-from service_stack import Stack, tiny_spec, wait_state
 
 
 def record_only(records: Records, spec: dict, *, age_s: float) -> str:

@@ -9,14 +9,14 @@ import pytest
 from test_service_plumbing import FakeSession, make_ctx, new_dataset, records  # noqa: F401 (a fixture)
 
 from seasynth.service import __version__
-from seasynth.service.records.types import ShardCommit
 from seasynth.service.errors import AssetError
 from seasynth.service.records.store import Records
+from seasynth.service.records.types import ShardCommit
 from seasynth.service.shards import commit_key, manifest_key, shard_key
 from seasynth.service.storage import LocalStore
-from seasynth.worker.scene.sample import SceneError
-from seasynth.worker.queue.shard import run_shard
 from seasynth.worker.queue.context import Outcome, RetryShard
+from seasynth.worker.queue.shard import run_shard
+from seasynth.worker.scene.sample import SceneError
 
 
 def stored(tmp_path) -> list[str]:

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import httpx
 import pytest
+from service_stack import Stack, tiny_spec, wait_state
+from test_admission import unserved_api
+from test_service_e2e import local_generate, post, tree
 
 from seasynth.service.fetch import fetch_dataset
 from seasynth.service.shards import FRAME_PARTS, frame_file, spec_shard_seconds
 from seasynth.service.spec.dataset import MAX_SHARD_MEGAPIXELS, parse_spec
-from service_stack import Stack, tiny_spec, wait_state
-from test_admission import unserved_api
-from test_service_e2e import local_generate, post, tree
 
 SONAR_PARTS = ("fls", "fls_fan", "fls_label", "sss", "sss_label", "nav")
 SENSORS = {

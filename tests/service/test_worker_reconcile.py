@@ -10,13 +10,13 @@ import threading
 import time
 
 from isolated_stacks import api_on, isolated, queued_tasks, record_only
-from seasynth.service import __version__
-from seasynth.service.records.coordination import pending_manifests_key
-from seasynth.service.queues import TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
-from seasynth.service.records.types import ShardCommit
-from seasynth.service.shards import shard_key
 from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
 
+from seasynth.service import __version__
+from seasynth.service.queues import TASK_RECONCILE, TASK_SHARD, run_reconciler, shard_queue
+from seasynth.service.records.coordination import pending_manifests_key
+from seasynth.service.records.types import ShardCommit
+from seasynth.service.shards import shard_key
 
 # --- the periodic reconciler
 
@@ -116,8 +116,9 @@ def test_a_worker_of_another_version_republishes_a_shard_untouched_to_its_versio
 
 
 def test_gzip_shards_end_to_end(stack: Stack, tmp_path):
-    from seasynth.service.fetch import fetch_dataset
     from test_service_e2e import local_generate, tree
+
+    from seasynth.service.fetch import fetch_dataset
 
     with isolated(stack, 15, shard_compression="gz") as (env, services):
         worker = stack.seasynth("worker-gz", "worker", "--concurrency", "1", "--queues", "shards,frames", env=env)

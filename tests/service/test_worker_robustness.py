@@ -9,19 +9,19 @@ import time
 from pathlib import Path
 
 import pytest
-
 from isolated_stacks import api_on, isolated, queued_tasks, record_only
+from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
+from test_service_plumbing import FakeSession, make_ctx, new_dataset
+
 from seasynth.service import __version__
 from seasynth.service.queues import TASK_PLAN, TASK_RECONCILE, TASK_SHARD, shard_queue
 from seasynth.service.records.store import Records
 from seasynth.service.shards import manifest_key
 from seasynth.service.storage import LocalStore
-from service_stack import Stack, tiny_spec, wait_for, wait_state, wait_worker_ready
-from test_service_plumbing import FakeSession, make_ctx, new_dataset
+from seasynth.worker.queue.context import Outcome, WrongRenderer
 from seasynth.worker.queue.finalise import maybe_finalise
 from seasynth.worker.queue.pinning import RENDERER_LIVE_S, defer_to_renderer
 from seasynth.worker.queue.shard import reconcile, run_shard, sweepable
-from seasynth.worker.queue.context import Outcome, WrongRenderer
 
 
 @pytest.fixture

@@ -18,6 +18,7 @@ import numpy as np
 
 from seasynth.service.errors import ExportError
 from seasynth.service.spec.outputs import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS
+from seasynth.worker.export.base import STREAM_SPLIT, Exporter, ExportInfo, parse_split, split_of
 from seasynth.worker.export.dataset import (
     DISTRACTOR,
     DISTRACTOR_NAME,
@@ -30,7 +31,6 @@ from seasynth.worker.export.dataset import (
     open_local_dataset,
     scan_frames,
 )
-from seasynth.worker.export.base import STREAM_SPLIT, ExportInfo, Exporter, parse_split, split_of
 from seasynth.worker.export.files import EXPORT_RECORD, json_bytes, open_export_folder, write_atomic
 
 __all__ = [

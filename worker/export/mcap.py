@@ -49,11 +49,10 @@ from typing import Any
 import numpy as np
 
 from seasynth.service.errors import ExportError
-from seasynth.service.spec.sensors import Trajectory
 from seasynth.service.spec.outputs import SPLITS
+from seasynth.service.spec.sensors import Trajectory
 from seasynth.worker.export.base import ExportInfo
-from seasynth.worker.export.dataset import Frame
-from seasynth.worker.export.dataset import camera_pose, camera_projection, depth_metres
+from seasynth.worker.export.dataset import Frame, camera_pose, camera_projection, depth_metres
 from seasynth.worker.export.files import make_dirs, tmp_name
 from seasynth.worker.export.mcap_sensors import SENSOR_DEFS, SENSOR_TOPICS, sensor_messages
 from seasynth.worker.export.mcap_tf import CAMERA_FRAME, camera_tf, sensor_tf_static

@@ -19,7 +19,14 @@ from seasynth.service.shards import frame_name
 from seasynth.service.spec.dataset import DatasetSpec, parse_spec, spec_digest
 from seasynth.worker.export import SPLITS, STREAM_SPLIT, ExportInfo, exporter_for
 from seasynth.worker.export.coco import coco_head
-from seasynth.worker.export.files import EXPORT_RECORD, json_bytes, make_dirs, open_export_folder, place_file, write_atomic
+from seasynth.worker.export.files import (
+    EXPORT_RECORD,
+    json_bytes,
+    make_dirs,
+    open_export_folder,
+    place_file,
+    write_atomic,
+)
 from seasynth.worker.export.parts import part_info
 
 

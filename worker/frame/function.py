@@ -14,19 +14,17 @@ from seasynth.service.shards import frame_file, frame_parts
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.spec.scene import AssetRef, FileRef
 from seasynth.worker.frame import kitti, labels
+from seasynth.worker.frame.encode import encode_image, png_bytes
+from seasynth.worker.frame.meta import frame_meta
+from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
+from seasynth.worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
 from seasynth.worker.scene.assets import Asset
 from seasynth.worker.scene.assets.procedural import procedural_asset
 from seasynth.worker.scene.assets.terrain import Terrain, apply_texture
-from seasynth.worker.frame.meta import frame_meta
-from seasynth.worker.frame.encode import encode_image, png_bytes
-from seasynth.worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
+from seasynth.worker.scene.assets.user import load_user_asset, load_user_terrain, load_user_texture
 from seasynth.worker.scene.sample import Placed, Scene, on_trajectory, sample_scene
-from seasynth.worker.sensors.outputs import SensorFrame, sensor_frame, sensors_on
-from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 from seasynth.worker.scene.variant_cache import VariantCache
-from seasynth.worker.scene.assets.user import load_user_asset
-from seasynth.worker.scene.assets.user import load_user_terrain
-from seasynth.worker.scene.assets.user import load_user_texture
+from seasynth.worker.sensors.outputs import SensorFrame, sensor_frame, sensors_on
 
 # Quality presets: how many samples make a pixel and where they are shaded. The water is always applied per
 # sample, in float32, before samples are averaged in linear light. `fast` shades once per pixel at its centre

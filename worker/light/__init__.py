@@ -9,7 +9,6 @@ Each term has its own module (`sun`, `sky`, `lamps`), a GLSL part for the render
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import numpy as np

@@ -3,8 +3,13 @@ rays (`VOLUME`, the twin of `seasynth.worker.light.volume`). Terms are compiled 
 WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
 
 from seasynth.worker.light import caustics
-from seasynth.worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
-                                REACH_MARGIN_RAD)
+from seasynth.worker.light.lamps import (
+                                BACKSCATTER_NODES,
+                                CUTOFF_OPTICAL_DEPTH,
+                                LAMP_Z_SPREAD,
+                                MIN_LAMP_DISTANCE_M,
+                                REACH_MARGIN_RAD,
+)
 from seasynth.worker.light.sky import SKY_PHASE_NODES
 from seasynth.worker.light.volume import MU_SKY
 

@@ -18,8 +18,15 @@ import math
 import numpy as np
 
 from seasynth.worker.light import SNELL_CONE_DEG, PhysicalLight, hg
-from seasynth.worker.light.lamps import (BACKSCATTER_NODES, CUTOFF_OPTICAL_DEPTH, LAMP_Z_SPREAD, MIN_LAMP_DISTANCE_M,
-                                cone_interval, light_factor, reach)
+from seasynth.worker.light.lamps import (
+    BACKSCATTER_NODES,
+    CUTOFF_OPTICAL_DEPTH,
+    LAMP_Z_SPREAD,
+    MIN_LAMP_DISTANCE_M,
+    cone_interval,
+    light_factor,
+    reach,
+)
 from seasynth.worker.light.sky import sky_phase, sky_phase_table, window_radiance
 
 MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth

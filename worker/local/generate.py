@@ -9,20 +9,20 @@ from pathlib import Path
 from seasynth.service.errors import OutputError
 from seasynth.service.gpus import GpuChoice
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.local.capacity import render_processes
 from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.local.capacity import render_processes
 from seasynth.worker.local.folder import (
     Mode,
     pending_frames,
     prepare_output,
     read_record,
-    wrong_renderer,
     write_frame,
     write_record,
+    wrong_renderer,
 )
 from seasynth.worker.local.pool import run_pool
-from seasynth.worker.scene.assets.user import check_assets
 from seasynth.worker.render.devices import platform_for_worker
+from seasynth.worker.scene.assets.user import check_assets
 
 
 @dataclass(frozen=True)

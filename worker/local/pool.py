@@ -10,13 +10,13 @@ import tempfile
 from multiprocessing import connection
 from pathlib import Path
 
+from seasynth.service import errors
 from seasynth.service.errors import OutputError, SeasynthError
 from seasynth.service.gpus import GpuChoice
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.local.folder import write_frame, wrong_renderer
 from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.local.folder import write_frame, wrong_renderer
 from seasynth.worker.local.pool_start import pool_context, sigint_blocked_for_children
-from seasynth.service import errors
 from seasynth.worker.render.devices import platform_for_worker
 from seasynth.worker.scene.sample import SceneError
 

@@ -18,9 +18,8 @@ from PIL import Image
 
 from seasynth.service.kitti import parse_label_file
 from seasynth.service.shards import frame_file, media_type
-from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.spec.dataset import DatasetSpec, parse_spec
 from seasynth.worker.frame.function import RenderSession
-from seasynth.service.spec.dataset import parse_spec
 from seasynth.worker.scene.sample import INPUT_ERRORS
 
 log = logging.getLogger(__name__)

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import time
 
-from seasynth.worker.queue.finalise import finalise_or_defer
 from seasynth.worker.queue.context import Outcome, ShardContext, WrongRenderer
+from seasynth.worker.queue.finalise import finalise_or_defer
 
 HEARTBEAT_S = 15  # a shard worker's render process notes its renderer this often
 RENDERER_LIVE_S = 60  # a renderer not noted for this long has no live shard worker

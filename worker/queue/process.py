@@ -85,7 +85,9 @@ class ProcessResources:
     def open(self) -> None:
         from celery.utils.log import current_process_index
 
-        from seasynth.worker.frame.function import RenderSession  # GL comes up here, in the pool process, never before fork
+        from seasynth.worker.frame.function import (
+            RenderSession,  # GL comes up here, in the pool process, never before fork
+        )
         from seasynth.worker.render.devices import platform_for_worker
 
         s = self.settings

@@ -23,11 +23,11 @@ from seasynth.service.records.types import CANCELLED, TERMINAL, ShardCommit
 from seasynth.service.shards import FRAME_PARTS, Shard, commit_key, commit_prefix, frame_file, shard_at, shard_key
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.export.parts import kitti_names, parts_render_spec
+from seasynth.worker.queue.context import FrameSource, Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 from seasynth.worker.queue.finalise import fail_shard, finalise_or_defer, maybe_finalise
 from seasynth.worker.queue.packing import pack_tar
-from seasynth.worker.scene.sample import INPUT_ERRORS
-from seasynth.worker.queue.context import FrameSource, Outcome, RetryShard, ShardContext, WrongRenderer, WrongVersion
 from seasynth.worker.queue.shard_exports import keep_frame, pack_parts, part_keys, upload_parts
+from seasynth.worker.scene.sample import INPUT_ERRORS
 
 log = logging.getLogger(__name__)
 

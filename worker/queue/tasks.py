@@ -16,7 +16,15 @@ from celery.signals import worker_process_init, worker_process_shutdown
 
 from seasynth.service import __version__
 from seasynth.service.errors import NotFound
-from seasynth.service.queues import TASK_FRAME, TASK_PLAN, TASK_PREVIEW, TASK_RECONCILE, TASK_SHARD, frame_queue, shard_queue
+from seasynth.service.queues import (
+    TASK_FRAME,
+    TASK_PLAN,
+    TASK_PREVIEW,
+    TASK_RECONCILE,
+    TASK_SHARD,
+    frame_queue,
+    shard_queue,
+)
 from seasynth.service.records.store import push_reply
 from seasynth.service.records.types import TERMINAL
 from seasynth.service.settings import Settings

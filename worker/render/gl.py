@@ -18,8 +18,7 @@ import numpy as np
 
 from seasynth.service.errors import RenderError
 from seasynth.service.gpus import parse_platform
-from seasynth.worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams
-from seasynth.worker.render import shaders
+from seasynth.worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams, shaders
 from seasynth.worker.render.coverage import pixels_alone
 from seasynth.worker.render.depth import ClipControl, projection
 from seasynth.worker.render.devices import egl_platform, prepare_environment

@@ -10,8 +10,7 @@ from seasynth.worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
 from seasynth.worker.light.lamps import cone_energy
 from seasynth.worker.light.sky import sky_phase_table
 from seasynth.worker.light.volume import camera_depth
-from seasynth.worker.render import DrawItem, View
-from seasynth.worker.render import shadows
+from seasynth.worker.render import DrawItem, View, shadows
 from seasynth.worker.render.shaders import DEPTH_ONLY, VERTEX
 
 SHADOW_UNIT = 3  # texture units from here on hold shadow maps (the resolve's colour and depth use 0 and 1)

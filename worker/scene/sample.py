@@ -12,11 +12,11 @@ from seasynth.service.errors import AssetError, SeasynthError, SpecError
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.spec.scene import AssetRef, Box
 from seasynth.service.water import jerlov_beta, jerlov_veiling_light
-from seasynth.worker.scene.assets import Asset
-from seasynth.worker.scene.assets.terrain import Terrain
 from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.build import sample_physical
 from seasynth.worker.render import Lighting, WaterParams
+from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets.terrain import Terrain
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse, rotation_between
 from seasynth.worker.scene.trajectory import vehicle_state
 from seasynth.worker.sensors import world_from_sensor

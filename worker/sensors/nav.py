@@ -28,8 +28,8 @@ from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.render import View
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 from seasynth.worker.scene.sample import Scene
-from seasynth.worker.sensors import vehicle_from_sensor, world_from_sensor
 from seasynth.worker.scene.trajectory import GRAVITY, VehicleState, vehicle_state
+from seasynth.worker.sensors import vehicle_from_sensor, world_from_sensor
 
 P_ATM = 101_325.0  # Pa
 RHO = 1025.0  # kg/m^3, sea water

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from seasynth.service.seeds import STREAM_FLS, STREAM_NAV, STREAM_SSS, frame_rng
-from seasynth.service.spec.sensors import Sensors
 from seasynth.service.shards import frame_file
 from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.spec.sensors import Sensors
 from seasynth.worker.scene.sample import Scene
 from seasynth.worker.sensors import world_from_sensor
 from seasynth.worker.sensors.fls import fls_frame
