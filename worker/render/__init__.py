@@ -43,6 +43,7 @@ class DrawItem:
     albedo_scale: np.ndarray  # (3,) float32
     albedo_bias: np.ndarray  # (3,) float32
     instance_id: int  # 0 = terrain (unlabelled), else 1..65535
+    casts_shadows: bool = True  # False: left out of the shadow maps (the far seabed: it shadows nothing drawn)
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         """(centre (3,) float64 world metres, radius metres) holding every vertex as placed."""

@@ -84,6 +84,7 @@ def shadow_maps(r, view: View, items: list[DrawItem], light: PhysicalLight, log:
     out: dict = {"sun": None, "lamps": []}
     world_from_cam = np.linalg.inv(view.cam_from_world)
     t = light.terms
+    items = [it for it in items if it.casts_shadows]  # the maps span what casts shadows, not the far seabed
     if t.sun and t.sun_shadows:
         clip = shadows.sun_clip_from_world(light.sun_dir_world, [it.bounding_sphere() for it in items])
         tex = _draw_depth(r, clip, items, shadows.SUN_MAP_SIZE, 0)

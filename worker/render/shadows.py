@@ -57,7 +57,9 @@ def perspective(half_angle: float, near: float, far: float) -> np.ndarray:
 
 def sun_clip_from_world(sun_dir_world: np.ndarray, spheres: list[tuple[np.ndarray, float]]) -> np.ndarray:
     """Orthographic clip_from_world of a directional light (towards the sun: sun_dir_world) fitted to bounding
-    spheres (world centre, radius) of everything that casts or receives shadows."""
+    spheres (world centre, radius) of everything that casts or receives shadows; with none, a unit sphere at the
+    origin (the map then holds nothing, and nothing is shadowed)."""
+    spheres = spheres or [(np.zeros(3), 1.0)]
     centres = np.array([c for c, _ in spheres], dtype=np.float64).reshape(-1, 3)
     radii = np.array([r for _, r in spheres], dtype=np.float64)
     mid = (centres.min(axis=0) + centres.max(axis=0)) / 2 if len(centres) else np.zeros(3)
