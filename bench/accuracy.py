@@ -37,6 +37,7 @@ SCENES: dict[str, dict] = {
         "workspaces.look_at": {"min": [-0.3, -0.3, -1.0], "max": [0.3, 0.3, 1.0]},
         "workspaces.camera": {"min": [-0.2, -0.95, 0.06], "max": [0.2, -0.85, 0.1]},
         "water.jerlov": ["3C"],
+        "terrain.far_field": False,  # the spines' edges against open water, as the scene's name says
     },
     "wide-fov": {"seed": 12, "camera.hfov_deg": 110.0},
     "turbid-far": {

@@ -82,6 +82,9 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         "lighting.sun_intensity": [1.2, 1.2] if sun else [0.0, 0.0],
         "lighting.ambient": [0.25, 0.25] if sun else [0.0, 0.0],
         "lighting.lamps": LAMPS if "lamp" in light else [],
+        # The tile alone: these configurations' path-traced references are of the near view, rendered before the
+        # seabed reached the horizon (terrain.far_field); the long view is checked by configurations of its own.
+        "terrain.far_field": False,
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))

@@ -25,6 +25,8 @@ CONFIGS: dict[str, dict] = {
     "+instance": {"outputs.depth": True, "outputs.instance": True},
     "+clean/range": {"outputs.depth": True, "outputs.instance": True, "outputs.clean": True, "outputs.range": True},
     "water off": {"water.enabled": False},
+    # The seabed beyond the tile (terrain.far_field, on by default): its cost beside the tile alone.
+    "far field off": {"terrain.far_field": False},
     # Sensors (seasynth.worker.sensors), each on its own beside image+labels: the FLS at its defaults (256 beams x 512
     # bins, a 1454x586 render), the side-scan sonar at its defaults, then DVL+pressure.
     "+fls": {"sensors.fls.enabled": True},

@@ -1,4 +1,4 @@
-"""`seasynth bench ...`: each benchmark writes its tables where README's Speed and accuracy section says."""
+"""`seasynth bench ...`: each benchmark writes its tables where bench/README.md says."""
 
 from __future__ import annotations
 

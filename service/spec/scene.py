@@ -6,7 +6,7 @@ import math
 import unicodedata
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, Field, StrictFloat, StrictInt, field_validator, model_validator
+from pydantic import AfterValidator, Field, StrictBool, StrictFloat, StrictInt, field_validator, model_validator
 
 from seasynth.service.spec.types import (
     MAX_CHOICES,
@@ -182,6 +182,9 @@ class Terrain(SpecModel):
     mesh: FileRef | None = None
     texture: FileRef | None = None
     texture_tile_m: StrictFloat = Field(1.0, gt=0)
+    # The seabed continued beyond the tile out to the camera's far clip (coarser rings, the tile's mean height and
+    # colour), so no ray that points down ends in open water at the tile's edge; off: the tile alone.
+    far_field: StrictBool = True
 
 
 class Workspaces(SpecModel):

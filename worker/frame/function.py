@@ -199,6 +199,17 @@ class RenderSession:
                 instance_id=0,
             )
         ]
+        if scene.far_field is not None:  # the seabed beyond the tile: unlabelled like it, and it shadows nothing drawn
+            items.append(
+                DrawItem(
+                    mesh=self._render_mesh(scene.far_field.key, scene.far_field.mesh),
+                    world_from_obj=np.eye(4),
+                    albedo_scale=scene.terrain_albedo_scale,
+                    albedo_bias=scene.terrain_albedo_bias,
+                    instance_id=0,
+                    casts_shadows=False,
+                )
+            )
         for p in scene.objects:
             items.append(
                 DrawItem(

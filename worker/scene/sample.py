@@ -17,6 +17,7 @@ from seasynth.worker.light.build import sample_physical
 from seasynth.worker.render import Lighting, WaterParams
 from seasynth.worker.scene.assets import Asset
 from seasynth.worker.scene.assets.terrain import Terrain
+from seasynth.worker.scene.far_field import FarField, far_field
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse, rotation_between
 from seasynth.worker.scene.trajectory import vehicle_state
 from seasynth.worker.sensors import world_from_sensor
@@ -66,6 +67,7 @@ class Scene:
     water_type: str | None
     dropped: int  # objects left out because no free spot was found
     light: PhysicalLight | None = None  # the physical model (then water is None)
+    far_field: FarField | None = None  # the seabed beyond the terrain, if spec.terrain.far_field
 
     @property
     def cam_from_world(self) -> np.ndarray:
@@ -270,6 +272,7 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
         water_type=water_type,
         light=light,
         dropped=dropped,
+        far_field=far_field(terrain, float(spec.camera.clip[1])) if spec.terrain.far_field else None,
     )
 
 

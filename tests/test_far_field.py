@@ -1,0 +1,147 @@
+"""The seabed beyond the tile (worker.scene.far_field): its rings close the seam and cover the plane out to the
+reach, and no rendered ray that points down ends in open water while the water would still let a seabed be seen."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from seasynth.service.spec.dataset import load_spec
+from seasynth.service.water import JERLOV_TYPES
+from seasynth.worker.frame.function import PRESETS
+from seasynth.worker.render import Passes, View
+from seasynth.worker.scene.assets.terrain import STYLES, heightfield
+from seasynth.worker.scene.far_field import FIRST_RING_M, far_field, ring_distances
+from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
+
+EXAMPLE = "examples/urchins.yaml"
+VISIBLE = 1.0 / 255.0  # exp(-K t) above this: a seabed at t would still change an 8-bit code
+
+
+def edges_of(faces: np.ndarray) -> tuple[set, set]:
+    """(every undirected edge, the edges used by exactly one face) of a triangle list."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    keys, counts = np.unique(e, axis=0, return_counts=True)
+    return {tuple(k) for k in keys}, {tuple(k) for k in keys[counts == 1]}
+
+
+@settings(max_examples=12, deadline=None)
+@given(style=st.sampled_from(STYLES), seed=st.integers(0, 2**31), size=st.floats(2.0, 60.0),
+       cells=st.integers(2, 96), relief=st.floats(0.0, 3.0), reach=st.floats(1.0, 800.0))
+def test_the_rings_close_the_seam_face_up_and_cover_the_plane_out_to_the_reach(style, seed, size, cells, relief,
+                                                                                reach):
+    terrain = heightfield(np.random.default_rng(seed), style, size, cells, relief)
+    far = far_field(terrain, reach).mesh
+    v, f = np.asarray(far.vertices), np.asarray(far.faces)
+    n = cells + 1
+    # The inner ring is the tile's boundary: the same points, and each of its edges is a boundary edge of the tile.
+    tile_v = np.asarray(terrain.mesh.vertices)
+    ring0 = 4 * cells
+    grid_index = np.rint((v[:ring0, :2] - tile_v[0, :2]) / (size / cells)).astype(np.int64)
+    np.testing.assert_array_equal(v[:ring0], tile_v[grid_index[:, 1] * n + grid_index[:, 0]])
+    _, tile_boundary = edges_of(np.asarray(terrain.mesh.faces))
+    _, far_boundary = edges_of(f)
+    inner = {tuple(sorted((grid_index[i, 1] * n + grid_index[i, 0], grid_index[(i + 1) % ring0, 1] * n
+                           + grid_index[(i + 1) % ring0, 0]))) for i in range(ring0)}
+    assert inner == tile_boundary
+    assert {tuple(sorted(e)) for e in far_boundary if max(e) < ring0} == {
+        tuple(sorted((i, (i + 1) % ring0))) for i in range(ring0)}
+    # Face up, no fold: every triangle's normal points up.
+    assert (np.asarray(far.face_normals)[:, 2] > 0).all()
+    # No overlap and no hole: the triangles' projected areas sum to the outer square less the tile.
+    outer = size + 2 * ring_distances(reach)[-1]
+    tri = v[f][:, :, :2]
+    ab, ac = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    projected = 0.5 * np.abs(ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]).sum()
+    assert projected == pytest.approx(outer**2 - size**2, rel=1e-9)
+    assert ring_distances(reach)[-1] >= reach and ring_distances(reach)[0] == FIRST_RING_M
+    assert np.isfinite(v).all()
+
+
+def test_the_far_field_is_a_pure_function_of_the_terrain_and_the_reach():
+    terrain = heightfield(np.random.default_rng(3), "pebbles", 12.0, 48, 0.25)
+    a = far_field.__wrapped__(terrain, 300.0)
+    b = far_field.__wrapped__(terrain, 300.0)
+    np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+    np.testing.assert_array_equal(a.mesh.visual.vertex_colors, b.mesh.visual.vertex_colors)
+    assert a.key == b.key and a.key != far_field(terrain, 200.0).key
+
+
+def ray_directions(view: View, world_from_cam: np.ndarray) -> np.ndarray:
+    """(h, w, 3) unit world directions through the pixel centres (at integer image coordinates, as K has them)."""
+    u, v = np.meshgrid(np.arange(view.width, dtype=np.float64), np.arange(view.height, dtype=np.float64))
+    cam = np.stack([(u - view.K[0, 2]) / view.K[0, 0], (v - view.K[1, 2]) / view.K[1, 1], np.ones_like(u)], -1)
+    world = cam @ world_from_cam[:3, :3].T
+    return world / np.linalg.norm(world, axis=-1, keepdims=True)
+
+
+def open_water_where_a_seabed_shows(session, water: str, model: str, eye, yaw: float, pitch: float,
+                                    far_field_on: bool = True, mesh_path=None) -> tuple[int, int]:
+    """(rays that point down to a seabed the water lets be seen, of them those whose range is +inf), for a camera
+    at `eye` looking along (yaw, pitch), in Jerlov water `water` under `model`."""
+    spec = load_spec(EXAMPLE, {"camera.width": 64, "camera.height": 48, "camera.hfov_deg": 90.0,
+                               "water.jerlov": [water], "water.model": model, "water.depth_m": [30.0, 30.0],
+                               "terrain.far_field": far_field_on, "quality": "draft",
+                               **({"terrain.mesh": {"path": str(mesh_path)}} if mesh_path else {})})
+    scene = session.scene(spec, 0)
+    look = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
+    world_from_cam = look_at_pose(np.asarray(eye, np.float64), np.asarray(eye, np.float64) + look)
+    scene = dataclasses.replace(scene, world_from_cam=world_from_cam)
+    view = dataclasses.replace(session.view(spec, scene), cam_from_world=rigid_inverse(world_from_cam))
+    light = scene.light if scene.light is not None else scene.lighting
+    result = session.renderer.render(view, session.draw_items(scene), light, scene.water, PRESETS["draft"],
+                                     Passes(range=True))
+    K = scene.light.medium.k if scene.light is not None else scene.water.beta_D
+    floor = 0.0 if scene.far_field is None else min(0.0, float(np.asarray(scene.far_field.mesh.vertices)[:, 2].min()))
+    w = ray_directions(view, world_from_cam)
+    with np.errstate(divide="ignore"):
+        t_floor = np.where(w[..., 2] < 0, (eye[2] - floor) / -w[..., 2], np.inf)  # where the ray is below the seabed
+    seen = (t_floor < view.far) & (np.exp(-float(np.min(K)) * t_floor) > VISIBLE)
+    return int(seen.sum()), int((seen & ~np.isfinite(result.range_m)).sum())
+
+
+@settings(max_examples=24, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(water=st.sampled_from(JERLOV_TYPES), model=st.sampled_from(["physical", "paper"]),
+       x=st.floats(-5.5, 5.5), y=st.floats(-5.5, 5.5), height=st.floats(0.5, 6.0),
+       yaw=st.floats(0.0, 2 * math.pi), pitch=st.floats(math.radians(-50), math.radians(20)))
+def test_no_ray_that_points_down_ends_in_open_water_while_the_water_would_show_a_seabed(
+        render_session, water, model, x, y, height, yaw, pitch):
+    seen, open_water = open_water_where_a_seabed_shows(render_session, water, model, (x, y, height), yaw, pitch)
+    assert open_water == 0, (seen, open_water)
+
+
+def test_without_the_far_field_the_tiles_edge_is_a_false_horizon(render_session):
+    """The check above can fail: the tile alone, seen level from near its edge in clear water."""
+    for on, expect_open in ((False, True), (True, False)):
+        seen, open_water = open_water_where_a_seabed_shows(render_session, "I", "physical", (4.0, 0.0, 1.0), 0.0,
+                                                           math.radians(-5), far_field_on=on)
+        assert seen > 500 and (open_water > 0) == expect_open, (on, seen, open_water)
+
+
+def test_a_user_terrain_mesh_is_continued_to_the_horizon_too(render_session, tmp_path):
+    """A user's seabed mesh (here an 8 x 6 m heightfield file) gets the same rings, from its height grid's edge."""
+    import trimesh
+
+    from seasynth.worker.scene.assets.terrain import grid_faces
+
+    nx, ny = 33, 25
+    x, y = np.meshgrid(np.linspace(-4.0, 4.0, nx), np.linspace(-3.0, 3.0, ny))
+    z = 0.3 + 0.2 * np.sin(x) * np.cos(1.3 * y)
+    mesh = trimesh.Trimesh(np.column_stack([x.ravel(), y.ravel(), z.ravel()]), grid_faces(nx, ny), process=False)
+    path = tmp_path / "seabed.obj"
+    mesh.export(path)
+    rng = np.random.default_rng(5)
+    checked = 0
+    for k in range(12):
+        eye = (rng.uniform(-3.5, 3.5), rng.uniform(-2.5, 2.5), rng.uniform(1.0, 4.0))
+        seen, open_water = open_water_where_a_seabed_shows(
+            render_session, JERLOV_TYPES[k % len(JERLOV_TYPES)], "physical", eye, rng.uniform(0, 2 * math.pi),
+            math.radians(rng.uniform(-35, 10)), mesh_path=path)
+        assert open_water == 0, (k, seen, open_water)
+        checked += seen
+    assert checked > 5000
