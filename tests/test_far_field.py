@@ -145,3 +145,15 @@ def test_a_user_terrain_mesh_is_continued_to_the_horizon_too(render_session, tmp
         assert open_water == 0, (k, seen, open_water)
         checked += seen
     assert checked > 5000
+
+
+def test_the_committed_horizon_table_is_what_the_changelog_quotes():
+    """bench/results/cpu/horizon: the example's 40 frames at 320x240, with false horizons only without the far field
+    (the bench renders them; this reads what it wrote)."""
+    import json
+    from pathlib import Path
+
+    result = json.loads((Path(__file__).resolve().parents[1] / "bench/results/cpu/horizon/horizon.json").read_text())
+    assert result["spec"] == EXAMPLE and result["frames"] == 40 and result["size"] == [320, 240]
+    assert result["rows"]["on"] == {"frames": 0, "pixels": 0, "pixel_share": 0.0}
+    assert result["rows"]["off"]["frames"] == 32 and result["rows"]["off"]["pixel_share"] == 0.0678
