@@ -41,8 +41,9 @@ def store_asset(services: Services, filename: str, stream: BinaryIO) -> tuple[di
     fmt = format_of(filename or "")
     if fmt is None:
         suffix = Path(filename or "").suffix.lower()
-        raise AssetError(f"{filename or '(no name)'}: unsupported file type {suffix!r}; "
-                         f"upload one of {', '.join(UPLOAD_SUFFIXES)}")
+        what = (f"{filename!r} has the suffix {suffix!r}, which uploads do not take" if suffix else
+                f"{filename!r} has no suffix" if filename else "the part has no file name")
+        raise AssetError(f"file: {what}; the suffix sets the format: name it *{', *'.join(UPLOAD_SUFFIXES)}")
     limit = services.settings.max_asset_bytes
     sha, size = hashlib.sha256(), 0
     with tempfile.NamedTemporaryFile(prefix="seasynth-upload-") as tmp:

@@ -150,9 +150,51 @@ ERROR_WHY = {
 }
 
 
-def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries for these error statuses, each with the one error body model."""
-    return {code: {"model": ErrorPublic, "description": ERROR_WHY[code]} for code in codes}
+# A small spec that every operation taking one accepts: the OpenAPI document's example (Swagger UI fills it in, and
+# Schemathesis's examples phase sends it).
+SPEC_EXAMPLE: dict[str, Any] = {"seed": 7, "frames": 24, "shard_size": 8, "camera": {"width": 160, "height": 120},
+                                "targets": {"assets": [{"procedural": "urchin"}], "count": [2, 4]}}
+
+# What a schema-valid request can still be refused for (422): rules JSON Schema cannot state, each named in the
+# description of the 422 its operation declares.
+SPEC_RULES = (
+    "Invalid request: each line of `errors` names a field and why. Besides what this schema states, a spec keeps "
+    "the rules between its fields that JSON Schema cannot (docs/spec.md lists each model's checks across fields): "
+    "every range's min <= max, the camera and vehicle under the water surface, lamps and caustics only with the "
+    "physical light model, a shard within 600 megapixels, the sonar's render and fan within their pixel budgets, "
+    "among others; integers are strict, so `2.0` is refused where the schema says integer (JSON Schema counts it as "
+    "one); and the service takes files by the asset_id of an uploaded asset of the kind the field needs, not by path"
+)
+UPLOAD_RULES = (
+    "Invalid request: each line of `errors` names a field or file and why. Besides what this schema states, each "
+    "file must decode as its format"
+)
+
+
+def error_responses(*codes: int, why: dict[int, str] | None = None) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for these error statuses, each with the one error body model; `why` gives an
+    operation's own description of a status (what it refuses with it that its schema cannot state)."""
+    why = why or {}
+    return {code: {"model": ErrorPublic, "description": why.get(code, ERROR_WHY[code])} for code in codes}
+
+
+def file_names(**parts: tuple[tuple[str, ...], str]) -> dict[str, Any]:
+    """A route's openapi_extra stating, per multipart file field, the suffixes its file name must end in (any case),
+    as the OpenAPI encoding object's Content-Disposition header: {field: (suffixes, an example name)}."""
+
+    def anycase(suffix: str) -> str:
+        return "".join(f"[{c.lower()}{c.upper()}]" if c.isalpha() else f"\\{c}" for c in suffix)
+
+    encoding = {
+        field: {"headers": {"Content-Disposition": {
+            "description": f"The part's file name ends in one of {', '.join(suffixes)}: its suffix sets the format",
+            "required": True,
+            "schema": {"type": "string", "pattern": f'filename="[^"]*(?:{"|".join(map(anycase, suffixes))})"'},
+            "example": f'form-data; name="{field}"; filename="{example}"',
+        }}}
+        for field, (suffixes, example) in parts.items()
+    }
+    return {"requestBody": {"content": {"multipart/form-data": {"encoding": encoding}}}}
 
 
 RGBOrNone = list[float | None]

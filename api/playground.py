@@ -17,13 +17,13 @@ from typing import Annotated, Any, Literal, Protocol
 import yaml
 from fastapi import APIRouter, Header, Request
 from fastapi.responses import HTMLResponse, Response
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError
 
-from seasynth.api.models import error_responses
+from seasynth.api.models import SPEC_EXAMPLE, SPEC_RULES, error_responses
 from seasynth.api.slots import RenderGate
 from seasynth.service import __version__
 from seasynth.service.errors import NotFound, RenderError, SpecError, Unavailable
-from seasynth.service.spec.dataset import DatasetSpec, parse_spec
+from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.water import JERLOV_TYPES, JERLOV_VEILING_LIGHT
 
 View = Literal["image", "depth", "instance", "clean", "air"]
@@ -39,22 +39,26 @@ class Previewer(Protocol):
     def strip(self, spec: DatasetSpec, first: int, count: int) -> dict: ...
 
 
+# The spec is the model POST /datasets takes, so the schema states its fields (unknown keys refused) and integers
+# are strict (`false` is not frame 0), as the spec's own are.
 class PreviewCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    spec: dict[str, Any] = Field(description="The dataset spec, as POST /datasets takes it")
-    frame: int = Field(0, ge=0, le=10**9, description="Frame index")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"spec": SPEC_EXAMPLE, "frame": 3, "views": ["image", "depth"]}]})
+    spec: DatasetSpec = Field(description="The dataset spec, as POST /datasets takes it")
+    frame: StrictInt = Field(0, ge=0, le=10**9, description="Frame index, below the spec's frames")
     views: list[View] = Field(["image"], max_length=5, description="Images wanted beside the hazed image")
 
 
 class StripCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    spec: dict[str, Any]
-    first: int = Field(0, ge=0, le=10**9)
-    count: int = Field(8, ge=1, le=MAX_STRIP)
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"spec": SPEC_EXAMPLE, "first": 20}]})
+    spec: DatasetSpec = Field(description="The dataset spec, as POST /datasets takes it")
+    first: StrictInt = Field(0, ge=0, le=10**9, description="First frame index; frames past the spec's last are "
+                             "left out (all of them when `first` is: an empty strip)")
+    count: StrictInt = Field(8, ge=1, le=MAX_STRIP)
 
 
 class SpecCheck(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"spec": SPEC_EXAMPLE}]})
     spec: dict[str, Any]
 
 
@@ -138,8 +142,7 @@ def playground_router(previewer_of: Callable[[Request], Previewer], *, mode: str
             return SpecChecked(valid=False, errors=field_errors(err))
         return SpecChecked(valid=True, errors=[], yaml=yaml.safe_dump(body.spec, sort_keys=False))
 
-    def spec_of(request: Request, data: dict[str, Any]) -> DatasetSpec:
-        spec = parse_spec(data, source="spec")
+    def servable(request: Request, spec: DatasetSpec) -> DatasetSpec:
         if check is not None:
             check(request, spec)
         return spec
@@ -147,27 +150,28 @@ def playground_router(previewer_of: Callable[[Request], Previewer], *, mode: str
     def client_of(request: Request, given: str | None) -> str:
         return given or (request.client.host if request.client else "anonymous")
 
-    busy = error_responses(400, 409, 413, 422, 502, 503)
+    busy = (400, 409, 413, 422, 502, 503)
 
-    @router.post("/preview", response_model=PreviewPublic, responses=busy)
+    @router.post("/preview", response_model=PreviewPublic,
+                 responses=error_responses(*busy, why={422: f"{SPEC_RULES}; and `frame` is below the spec's frames"}))
     async def preview(body: PreviewCreate, request: Request,
                       x_playground_client: Annotated[str | None, Header(max_length=64)] = None) -> dict:
         """Frame `frame` at the `draft` preset with the views asked for and its label boxes."""
-        spec = spec_of(request, body.spec)
+        spec = servable(request, body.spec)
         if body.frame >= spec.frames:
             raise SpecError(f"frame: {body.frame} is past the spec's last frame ({spec.frames - 1})")
         views = sorted(set(body.views))
         return await gate.run(client_of(request, x_playground_client),
                               lambda: previewer_of(request).preview(spec, body.frame, views))
 
-    @router.post("/strip", response_model=StripPublic, responses=busy)
+    @router.post("/strip", response_model=StripPublic, responses=error_responses(*busy, why={422: SPEC_RULES}))
     async def strip(body: StripCreate, request: Request,
                     x_playground_client: Annotated[str | None, Header(max_length=64)] = None) -> dict:
         """Thumbnails of frames first .. first+count-1 (those the spec has), to judge the randomisation."""
-        spec = spec_of(request, body.spec)
-        if body.first >= spec.frames:
-            raise SpecError(f"first: {body.first} is past the spec's last frame ({spec.frames - 1})")
+        spec = servable(request, body.spec)
         count = min(body.count, spec.frames - body.first)  # the strip stays within the dataset
+        if count <= 0:
+            return {"frames": []}
         return await gate.run(client_of(request, x_playground_client) + ":strip",
                               lambda: previewer_of(request).strip(spec, body.first, count))
 

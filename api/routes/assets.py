@@ -1,12 +1,14 @@
 """User assets: meshes and textures uploaded once, referenced from specs by their sha256 id."""
 
 from pathlib import PurePosixPath
+from typing import Annotated
 
-from fastapi import APIRouter, Response, UploadFile, status
+from fastapi import APIRouter, File, Response, UploadFile, status
 
 from seasynth.api import asset_store
 from seasynth.api.deps import ServicesDep
-from seasynth.api.models import AssetPublic, error_responses
+from seasynth.api.models import UPLOAD_RULES, AssetPublic, error_responses, file_names
+from seasynth.api.uploads import FORMATS
 
 router = APIRouter(prefix="/assets", tags=["assets"])
 
@@ -16,9 +18,14 @@ router = APIRouter(prefix="/assets", tags=["assets"])
     status_code=status.HTTP_201_CREATED,
     response_model=AssetPublic,
     responses={200: {"model": AssetPublic, "description": "These bytes were already uploaded in this format"},
-               **error_responses(400, 401, 409, 413, 422, 503)},
+               **error_responses(400, 401, 409, 413, 422, 503, why={422: f"{UPLOAD_RULES}, the format its name's "
+                                 "suffix says: a mesh that loads with triangles and finite vertices, or an image that "
+                                 "decodes whole"})},
+    openapi_extra=file_names(file=(tuple(FORMATS), "mesh.ply")),
 )
-def upload_asset(file: UploadFile, services: ServicesDep, response: Response) -> AssetPublic:
+def upload_asset(file: Annotated[UploadFile, File(description="The mesh or texture; its file name's suffix sets "
+                                                  "the format")],
+                 services: ServicesDep, response: Response) -> AssetPublic:
     """Upload a mesh (.glb, .obj, .ply, .stl) or texture (.png, .jpg) as multipart field `file`.
 
     A mesh must load with triangles and finite vertices, an image must decode. The first upload of some bytes

@@ -4,12 +4,12 @@ Needs no Redis or bucket: the estimate is computed here from the upload (numpy a
 import uuid
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query, UploadFile
+from fastapi import APIRouter, File, Query, UploadFile
 
-from seasynth.api.models import CalibrationPublic, WaterEstimatePublic, error_responses
+from seasynth.api.models import UPLOAD_RULES, CalibrationPublic, WaterEstimatePublic, error_responses, file_names
 from seasynth.api.slots import RenderGate
 from seasynth.service.calibration.estimate import WaterEstimate
-from seasynth.service.calibration.io import estimate_files
+from seasynth.service.calibration.io import RANGE_FORMATS, estimate_files
 from seasynth.service.calibration.output import to_spec_water
 
 router = APIRouter(tags=["calibration"])
@@ -35,10 +35,18 @@ def estimate_public(e: WaterEstimate) -> WaterEstimatePublic:
         range_span_m=None if e.range_span_m is None else list(e.range_span_m), bootstrap=e.bootstrap, seed=e.seed)
 
 
-@router.post("/calibrate", response_model=CalibrationPublic, responses=error_responses(400, 401, 413, 422, 503))
+# depth's schema is a file, not a file or null: a part named depth is a file; leave the part out for none.
+DEPTH = file_names(depth=(tuple(RANGE_FORMATS), "range.npy"))
+DEPTH_DOC = ("Its range map (optional), the photo's size; its file name's suffix sets the format: "
+             + "; ".join(f"{k} {v}" for k, v in RANGE_FORMATS.items()))
+REFUSED = f"{UPLOAD_RULES}: the photo an 8-bit image, the range map one of the photo's size"
+
+
+@router.post("/calibrate", response_model=CalibrationPublic, openapi_extra=DEPTH,
+             responses=error_responses(400, 401, 413, 422, 503, why={422: REFUSED}))
 async def calibrate(
-    photo: UploadFile,
-    depth: UploadFile | None = None,
+    photo: Annotated[UploadFile, File(description="The photo: 8-bit sRGB PNG or JPEG")],
+    depth: Annotated[UploadFile, File(description=DEPTH_DOC)] = None,
     range_spread: Annotated[float, Query(ge=0.0, lt=1.0, description="Relative half-width of each coefficient's "
                                          "range in the answered water section (0: fixed water)")] = 0.1,
     prior: Annotated[Literal["jerlov", "none"] | None, Query(

@@ -4,11 +4,19 @@ Every status a route can answer is declared, each error with the one body model 
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query, Response, status
+from fastapi import APIRouter, Body, Query, Response, status
 
 from seasynth.api import operations
 from seasynth.api.deps import DatasetId, FrameIndex, ServicesDep
-from seasynth.api.models import DatasetCreated, DatasetList, DatasetPublic, ManifestPublic, error_responses
+from seasynth.api.models import (
+    SPEC_EXAMPLE,
+    SPEC_RULES,
+    DatasetCreated,
+    DatasetList,
+    DatasetPublic,
+    ManifestPublic,
+    error_responses,
+)
 from seasynth.service.previews import MAX_SHEET_FRAMES, SHEET_FRAMES, dataset_preview
 from seasynth.service.shards import media_type
 from seasynth.service.sheet import TILE_WIDTH
@@ -18,8 +26,9 @@ from seasynth.service.spec.dataset import DatasetSpec
 router = APIRouter(prefix="/datasets", tags=["datasets"], responses=error_responses(401, 422, 503))
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=DatasetCreated,
-             responses=error_responses(400, 413))
-def create_dataset(spec: DatasetSpec, services: ServicesDep, response: Response) -> DatasetCreated:
+             responses=error_responses(400, 413, 422, why={422: SPEC_RULES}))
+def create_dataset(spec: Annotated[DatasetSpec, Body(openapi_examples={"small": {"value": SPEC_EXAMPLE}})],
+                   services: ServicesDep, response: Response) -> DatasetCreated:
     """Accept a dataset spec (the spec-file schema as JSON) and queue its shards."""
     created = operations.create_dataset(services, spec)
     response.headers["Location"] = created.links.self
