@@ -99,7 +99,8 @@ class Water(SpecModel):
 
     enabled: StrictBool = True
     model: WaterModel | None = None
-    jerlov: list[str] = Field(default_factory=lambda: ["II", "III", "3C", "5C"], max_length=MAX_CHOICES)
+    jerlov: list[str] = Field(default_factory=lambda: ["II", "III", "3C", "5C"], max_length=MAX_CHOICES,
+                              json_schema_extra={"items": {"type": "string", "enum": list(JERLOV_TYPES)}})
     # Multiplies a type's coefficients per frame (physical: a and b together; paper: beta_D).
     beta_jitter: Annotated[PositiveInterval, AfterValidator(lambda v: within(v, 0, 100))] = (0.85, 1.15)
     # Physical: explicit per-channel absorption a and scattering b (1/m), instead of the Jerlov types' values.

@@ -6,7 +6,17 @@ import math
 import unicodedata
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, Field, StrictBool, StrictFloat, StrictInt, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
 
 from seasynth.service.spec.types import (
     MAX_CHOICES,
@@ -42,7 +52,15 @@ def _count_range(v: tuple[int, int]) -> tuple[int, int]:
     return v
 
 
-CountInterval = Annotated[tuple[StrictInt, StrictInt], AfterValidator(_count_range)]
+Count = Annotated[StrictInt, WithJsonSchema({"type": "integer", "minimum": 0, "maximum": MAX_OBJECTS})]
+CountInterval = Annotated[tuple[Count, Count], AfterValidator(_count_range)]
+
+
+def exactly_one_of(*names: str) -> dict:
+    """JSON schema stating that exactly one of these fields is given and not null (what _exactly_one checks)."""
+    return {"oneOf": [{"required": [n], "properties": {n: {"not": {"type": "null"}}}} for n in names]}
+
+
 # An object's scale against its asset's size: up to 100x (an urchin asset 10 m wide).
 ScaleInterval = Annotated[PositiveInterval, AfterValidator(lambda v: within(v, 0, 100))]
 
@@ -71,6 +89,11 @@ class Intrinsics(SpecModel):
 
 
 class Camera(SpecModel):
+    # The schema states half of _one_projection: not both hfov_deg and intrinsics.
+    model_config = ConfigDict(json_schema_extra={"not": {
+        "required": ["hfov_deg", "intrinsics"],
+        "properties": {"hfov_deg": {"not": {"type": "null"}}, "intrinsics": {"not": {"type": "null"}}}}})
+
     width: StrictInt = Field(640, ge=MIN_SIDE, le=MAX_SIDE)
     height: StrictInt = Field(480, ge=MIN_SIDE, le=MAX_SIDE)
     # Horizontal field of view; the vertical one follows from the aspect ratio (square pixels).
@@ -111,6 +134,8 @@ class Camera(SpecModel):
 class FileRef(SpecModel):
     """A user file: a local path (spec files, CLI) or the sha256 id of an asset uploaded to the service."""
 
+    model_config = ConfigDict(json_schema_extra=exactly_one_of("path", "asset_id"))
+
     path: str | None = Field(None, min_length=1, max_length=MAX_PATH_CHARS)
     asset_id: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
 
@@ -126,6 +151,8 @@ class FileRef(SpecModel):
 
 class AssetRef(FileRef):
     """One object asset: exactly one of a procedural kind, a local file, or an uploaded asset id."""
+
+    model_config = ConfigDict(json_schema_extra=exactly_one_of("procedural", "path", "asset_id"))
 
     procedural: ProceduralTarget | None = None
     # Procedural kinds are built in this many deterministic variants, cached per process.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from typing import Annotated
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, StrictFloat
+from pydantic import AfterValidator, BaseModel, ConfigDict, StrictFloat, WithJsonSchema
 
 MAX_CHOICES = 64  # entries in water.jerlov and terrain.styles (repeats weight the draw)
 # Every interval and vector of the spec lies within +-MAX_MAGNITUDE: far beyond any scene (metres, intensities,
@@ -40,11 +40,23 @@ def positive(v: tuple[float, float]) -> tuple[float, float]:
     return v
 
 
+def number_schema(**bounds: float) -> WithJsonSchema:
+    """The JSON schema of a number with these JSON Schema bounds (minimum=, exclusiveMinimum=, ...): what a validator
+    of the tuple holding it checks, stated in the spec's JSON schema (the API's OpenAPI document) as well."""
+    return WithJsonSchema({"type": "number", **bounds})
+
+
+# Each element's bounds follow from its tuple's checks: within +-MAX_MAGNITUDE, and for an ordered interval whose
+# min is >= 0 (> 0), so is its max.
+Coordinate = Annotated[StrictFloat, number_schema(minimum=-MAX_MAGNITUDE, maximum=MAX_MAGNITUDE)]
+NonNegative = Annotated[StrictFloat, number_schema(minimum=0, maximum=MAX_MAGNITUDE)]
+Positive = Annotated[StrictFloat, number_schema(exclusiveMinimum=0, maximum=MAX_MAGNITUDE)]
+
 # A closed interval [min, max] written as a two-element list in spec files.
-Interval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered)]
-NonNegInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered), AfterValidator(nonneg)]
-PositiveInterval = Annotated[tuple[StrictFloat, StrictFloat], AfterValidator(ordered), AfterValidator(positive)]
-Vec3 = Annotated[tuple[StrictFloat, StrictFloat, StrictFloat], AfterValidator(bounded)]
+Interval = Annotated[tuple[Coordinate, Coordinate], AfterValidator(ordered)]
+NonNegInterval = Annotated[tuple[NonNegative, NonNegative], AfterValidator(ordered), AfterValidator(nonneg)]
+PositiveInterval = Annotated[tuple[Positive, Positive], AfterValidator(ordered), AfterValidator(positive)]
+Vec3 = Annotated[tuple[Coordinate, Coordinate, Coordinate], AfterValidator(bounded)]
 
 
 class SpecModel(BaseModel):
