@@ -35,9 +35,12 @@ MINIO_TAG=$(compose_image minio/minio)
 MC_TAG=$(compose_image minio/mc)
 FLOWER_TAG=$(compose_image mher/flower)
 for t in PYTHON_TAG REDIS_TAG MINIO_TAG MC_TAG FLOWER_TAG; do
-  [[ -n "${!t}" ]] || { echo "build.sh: no ${t%_TAG} image found in docker-compose.yml or docker/api.Dockerfile" >&2; exit 1; }
+  [[ -n "${!t}" ]] || { echo "build.sh: no ${t%_TAG} image in docker-compose.yml or docker/api.Dockerfile" >&2; exit 1; }
 done
-[[ "$PYTHON_TAG" == python:3.11-* ]] || { echo "build.sh: the base is $PYTHON_TAG; Debian $SUITE gives Python 3.11" >&2; exit 1; }
+if [[ "$PYTHON_TAG" != python:3.11-* ]]; then
+  echo "build.sh: the base is $PYTHON_TAG; Debian $SUITE gives Python 3.11" >&2
+  exit 1
+fi
 
 have() { [[ $force -eq 0 ]] && docker image inspect "$1" >/dev/null 2>&1; }
 stamp() { echo "build.sh: $(date +%T) $*"; }

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# The compose test at full size, on this machine: tests/test_compose.py with SEASYNTH_COMPOSE=full (stand-in images,
+# the api, worker and GPU worker images built, 3 shard workers, a worker SIGKILLed and Redis restarted mid-run,
+# down/up, Flower, both /metrics), its timings and results written to bench/results/compose.md (or FILE).
+# CI runs the reduced size (one shard worker, 8 frames, no faults, no GPU image) as part of .ci/run.
+#
+#   sudo bash docker/standins/full-run.sh [FILE]      after `bash .ci/setup` (docker.io, docker-compose, debootstrap)
+#
+# Needs root (dockerd, debootstrap), about 20 GiB free under TMPDIR, the network to Debian's mirror and PyPI, and
+# host ports 8000, 9000, 9001 and 5555 free. It starts its own dockerd and removes it, its images and its folder
+# at the end.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+report="${1:-bench/results/compose.md}"
+export PYOPENGL_PLATFORM=egl PYGLET_HEADLESS=1 SEASYNTH_COMPOSE=full SEASYNTH_COMPOSE_REPORT="$report"
+.venv/bin/python -m pytest -q -p no:cacheprovider -rA tests/test_compose.py
+echo "full-run.sh: results in $report"

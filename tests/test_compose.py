@@ -1,0 +1,403 @@
+"""The compose stack built and run for real: stand-ins for the Docker Hub images (docker/standins/build.sh), the api
+and worker images from their Dockerfiles, docker-compose.yml with docker/compose.standins.yml (and
+tests/compose.recovery.yml's one-minute task limit) on a private Docker engine (tests/compose_engine.py). Datasets
+posted to it come back byte-identical to a local `seasynth generate`, also across a worker crash, a Redis restart
+and `down`/`up`; every container runs as non-root and turns healthy; Flower lists the workers; both /metrics answer.
+
+Two sizes. CI's (the default): one shard worker and an 8-frame dataset; no faults, no GPU image. The full run
+(SEASYNTH_COMPOSE=full, as `bash docker/standins/full-run.sh` runs it): 3 shard workers, 24- and 120-frame datasets,
+a worker SIGKILLed and Redis restarted mid-run, the GPU worker image built (never run: no GPU here). With
+SEASYNTH_COMPOSE_REPORT=FILE the run writes its timings and results there (bench/results/compose.md).
+
+Skipped only where containers cannot run at all (not root, namespaces refused); a missing tool is a failure.
+Host ports 8000, 9000, 9001 and 5555 must be free: docker-compose.yml publishes them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import yaml
+from prometheus_client.parser import text_string_to_metric_families
+
+from seasynth.service.fetch import STATE_DIR
+from tests.compose_engine import ROOT, Compose, DockerUnavailable, docker_engine, run
+from tests.compose_report import Report
+
+FULL = os.environ.get("SEASYNTH_COMPOSE", "") == "full"
+REPORT_FILE = os.environ.get("SEASYNTH_COMPOSE_REPORT")
+WORKERS = 3 if FULL else 1
+FRAMES = 24 if FULL else 8  # the first dataset; the fault datasets have FAULT_FRAMES
+FAULT_FRAMES = 120
+WIDTH, HEIGHT = 160, 120
+EXAMPLE = ROOT / "examples" / "urchins.yaml"
+FILES = ["docker-compose.yml", "docker/compose.standins.yml", "tests/compose.recovery.yml"]
+API = "http://localhost:8000"
+PORTS = (8000, 9000, 9001, 5555)
+PROJECT_SERVICES = {"api", "reconciler", "worker", "worker-frames"}  # built from docker/*.Dockerfile: uid 10001
+PROJECT_UID = 10001
+LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, not frame files
+
+pytestmark = pytest.mark.timeout(3600)  # the stack fixture builds every image inside the first test's limit
+
+full_only = pytest.mark.skipif(not FULL, reason="full run only (SEASYNTH_COMPOSE=full: bash "
+                                                "docker/standins/full-run.sh); CI runs the reduced stack")
+
+
+REPORT = Report()
+
+
+# --- the stack -------------------------------------------------------------------------------------------------
+
+
+def spec(frames: int, shard_size: int) -> dict[str, Any]:
+    """examples/urchins.yaml as POST /datasets takes it, with the local generate's --frames, --width, --height."""
+    s = yaml.safe_load(EXAMPLE.read_text())
+    s.update(frames=frames, shard_size=shard_size)
+    s["camera"].update(width=WIDTH, height=HEIGHT)
+    return s
+
+
+def cli(*args: str | Path, timeout: float = 600) -> subprocess.CompletedProcess:
+    r = subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
+                       timeout=timeout, cwd=ROOT)
+    assert r.returncode == 0, f"seasynth {' '.join(map(str, args))}: {r.stdout[-2000:]}{r.stderr[-2000:]}"
+    return r
+
+
+def tree(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name not in LOCAL_ONLY and STATE_DIR not in p.parts}
+
+
+def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float = 1.0) -> Any:
+    deadline = time.monotonic() + timeout
+    last: Any = None
+    while time.monotonic() < deadline:
+        try:
+            last = pred()
+        except (httpx.HTTPError, OSError, ValueError) as err:  # still starting
+            last = err
+        else:
+            if last:
+                return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what} (last: {last!r})")
+
+
+def ports_in_use() -> list[int]:
+    busy = []
+    for port in PORTS:
+        with socket.socket() as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("0.0.0.0", port))
+            except OSError:
+                busy.append(port)
+    return busy
+
+
+class Stack:
+    def __init__(self, compose: Compose, tmp: Path):
+        self.compose = compose
+        self.tmp = tmp
+        self.http = httpx.Client(base_url=API, timeout=30)
+        self.local: dict[int, dict[str, bytes]] = {}  # frames -> the local generate's tree
+        self.finished: list[tuple[str, int]] = []  # (dataset id, frames) of succeeded datasets
+        self.posts = 0
+
+    def up(self) -> None:
+        self.compose("up", "-d", "--no-build", "--scale", f"worker={WORKERS}", timeout=900)
+        self.wait_healthy()
+
+    def wait_healthy(self, timeout: float = 420) -> None:
+        """Until every service container runs and each with a health check is healthy (minio-init: exited 0)."""
+        def states() -> dict[str, str]:
+            out = {}
+            for c in self.compose.containers():
+                service = c["Config"]["Labels"]["com.docker.compose.service"]
+                if service == "minio-init":
+                    out[c["Name"]] = "done" if c["State"]["Status"] == "exited" and c["State"]["ExitCode"] == 0 \
+                        else c["State"]["Status"]
+                else:
+                    out[c["Name"]] = c["State"].get("Health", {}).get("Status", c["State"]["Status"])
+            return out
+
+        seen: dict[str, str] = {}
+
+        def all_healthy() -> bool:
+            seen.clear()
+            seen.update(states())
+            return bool(seen) and all(s in ("healthy", "done") for s in seen.values())
+
+        try:
+            wait_for(all_healthy, timeout, "every container healthy", interval=3)
+        except AssertionError:
+            raise AssertionError(f"not healthy within {timeout} s: {seen}") from None
+        wait_for(lambda: self.http.get("/readyz").status_code == 200, 60, "the API ready on the host's port 8000")
+
+    def worker_containers(self, service: str = "worker") -> list[dict]:
+        return [c for c in self.compose.containers(service) if c["State"]["Running"]]
+
+    def reference(self, frames: int) -> dict[str, bytes]:
+        """`seasynth generate` of the example at this size on this machine, the plain CLI a user runs."""
+        if frames not in self.local:
+            out = self.tmp / f"local-{frames}"
+            cli("generate", EXAMPLE, "--out", out, "--frames", frames, "--width", WIDTH, "--height", HEIGHT)
+            self.local[frames] = tree(out)
+        return self.local[frames]
+
+    def post(self, frames: int, shard_size: int) -> str:
+        r = self.http.post("/datasets", json=spec(frames, shard_size))
+        assert r.status_code == 202, r.text
+        self.posts += 1
+        return r.json()["id"]
+
+    def record(self, dataset_id: str) -> dict[str, Any]:
+        r = self.http.get(f"/datasets/{dataset_id}")
+        r.raise_for_status()
+        return r.json()
+
+    def wait_finished(self, dataset_id: str, timeout: float) -> dict[str, Any]:
+        rec = wait_for(lambda: (r := self.record(dataset_id))["state"] in ("succeeded", "failed", "cancelled") and r,
+                       timeout, f"dataset {dataset_id} to finish", interval=1)
+        assert rec["state"] == "succeeded", rec
+        return rec
+
+    def fetch(self, dataset_id: str, name: str) -> dict[str, bytes]:
+        out = self.tmp / name
+        cli("fetch", dataset_id, "--out", out, "--api", API)
+        return tree(out)
+
+    def assert_complete(self, dataset_id: str, frames: int, shard_size: int, rec: dict[str, Any]) -> None:
+        """Every frame exactly once, in the shards the plan made, and the bytes a local generate writes."""
+        shards = -(-frames // shard_size)
+        assert (rec["frames_done"], rec["frames_total"]) == (frames, frames), rec
+        assert (rec["shards_done"], rec["shards_failed"], rec["shards_total"]) == (shards, 0, shards), rec
+        assert rec["errors"] == [], rec["errors"]
+        man = self.http.get(f"/datasets/{dataset_id}/manifest").json()
+        assert man["complete"]
+        assert [(s["first_frame"], s["frame_count"]) for s in man["shards"]] == [
+            (i, min(shard_size, frames - i)) for i in range(0, frames, shard_size)]
+        fetched = self.fetch(dataset_id, f"fetched-{dataset_id}")
+        local = self.reference(frames)
+        assert sorted(fetched) == sorted(local), "the fetched files differ from the local generate's by name"
+        differing = [name for name in local if fetched[name] != local[name]]
+        assert not differing, f"{len(differing)} of {len(local)} files differ from the local generate: {differing[:5]}"
+        self.finished.append((dataset_id, frames))
+
+    def running_on(self, dataset_id: str, host: str) -> list[int]:
+        """Shards of the dataset that a render process on `host` has under way (the records' running hash)."""
+        redis = self.compose.containers("redis")[0]["Id"]
+        out = self.compose.engine.docker("exec", redis, "redis-cli", "HGETALL",
+                                         f"seasynth:ds:{dataset_id}:running").stdout.split("\n")
+        pairs = zip(out[0::2], out[1::2])
+        return sorted(int(i) for i, who in pairs if who.strip() and json.loads(who)["host"] == host)
+
+    def worker_metrics(self, container: dict) -> dict[str, float]:
+        """A worker container's Prometheus samples (its port 9808 is not published: read from inside)."""
+        text = self.compose.engine.docker(
+            "exec", container["Id"], "python", "-c",
+            "import urllib.request; print(urllib.request.urlopen('http://127.0.0.1:9808/metrics').read().decode())",
+        ).stdout
+        return samples(text)
+
+
+def samples(text: str) -> dict[str, float]:
+    """name{label="v",...} -> value, labels sorted."""
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            labels = ",".join(f'{k}="{v}"' for k, v in sorted(s.labels.items()))
+            out[f"{s.name}{{{labels}}}" if labels else s.name] = s.value
+    return out
+
+
+@pytest.fixture(scope="module")
+def stack():
+    busy = ports_in_use()
+    assert not busy, f"host ports {busy} are in use; docker-compose.yml publishes {PORTS}: stop what holds them"
+    folder = Path(tempfile.mkdtemp(prefix="seasynth-compose-"))
+    tmp = Path(tempfile.mkdtemp(prefix="seasynth-compose-files-"))
+    cleaning_from = None
+    try:
+        with docker_engine(folder / "engine") as engine:
+            REPORT.facts["engine"] = run(["docker", "version", "--format", "dockerd {{.Server.Version}}"],
+                                         engine.env, 60).stdout.strip()
+            REPORT.facts["compose"] = run(["docker-compose", "version", "--short"], engine.env, 60).stdout.strip()
+            built = REPORT.timed("stand-in images (docker/standins/build.sh)",
+                                 lambda: run(["bash", "docker/standins/build.sh"], engine.env, 1800).stdout)
+            for name, seconds in re.findall(r"build\.sh: (\S+) in (\d+) s", built):
+                REPORT.timings[f"- stand-in {name}"] = float(seconds)
+            compose = Compose(engine, "seasynth-test", FILES, profiles=["monitor"])
+            REPORT.timed("api image (docker/api.Dockerfile)", lambda: compose("build", "api", timeout=1800))
+            REPORT.timed("worker image (docker/worker.Dockerfile)", lambda: compose("build", "worker", timeout=1800))
+            s = Stack(compose, tmp)
+            try:
+                REPORT.timed(f"up --scale worker={WORKERS}, every container healthy", s.up)
+                yield s
+            finally:
+                s.http.close()
+                cleaning_from = time.monotonic()
+    except DockerUnavailable as why:
+        pytest.skip(f"Docker cannot run here: {why}")
+    finally:
+        subprocess.run(["rm", "-rf", str(folder), str(tmp)], check=False)
+        if cleaning_from is not None:
+            REPORT.timings["clean-up: containers removed, dockerd stopped, its folder removed"] = \
+                time.monotonic() - cleaning_from
+        REPORT.timings["whole run"] = time.monotonic() - REPORT.t0
+        if REPORT_FILE:
+            REPORT.write(Path(REPORT_FILE), full=FULL, workers=WORKERS, size=(WIDTH, HEIGHT))
+
+
+# --- the checks ----------------------------------------------------------------------------------------------------
+
+
+def test_containers_non_root_and_healthy(stack: Stack):
+    """Each service's main process runs as non-root (the project's as uid 10001), every health check is healthy,
+    and `--scale` started the shard workers asked for."""
+    containers = [c for c in stack.compose.containers() if c["State"]["Running"]]
+    services = sorted({c["Config"]["Labels"]["com.docker.compose.service"] for c in containers})
+    assert set(services) == PROJECT_SERVICES | {"redis", "minio", "flower"}, services
+    assert len(stack.worker_containers()) == WORKERS
+    uids = {}
+    for c in containers:
+        status = stack.compose.engine.docker("exec", c["Id"], "cat", "/proc/1/status").stdout
+        real, effective, saved, fs = map(int, re.search(r"^Uid:\s+(.*)$", status, re.M).group(1).split())
+        uids[c["Name"]] = effective
+        assert 0 not in (real, effective, saved, fs), f"{c['Name']} runs as root: Uid {real} {effective} {saved} {fs}"
+        if c["Config"]["Labels"]["com.docker.compose.service"] in PROJECT_SERVICES:
+            assert effective == PROJECT_UID, (c["Name"], effective)
+        assert c["State"]["Health"]["Status"] == "healthy", (c["Name"], c["State"]["Health"])
+    REPORT.facts["uids"] = ", ".join(f"{n.lstrip('/')} {u}" for n, u in sorted(uids.items()))
+    REPORT.passed["non-root, healthy"] = f"{len(containers)} containers"
+
+
+def test_dataset_identical_to_local_generate(stack: Stack):
+    """A dataset posted to the stack, fetched with `seasynth fetch`, is the local generate's files byte for byte;
+    with several workers, more than one rendered it; both metrics endpoints count it."""
+    shard_size = 2
+    t0 = time.monotonic()
+    dataset_id = stack.post(FRAMES, shard_size)
+    rec = stack.wait_finished(dataset_id, 600)
+    REPORT.timings[f"dataset of {FRAMES} frames ({WIDTH}x{HEIGHT}, shards of {shard_size}) rendered"] = \
+        time.monotonic() - t0
+    assert rec["attempts"] == rec["shards_total"], rec  # no fault: each shard ran once
+    REPORT.timed(f"fetch + compare with a local generate ({FRAMES} frames)",
+                 lambda: stack.assert_complete(dataset_id, FRAMES, shard_size, rec))
+
+    # Worker metrics (each worker's own port, pool processes summed): the frames committed add up to the dataset's.
+    per_worker = {c["Name"]: stack.worker_metrics(c).get('seasynth_worker_frames_total{outcome="committed"}', 0.0)
+                  for c in stack.worker_containers()}
+    assert sum(per_worker.values()) == FRAMES, per_worker
+    if WORKERS > 1:
+        assert sum(1 for n in per_worker.values() if n) >= 2, f"one worker rendered every shard: {per_worker}"
+    # The API's own /metrics on the published port counts the POST.
+    api = samples(stack.http.get("/metrics").text)
+    assert api['seasynth_api_request_seconds_count{method="POST",route="/datasets",status="202"}'] == stack.posts
+    REPORT.passed["byte-identical to local generate"] = (
+        f"{FRAMES} frames, {len(stack.local[FRAMES])} files; frames committed per worker: "
+        + ", ".join(f"{int(v)}" for v in per_worker.values()))
+    REPORT.passed["both /metrics"] = "api :8000/metrics counts the POST; each worker's :9808 its frames"
+
+
+@full_only
+def test_worker_killed_mid_run(stack: Stack):
+    """A worker container's main process SIGKILLed while it renders shards: Docker restarts it (restart:
+    unless-stopped), those shards run again elsewhere, and the dataset completes with every frame once and the local
+    generate's bytes."""
+    shard_size = 4
+    victim = stack.worker_containers()[0]
+    host, restarts = victim["Config"]["Hostname"], victim["RestartCount"]
+    t0 = time.monotonic()
+    dataset_id = stack.post(FAULT_FRAMES, shard_size)
+    wait_for(lambda: stack.record(dataset_id)["shards_done"] >= 2, 300, "2 shards committed", interval=0.3)
+    held = wait_for(lambda: stack.running_on(dataset_id, host), 120, f"{host} to render a shard", interval=0.1)
+    os.kill(victim["State"]["Pid"], signal.SIGKILL)
+    rec = stack.wait_finished(dataset_id, 900)
+    took = time.monotonic() - t0
+    after = json.loads(stack.compose.engine.docker("inspect", victim["Id"]).stdout)[0]
+    assert after["RestartCount"] == restarts + 1 and after["State"]["Running"], after["State"]
+    assert rec["attempts"] > rec["shards_total"], f"no shard ran twice, yet {host} was rendering {held}: {rec}"
+    stack.assert_complete(dataset_id, FAULT_FRAMES, shard_size, rec)
+    REPORT.timings[f"dataset of {FAULT_FRAMES} frames, a worker SIGKILLed mid-run"] = took
+    REPORT.passed["worker SIGKILLed mid-run"] = (
+        f"killed while rendering shard(s) {held}; {rec['shards_total']} shards, {rec['attempts']} attempts; the "
+        "container restarted; byte-identical")
+
+
+@full_only
+def test_redis_restarted_mid_run(stack: Stack):
+    """Redis restarted mid-dataset (`docker-compose restart redis`: the append-only file keeps queue and records):
+    the dataset completes with every frame once and the local generate's bytes."""
+    shard_size = 4
+    t0 = time.monotonic()
+    dataset_id = stack.post(FAULT_FRAMES, shard_size)
+    wait_for(lambda: stack.record(dataset_id)["shards_done"] >= 3, 300, "3 shards committed", interval=0.3)
+    assert stack.record(dataset_id)["state"] == "running"
+    stack.compose("restart", "redis")
+    rec = stack.wait_finished(dataset_id, 900)
+    took = time.monotonic() - t0
+    stack.assert_complete(dataset_id, FAULT_FRAMES, shard_size, rec)
+    REPORT.timings[f"dataset of {FAULT_FRAMES} frames, Redis restarted mid-run"] = took
+    REPORT.passed["Redis restarted mid-run"] = (
+        f"{rec['shards_total']} shards, {rec['attempts']} attempts; byte-identical")
+
+
+def test_flower_lists_the_workers(stack: Stack):
+    """Flower (profile monitor, on the workers' broker and visibility timeout) sees every running worker container
+    online, shard and frame workers alike: their Celery node names end in the container's hostname."""
+    running = {c["Config"]["Hostname"] for s in ("worker", "worker-frames") for c in stack.worker_containers(s)}
+
+    def online() -> set[str]:
+        data = httpx.get("http://localhost:5555/workers?json=1", timeout=10).json()["data"]
+        return {w["hostname"].split("@", 1)[1] for w in data if w.get("status")}
+
+    wait_for(lambda: online() == running, 120, f"Flower to list the workers {sorted(running)}", interval=2)
+    REPORT.passed["Flower lists the workers"] = f"{len(running)} online (shard and frame workers)"
+
+
+def test_down_up_keeps_datasets(stack: Stack):
+    """`docker-compose down` then `up`: the finished datasets are still listed from Redis's volume (not rebuilt from
+    the bucket) and fetch byte-identical from MinIO's."""
+    assert stack.finished, "no dataset finished earlier in this run"
+    REPORT.timed("down (volumes kept)", lambda: stack.compose("down", timeout=600))
+    assert stack.compose.containers() == []
+    REPORT.timed("up again, every container healthy", stack.up)
+    listed = {d["id"]: d for d in stack.http.get("/datasets", params={"limit": 100}).json()["items"]}
+    for dataset_id, frames in stack.finished:
+        assert dataset_id in listed, f"{dataset_id} is not listed after down/up"
+        assert listed[dataset_id]["state"] == "succeeded" and listed[dataset_id]["restored_at"] is None, \
+            listed[dataset_id]
+    dataset_id, frames = stack.finished[0]
+    fetched = stack.fetch(dataset_id, f"fetched-again-{dataset_id}")
+    assert fetched == stack.reference(frames)
+    REPORT.passed["down/up keeps datasets"] = f"{len(stack.finished)} listed as before; one fetched byte-identical"
+
+
+@full_only
+def test_gpu_worker_image_builds(stack: Stack):
+    """docker/worker-gpu.Dockerfile builds unchanged on the stand-in base; its entry point and NVIDIA EGL vendor file
+    are in place and it runs as uid 10001. It cannot render here (no GPU, no NVIDIA container toolkit)."""
+    REPORT.timed("worker-gpu image (docker/worker-gpu.Dockerfile)",
+                 lambda: stack.compose("--profile", "gpu", "build", "worker-gpu", timeout=1800))
+    image = "seasynth-worker-gpu:dev"
+    out = stack.compose.engine.docker(
+        "run", "--rm", "--network", "none", image, "sh", "-c",
+        "id -u && cat $__EGL_VENDOR_LIBRARY_FILENAMES && seasynth --help >/dev/null && echo cli-ok").stdout.split("\n")
+    assert out[0] == str(PROJECT_UID) and "libEGL_nvidia.so.0" in out[1] and out[2] == "cli-ok", out
+    REPORT.passed["GPU worker image builds"] = "built; runs as uid 10001; not run on a GPU (none here)"
