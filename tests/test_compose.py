@@ -8,7 +8,6 @@ Two sizes. CI's (the default): one shard worker and an 8-frame dataset; no fault
 (SEASYNTH_COMPOSE=full, as `bash docker/standins/full-run.sh` runs it): 3 shard workers, 24- and 120-frame datasets,
 a worker SIGKILLed and Redis restarted mid-run, the GPU worker image built (never run: no GPU here). With
 SEASYNTH_COMPOSE_REPORT=FILE the run writes its timings and results there (bench/results/compose.md).
-
 Skipped only where containers cannot run at all (not root, namespaces refused); a missing tool is a failure.
 Host ports 8000, 9000, 9001 and 5555 must be free: docker-compose.yml publishes them.
 """
@@ -55,8 +54,6 @@ pytestmark = pytest.mark.timeout(3600)  # the stack fixture builds every image i
 
 full_only = pytest.mark.skipif(not FULL, reason="full run only (SEASYNTH_COMPOSE=full: bash "
                                                 "docker/standins/full-run.sh); CI runs the reduced stack")
-
-
 REPORT = Report()
 
 
