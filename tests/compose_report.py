@@ -44,8 +44,7 @@ class Report:
         return "not run at this size" if check in FULL_ONLY and not full else "NOT PASSED (failed or not run)"
 
     def write(self, path: Path, full: bool, workers: int, size: tuple[int, int]) -> None:
-        how = ("full size, by `bash docker/standins/full-run.sh` (SEASYNTH_COMPOSE=full)" if full
-               else "CI's reduced size (SEASYNTH_COMPOSE unset)")
+        how = "full size (CI's)" if full else "reduced size (SEASYNTH_COMPOSE=reduced)"
         lines = [
             "# The compose stack, built and run (tests/test_compose.py)",
             "",

@@ -4,10 +4,11 @@ tests/compose.recovery.yml's one-minute task limit) on a private Docker engine (
 posted to it come back byte-identical to a local `seasynth generate`, also across a worker crash, a Redis restart
 and `down`/`up`; every container runs as non-root and turns healthy; Flower lists the workers; both /metrics answer.
 
-Two sizes. CI's (the default): one shard worker and an 8-frame dataset; no faults, no GPU image. The full run
-(SEASYNTH_COMPOSE=full, as `bash docker/standins/full-run.sh` runs it): 3 shard workers, 24- and 120-frame datasets,
-a worker SIGKILLed and Redis restarted mid-run, the GPU worker image built (never run: no GPU here). With
-SEASYNTH_COMPOSE_REPORT=FILE the run writes its timings and results there (bench/results/compose.md).
+Full size, CI's (18 min on the 2-core machine, the image builds most of it): 3 shard workers, 24- and 120-frame
+datasets, a worker SIGKILLed and Redis restarted mid-run, the GPU worker image built (never run: no GPU here).
+SEASYNTH_COMPOSE=reduced (14 min): one shard worker, an 8-frame dataset, no faults, no GPU image. With
+SEASYNTH_COMPOSE_REPORT=FILE the run writes its timings and results there (`bash docker/standins/full-run.sh`:
+bench/results/compose.md).
 Skipped only where containers cannot run at all (not root, namespaces refused); a missing tool is a failure.
 Host ports 8000, 9000, 9001 and 5555 must be free: docker-compose.yml publishes them.
 """
@@ -36,7 +37,7 @@ from seasynth.service.fetch import STATE_DIR
 from tests.compose_engine import ROOT, Compose, DockerUnavailable, docker_engine, run
 from tests.compose_report import Report
 
-FULL = os.environ.get("SEASYNTH_COMPOSE", "") == "full"
+FULL = os.environ.get("SEASYNTH_COMPOSE", "full") != "reduced"
 REPORT_FILE = os.environ.get("SEASYNTH_COMPOSE_REPORT")
 WORKERS = 3 if FULL else 1
 FRAMES = 24 if FULL else 8  # the first dataset; the fault datasets have FAULT_FRAMES
@@ -52,8 +53,7 @@ LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, no
 
 pytestmark = pytest.mark.timeout(3600)  # the stack fixture builds every image inside the first test's limit
 
-full_only = pytest.mark.skipif(not FULL, reason="full run only (SEASYNTH_COMPOSE=full: bash "
-                                                "docker/standins/full-run.sh); CI runs the reduced stack")
+full_only = pytest.mark.skipif(not FULL, reason="SEASYNTH_COMPOSE=reduced: the full size only (CI's)")
 REPORT = Report()
 
 

@@ -1,8 +1,7 @@
 #!/usr/bin/env bash
-# The compose test at full size, on this machine: tests/test_compose.py with SEASYNTH_COMPOSE=full (stand-in images,
-# the api, worker and GPU worker images built, 3 shard workers, a worker SIGKILLed and Redis restarted mid-run,
-# down/up, Flower, both /metrics), its timings and results written to bench/results/compose.md (or FILE).
-# CI runs the reduced size (one shard worker, 8 frames, no faults, no GPU image) as part of .ci/run.
+# The compose test at full size, as CI runs it within .ci/run, alone: tests/test_compose.py (stand-in images, the
+# api, worker and GPU worker images built, 3 shard workers, a worker SIGKILLed and Redis restarted mid-run, down/up,
+# Flower, both /metrics), its timings and results written to bench/results/compose.md (or FILE).
 #
 #   sudo bash docker/standins/full-run.sh [FILE]      after `bash .ci/setup` (docker.io, docker-compose, debootstrap)
 #
