@@ -9,6 +9,7 @@ datasets, a worker SIGKILLed and Redis restarted mid-run, the GPU worker image b
 SEASYNTH_COMPOSE=reduced (14 min): one shard worker, an 8-frame dataset, no faults, no GPU image. With
 SEASYNTH_COMPOSE_REPORT=FILE the run writes its timings and results there (`bash docker/standins/full-run.sh`:
 bench/results/compose.md).
+
 Skipped only where containers cannot run at all (not root, namespaces refused); a missing tool is a failure.
 Host ports 8000, 9000, 9001 and 5555 must be free: docker-compose.yml publishes them.
 """
@@ -19,208 +20,32 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
-import sys
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
-import yaml
-from prometheus_client.parser import text_string_to_metric_families
 
-from seasynth.service.fetch import STATE_DIR
-from tests.compose_engine import ROOT, Compose, DockerUnavailable, docker_engine, run
+from tests.compose_engine import Compose, DockerUnavailable, docker_engine, run
 from tests.compose_report import Report
+from tests.compose_stack import HEIGHT, PORTS, WIDTH, Stack, ports_in_use, samples, wait_for
 
 FULL = os.environ.get("SEASYNTH_COMPOSE", "full") != "reduced"
 REPORT_FILE = os.environ.get("SEASYNTH_COMPOSE_REPORT")
 WORKERS = 3 if FULL else 1
 FRAMES = 24 if FULL else 8  # the first dataset; the fault datasets have FAULT_FRAMES
 FAULT_FRAMES = 120
-WIDTH, HEIGHT = 160, 120
-EXAMPLE = ROOT / "examples" / "urchins.yaml"
 FILES = ["docker-compose.yml", "docker/compose.standins.yml", "tests/compose.recovery.yml"]
-API = "http://localhost:8000"
-PORTS = (8000, 9000, 9001, 5555)
 PROJECT_SERVICES = {"api", "reconciler", "worker", "worker-frames"}  # built from docker/*.Dockerfile: uid 10001
 PROJECT_UID = 10001
-LOCAL_ONLY = {"seasynth.json", "manifest.json"}  # records beside the frames, not frame files
 
 pytestmark = pytest.mark.timeout(3600)  # the stack fixture builds every image inside the first test's limit
 
 full_only = pytest.mark.skipif(not FULL, reason="SEASYNTH_COMPOSE=reduced: the full size only (CI's)")
+
 REPORT = Report()
-
-
-# --- the stack -------------------------------------------------------------------------------------------------
-
-
-def spec(frames: int, shard_size: int) -> dict[str, Any]:
-    """examples/urchins.yaml as POST /datasets takes it, with the local generate's --frames, --width, --height."""
-    s = yaml.safe_load(EXAMPLE.read_text())
-    s.update(frames=frames, shard_size=shard_size)
-    s["camera"].update(width=WIDTH, height=HEIGHT)
-    return s
-
-
-def cli(*args: str | Path, timeout: float = 600) -> subprocess.CompletedProcess:
-    r = subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
-                       timeout=timeout, cwd=ROOT)
-    assert r.returncode == 0, f"seasynth {' '.join(map(str, args))}: {r.stdout[-2000:]}{r.stderr[-2000:]}"
-    return r
-
-
-def tree(root: Path) -> dict[str, bytes]:
-    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file() and p.name not in LOCAL_ONLY and STATE_DIR not in p.parts}
-
-
-def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float = 1.0) -> Any:
-    deadline = time.monotonic() + timeout
-    last: Any = None
-    while time.monotonic() < deadline:
-        try:
-            last = pred()
-        except (httpx.HTTPError, OSError, ValueError) as err:  # still starting
-            last = err
-        else:
-            if last:
-                return last
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what} (last: {last!r})")
-
-
-def ports_in_use() -> list[int]:
-    busy = []
-    for port in PORTS:
-        with socket.socket() as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind(("0.0.0.0", port))
-            except OSError:
-                busy.append(port)
-    return busy
-
-
-class Stack:
-    def __init__(self, compose: Compose, tmp: Path):
-        self.compose = compose
-        self.tmp = tmp
-        self.http = httpx.Client(base_url=API, timeout=30)
-        self.local: dict[int, dict[str, bytes]] = {}  # frames -> the local generate's tree
-        self.finished: list[tuple[str, int]] = []  # (dataset id, frames) of succeeded datasets
-        self.posts = 0
-
-    def up(self) -> None:
-        self.compose("up", "-d", "--no-build", "--scale", f"worker={WORKERS}", timeout=900)
-        self.wait_healthy()
-
-    def wait_healthy(self, timeout: float = 420) -> None:
-        """Until every service container runs and each with a health check is healthy (minio-init: exited 0)."""
-        def states() -> dict[str, str]:
-            out = {}
-            for c in self.compose.containers():
-                service = c["Config"]["Labels"]["com.docker.compose.service"]
-                if service == "minio-init":
-                    out[c["Name"]] = "done" if c["State"]["Status"] == "exited" and c["State"]["ExitCode"] == 0 \
-                        else c["State"]["Status"]
-                else:
-                    out[c["Name"]] = c["State"].get("Health", {}).get("Status", c["State"]["Status"])
-            return out
-
-        seen: dict[str, str] = {}
-
-        def all_healthy() -> bool:
-            seen.clear()
-            seen.update(states())
-            return bool(seen) and all(s in ("healthy", "done") for s in seen.values())
-
-        try:
-            wait_for(all_healthy, timeout, "every container healthy", interval=3)
-        except AssertionError:
-            raise AssertionError(f"not healthy within {timeout} s: {seen}") from None
-        wait_for(lambda: self.http.get("/readyz").status_code == 200, 60, "the API ready on the host's port 8000")
-
-    def worker_containers(self, service: str = "worker") -> list[dict]:
-        return [c for c in self.compose.containers(service) if c["State"]["Running"]]
-
-    def reference(self, frames: int) -> dict[str, bytes]:
-        """`seasynth generate` of the example at this size on this machine, the plain CLI a user runs."""
-        if frames not in self.local:
-            out = self.tmp / f"local-{frames}"
-            cli("generate", EXAMPLE, "--out", out, "--frames", frames, "--width", WIDTH, "--height", HEIGHT)
-            self.local[frames] = tree(out)
-        return self.local[frames]
-
-    def post(self, frames: int, shard_size: int) -> str:
-        r = self.http.post("/datasets", json=spec(frames, shard_size))
-        assert r.status_code == 202, r.text
-        self.posts += 1
-        return r.json()["id"]
-
-    def record(self, dataset_id: str) -> dict[str, Any]:
-        r = self.http.get(f"/datasets/{dataset_id}")
-        r.raise_for_status()
-        return r.json()
-
-    def wait_finished(self, dataset_id: str, timeout: float) -> dict[str, Any]:
-        rec = wait_for(lambda: (r := self.record(dataset_id))["state"] in ("succeeded", "failed", "cancelled") and r,
-                       timeout, f"dataset {dataset_id} to finish", interval=1)
-        assert rec["state"] == "succeeded", rec
-        return rec
-
-    def fetch(self, dataset_id: str, name: str) -> dict[str, bytes]:
-        out = self.tmp / name
-        cli("fetch", dataset_id, "--out", out, "--api", API)
-        return tree(out)
-
-    def assert_complete(self, dataset_id: str, frames: int, shard_size: int, rec: dict[str, Any]) -> None:
-        """Every frame exactly once, in the shards the plan made, and the bytes a local generate writes."""
-        shards = -(-frames // shard_size)
-        assert (rec["frames_done"], rec["frames_total"]) == (frames, frames), rec
-        assert (rec["shards_done"], rec["shards_failed"], rec["shards_total"]) == (shards, 0, shards), rec
-        assert rec["errors"] == [], rec["errors"]
-        man = self.http.get(f"/datasets/{dataset_id}/manifest").json()
-        assert man["complete"]
-        assert [(s["first_frame"], s["frame_count"]) for s in man["shards"]] == [
-            (i, min(shard_size, frames - i)) for i in range(0, frames, shard_size)]
-        fetched = self.fetch(dataset_id, f"fetched-{dataset_id}")
-        local = self.reference(frames)
-        assert sorted(fetched) == sorted(local), "the fetched files differ from the local generate's by name"
-        differing = [name for name in local if fetched[name] != local[name]]
-        assert not differing, f"{len(differing)} of {len(local)} files differ from the local generate: {differing[:5]}"
-        self.finished.append((dataset_id, frames))
-
-    def running_on(self, dataset_id: str, host: str) -> list[int]:
-        """Shards of the dataset that a render process on `host` has under way (the records' running hash)."""
-        redis = self.compose.containers("redis")[0]["Id"]
-        out = self.compose.engine.docker("exec", redis, "redis-cli", "HGETALL",
-                                         f"seasynth:ds:{dataset_id}:running").stdout.split("\n")
-        pairs = zip(out[0::2], out[1::2])
-        return sorted(int(i) for i, who in pairs if who.strip() and json.loads(who)["host"] == host)
-
-    def worker_metrics(self, container: dict) -> dict[str, float]:
-        """A worker container's Prometheus samples (its port 9808 is not published: read from inside)."""
-        text = self.compose.engine.docker(
-            "exec", container["Id"], "python", "-c",
-            "import urllib.request; print(urllib.request.urlopen('http://127.0.0.1:9808/metrics').read().decode())",
-        ).stdout
-        return samples(text)
-
-
-def samples(text: str) -> dict[str, float]:
-    """name{label="v",...} -> value, labels sorted."""
-    out = {}
-    for family in text_string_to_metric_families(text):
-        for s in family.samples:
-            labels = ",".join(f'{k}="{v}"' for k, v in sorted(s.labels.items()))
-            out[f"{s.name}{{{labels}}}" if labels else s.name] = s.value
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -242,7 +67,7 @@ def stack():
             compose = Compose(engine, "seasynth-test", FILES, profiles=["monitor"])
             REPORT.timed("api image (docker/api.Dockerfile)", lambda: compose("build", "api", timeout=1800))
             REPORT.timed("worker image (docker/worker.Dockerfile)", lambda: compose("build", "worker", timeout=1800))
-            s = Stack(compose, tmp)
+            s = Stack(compose, tmp, WORKERS)
             try:
                 REPORT.timed(f"up --scale worker={WORKERS}, every container healthy", s.up)
                 yield s
