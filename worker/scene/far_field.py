@@ -4,9 +4,9 @@ that points down meets a seabed wherever the water would still let it be seen (n
 The innermost ring is the tile's own boundary (its vertices, heights, colours and normals exactly), so the seam is
 closed. Outwards each ring lies `d` metres beyond the tile's edge, `d` growing by FAR_GROWTH a ring, with about as
 many vertices along a side as make square cells: a far ring is as coarse as it is far. Over the first BLEND_M metres
-the heights and colours go from the edge's to the far field's: the tile's mean height plus low-frequency relief of
-the tile's height spread, and its mean colour (linear light) with a low-frequency tone of the tile's brightness
-spread. Everything is a pure function of the terrain and the reach, so it is cached per process.
+the heights and colours go from the edge's to the far field's: the tile's mean height plus relief of the tile's
+height spread, and its mean colour (linear light) with a tone of the tile's brightness spread, each from value noise
+24 m a feature along a ring (one noise field a ring, not one shared by all rings). Everything is a pure function of the terrain and the reach, so it is cached per process.
 """
 
 from __future__ import annotations
