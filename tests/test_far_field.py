@@ -11,16 +11,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from seasynth.bench.horizon import VISIBLE, ray_directions
 from seasynth.service.spec.dataset import load_spec
 from seasynth.service.water import JERLOV_TYPES
 from seasynth.worker.frame.function import PRESETS
-from seasynth.worker.render import Passes, View
+from seasynth.worker.render import Passes
 from seasynth.worker.scene.assets.terrain import STYLES, heightfield
 from seasynth.worker.scene.far_field import FIRST_RING_M, far_field, ring_distances
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 
 EXAMPLE = "examples/urchins.yaml"
-VISIBLE = 1.0 / 255.0  # exp(-K t) above this: a seabed at t would still change an 8-bit code
 
 
 def edges_of(faces: np.ndarray) -> tuple[set, set]:
@@ -70,14 +70,6 @@ def test_the_far_field_is_a_pure_function_of_the_terrain_and_the_reach():
     np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
     np.testing.assert_array_equal(a.mesh.visual.vertex_colors, b.mesh.visual.vertex_colors)
     assert a.key == b.key and a.key != far_field(terrain, 200.0).key
-
-
-def ray_directions(view: View, world_from_cam: np.ndarray) -> np.ndarray:
-    """(h, w, 3) unit world directions through the pixel centres (at integer image coordinates, as K has them)."""
-    u, v = np.meshgrid(np.arange(view.width, dtype=np.float64), np.arange(view.height, dtype=np.float64))
-    cam = np.stack([(u - view.K[0, 2]) / view.K[0, 0], (v - view.K[1, 2]) / view.K[1, 1], np.ones_like(u)], -1)
-    world = cam @ world_from_cam[:3, :3].T
-    return world / np.linalg.norm(world, axis=-1, keepdims=True)
 
 
 def open_water_where_a_seabed_shows(session, water: str, model: str, eye, yaw: float, pitch: float,
