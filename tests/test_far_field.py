@@ -15,9 +15,21 @@ from seasynth.bench.horizon import VISIBLE, ray_directions
 from seasynth.service.spec.dataset import load_spec
 from seasynth.service.water import JERLOV_TYPES
 from seasynth.worker.frame.function import PRESETS
+from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 from seasynth.worker.render import Passes
 from seasynth.worker.scene.assets.terrain import STYLES, heightfield
-from seasynth.worker.scene.far_field import FIRST_RING_M, far_field, ring_distances
+from seasynth.worker.scene.far_field import (
+    BLEND_M,
+    FIRST_RING_M,
+    RELIEF,
+    RELIEF_WAVELENGTH_M,
+    TONE,
+    far_field,
+    far_noise,
+    far_seabed,
+    ring_distances,
+    seabed_of,
+)
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 
 EXAMPLE = "examples/urchins.yaml"
@@ -149,3 +161,89 @@ def test_the_committed_horizon_table_is_what_the_changelog_quotes():
     assert result["spec"] == EXAMPLE and result["frames"] == 40 and result["size"] == [320, 240]
     assert result["rows"]["on"] == {"frames": 0, "pixels": 0, "pixel_share": 0.0}
     assert result["rows"]["off"]["frames"] == 32 and result["rows"]["off"]["pixel_share"] == 0.0678
+
+
+# --- one seabed beyond the tile: the rings evaluate one noise field and meet without a seam -----------------------
+
+LIPSCHITZ = 3.0 / RELIEF_WAVELENGTH_M  # per metre along x or y: smoothstep's slope (1.5) times a lattice step (2)
+
+
+def beyond_edge(xy: np.ndarray, terrain) -> np.ndarray:
+    """(n,) metres from the tile's rectangle out to each point (the distance that names a point's ring)."""
+    xmin, xmax, ymin, ymax = terrain.extent
+    return np.maximum(np.maximum(xmin - xy[:, 0], xy[:, 0] - xmax), np.maximum(ymin - xy[:, 1], xy[:, 1] - ymax))
+
+
+terrains = st.builds(lambda style, seed, size, cells, relief: heightfield(np.random.default_rng(seed), style, size,
+                                                                          cells, relief),
+                     st.sampled_from(STYLES), st.integers(0, 2**31), st.floats(2.0, 60.0), st.integers(2, 96),
+                     st.floats(0.05, 3.0))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), field=st.sampled_from([RELIEF, TONE]),
+       xy=st.lists(st.tuples(st.floats(-5000.0, 5000.0), st.floats(-5000.0, 5000.0)), min_size=2, max_size=40),
+       data=st.data())
+def test_the_far_noise_is_a_function_of_the_seed_and_the_world_point_alone(seed, field, xy, data):
+    """Any batch of points, in any order, split anywhere, gets each point the same value: no ring's evaluation can
+    depend on which ring asks or what was asked before."""
+    xy = np.asarray(xy)
+    whole = far_noise(seed, field, xy)
+    order = np.asarray(data.draw(st.permutations(range(len(xy)))))
+    cut = data.draw(st.integers(1, len(xy) - 1))
+    np.testing.assert_array_equal(far_noise(seed, field, xy[order]), whole[order])
+    np.testing.assert_array_equal(np.concatenate([far_noise(seed, field, xy[order[:cut]]),
+                                                  far_noise(seed, field, xy[order[cut:]])]), whole[order])
+    assert np.isfinite(whole).all() and (np.abs(whole) <= 1.0).all()
+    assert not np.array_equal(far_noise(seed, 1 - field, xy), whole)  # relief and tone are two fields
+
+
+@settings(max_examples=20, deadline=None)
+@given(terrain=terrains, reach=st.floats(3.0, 800.0))  # 3 m: some ring lies past the blend
+def test_every_ring_beyond_the_blend_is_the_one_seabed_at_its_points(terrain, reach):
+    """Past BLEND_M every ring's heights are exactly `far_seabed` at its vertices and its colours that encoded: the
+    mesh is one function of (the terrain's seed, world point), whichever ring and whichever reach."""
+    far = far_field.__wrapped__(terrain, reach)
+    v = np.asarray(far.mesh.vertices)
+    far_part = beyond_edge(v[:, :2], terrain) >= BLEND_M
+    assert far_part.sum() >= 4
+    z, rgb = far_seabed(seabed_of(terrain), v[far_part, :2])
+    np.testing.assert_array_equal(v[far_part, 2], z)
+    np.testing.assert_array_equal(np.asarray(far.mesh.visual.vertex_colors)[far_part, :3],
+                                  encode_srgb8(np.clip(rgb, 0.0, 1.0)))
+    # A farther reach adds rings outside and changes none of those both have.
+    longer = far_field.__wrapped__(terrain, 2.5 * reach).mesh
+    n = len(v)
+    np.testing.assert_array_equal(np.asarray(longer.vertices)[:n], v)
+    np.testing.assert_array_equal(np.asarray(longer.visual.vertex_colors)[:n], far.mesh.visual.vertex_colors)
+
+
+@settings(max_examples=20, deadline=None)
+@given(terrain=terrains, reach=st.floats(1.0, 800.0))
+def test_neighbouring_rings_share_their_loop_and_the_seabed_runs_on_across_it(terrain, reach):
+    """Each loop between two bands of triangles is one set of vertices and edges that both bands use (so heights
+    and colours on it are the same seen from either band), and past the blend the heights and colours across a
+    band change no faster than the one noise field can: no ring is a field of its own."""
+    far = far_field.__wrapped__(terrain, reach)
+    f, starts = np.asarray(far.mesh.faces), np.asarray(far.rings)
+    band = np.searchsorted(starts, f.min(axis=1), side="right") - 1  # a face's band: from its inner loop outwards
+    assert (np.searchsorted(starts, f.max(axis=1), side="right") - 1 == band + 1).all()
+
+    def loop_edges(k: int, faces: np.ndarray) -> set:
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        on_loop = ((edges >= starts[k]) & (edges < starts[k + 1])).all(axis=1)
+        return {tuple(e) for e in edges[on_loop]}
+
+    for k in range(1, len(starts) - 2):
+        ids = np.arange(starts[k], starts[k + 1])
+        loop = {tuple(sorted((int(a), int(b)))) for a, b in zip(ids, np.roll(ids, -1))}
+        assert loop_edges(k, f[band == k - 1]) == loop == loop_edges(k, f[band == k])
+    v = np.asarray(far.mesh.vertices)
+    seabed = seabed_of(terrain)
+    tri = f[(beyond_edge(v[:, :2], terrain)[f] >= BLEND_M).all(axis=1)]
+    a, b = tri.ravel(), np.roll(tri, 1, axis=1).ravel()
+    step = np.abs(v[a, :2] - v[b, :2]).sum(axis=1)  # metres, |dx| + |dy|
+    assert (np.abs(v[a, 2] - v[b, 2]) <= seabed.spread_z * LIPSCHITZ * step * (1 + 1e-9) + 1e-9).all()
+    linear = decode_srgb8(np.asarray(far.mesh.visual.vertex_colors)[:, :3], np.float64)
+    bound = seabed.mean_rgb * seabed.tone * LIPSCHITZ * step[:, None] + 0.01  # 0.01: 8-bit rounding at both ends
+    assert (np.abs(linear[a] - linear[b]) <= bound).all()

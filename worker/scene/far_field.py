@@ -6,7 +6,10 @@ closed. Outwards each ring lies `d` metres beyond the tile's edge, `d` growing b
 many vertices along a side as make square cells: a far ring is as coarse as it is far. Over the first BLEND_M metres
 the heights and colours go from the edge's to the far field's: the tile's mean height plus relief of the tile's
 height spread, and its mean colour (linear light) with a tone of the tile's brightness spread, each from value noise
-24 m a feature along a ring (one noise field a ring, not one shared by all rings). Everything is a pure function of the terrain and the reach, so it is cached per process.
+with features 24 m apart. Relief and tone are each one noise field over the plane, seeded by the terrain's key and
+shared by every ring (`far_seabed`), so a world point has one value whichever ring holds it and the seabed runs on
+without a seam from ring to ring; neighbouring rings share their common loop's vertices (the zipper stitches a fine
+loop to a coarse one). Everything is a pure function of the terrain and the reach, so it is cached per process.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ FAR_GROWTH = 1.5  # each ring this much farther out than the one before
 BLEND_M = 2.0  # metres beyond the edge over which the edge's heights and colours give way to the far field's
 RELIEF_WAVELENGTH_M = 24.0  # the far field's relief and tone features are this far apart
 MAX_TONE = 0.25  # the far tone's relative spread is the tile's brightness spread, at most this
+RELIEF, TONE = 0, 1  # the far field's two noise fields, by their index in its seed sequence
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,6 +39,45 @@ class FarField:
 
     key: str
     mesh: trimesh.Trimesh  # metres, +z up; vertex colours (n, 4) uint8 sRGB-encoded RGBA, as the terrain's
+    rings: tuple[int, ...]  # the first vertex of each ring (0: the edge's), then the vertex count
+
+
+@dataclass(frozen=True, eq=False)
+class FarSeabed:
+    """What the far field's seabed is made of, read off a terrain: heights `mean_z + spread_z * relief` (metres) and
+    linear-light colours `mean_rgb * (1 + tone * tone_noise)`, the noise fields seeded by `seed`."""
+
+    seed: int
+    mean_z: float  # metres
+    spread_z: float  # metres
+    mean_rgb: np.ndarray  # (3,) float64, linear light
+    tone: float  # relative
+
+
+def seabed_of(terrain: Terrain) -> FarSeabed:
+    """The far seabed of `terrain`: its mean height and colour, their spreads, and a seed from its key."""
+    grid = np.asarray(terrain.lookup, dtype=np.float64)
+    linear = decode_srgb8(np.asarray(terrain.mesh.visual.vertex_colors)[:, :3], np.float64)
+    luma = linear @ np.array([0.2126, 0.7152, 0.0722])
+    return FarSeabed(seed=stable_seed("far-field/" + terrain.key), mean_z=float(grid.mean()),
+                     spread_z=float(grid.std()), mean_rgb=linear.mean(axis=0),
+                     tone=min(float(luma.std() / max(luma.mean(), 1e-6)), MAX_TONE))
+
+
+def far_noise(seed: int, field: int, xy: np.ndarray) -> np.ndarray:
+    """Noise field `field` (RELIEF or TONE) of the far seabed `seed` at xy (n, 2) metres: (n,) float64 in [-1, 1],
+    features RELIEF_WAVELENGTH_M apart. Its lattice comes from its own seed sequence on every call, so a point's
+    value depends on (seed, field, point) alone, never on which ring or batch of points asks."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, field]))
+    return value_noise(rng, np.asarray(xy, dtype=np.float64), 1.0 / RELIEF_WAVELENGTH_M)
+
+
+def far_seabed(seabed: FarSeabed, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The far seabed at xy (n, 2) metres: heights (n,) float64 metres and colours (n, 3) float64 linear light
+    (unclipped)."""
+    z = seabed.mean_z + seabed.spread_z * far_noise(seabed.seed, RELIEF, xy)
+    rgb = seabed.mean_rgb * (1.0 + seabed.tone * far_noise(seabed.seed, TONE, xy))[:, None]
+    return z, rgb
 
 
 def ring_distances(reach_m: float) -> np.ndarray:
@@ -129,12 +172,7 @@ def far_field(terrain: Terrain, reach_m: float) -> FarField:
     else:  # a user mesh: its boundary is not a grid; the far field starts from its lookup grid's edge
         edge_rgb = np.repeat(linear.mean(axis=0, keepdims=True), len(u0), 0)
         edge_normals = None
-    rng = np.random.default_rng(np.random.SeedSequence([stable_seed("far-field/" + terrain.key)]))
-    mean_z, spread_z = float(grid.mean()), float(grid.std())
-    luma = linear @ np.array([0.2126, 0.7152, 0.0722])
-    tone = min(float(luma.std() / max(luma.mean(), 1e-6)), MAX_TONE)
-    mean_rgb = linear.mean(axis=0)
-
+    seabed = seabed_of(terrain)
     loops_u, loops_xy, loops_z, loops_rgb = [u0], [edge_xy], [edge_z], [edge_rgb]
     previous = 0.0
     for d in ring_distances(float(reach_m)):
@@ -142,8 +180,7 @@ def far_field(terrain: Terrain, reach_m: float) -> FarField:
         u = ring_parameters(ring_half, d - previous, (nx - 1, ny - 1))
         xy = ring_points(u, centre, ring_half)
         w = smoothstep(np.full(len(u), d / BLEND_M))[:, None]
-        far_z = mean_z + spread_z * value_noise(rng, xy, 1.0 / RELIEF_WAVELENGTH_M)
-        far_rgb = mean_rgb * (1.0 + tone * value_noise(rng, xy, 1.0 / RELIEF_WAVELENGTH_M))[:, None]
+        far_z, far_rgb = far_seabed(seabed, xy)  # every ring evaluates the one field
         near = periodic_interp(u, u0, np.column_stack([edge_z, edge_rgb]))
         loops_u.append(u)
         loops_xy.append(xy)
@@ -163,4 +200,5 @@ def far_field(terrain: Terrain, reach_m: float) -> FarField:
         normals[: len(u0)] = edge_normals  # the seam shades as the tile's edge does
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=colours, vertex_normals=normals,
                            process=False)
-    return FarField(key=f"{terrain.key}/far-field/reach={float(reach_m)!r}", mesh=freeze(mesh))
+    return FarField(key=f"{terrain.key}/far-field/reach={float(reach_m)!r}", mesh=freeze(mesh),
+                    rings=tuple(int(o) for o in offsets))
