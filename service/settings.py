@@ -14,6 +14,20 @@ from seasynth.service.gpus import GpuChoice, parse_gpus
 # Memory the check of an uploaded mesh may use by default (SEASYNTH_UPLOAD_CHECK_MEMORY_MIB, seasynth.api.uploads).
 UPLOAD_CHECK_MEMORY_MIB = 768
 
+# Textures of uploaded assets (seasynth.service.textures): decoding an image holds all its pixels, and a few bytes of
+# PNG can declare billions of them. Per image (an image upload, or a texture an archive or a GLB holds), and over all
+# the textures of one mesh asset. Constants, not Settings fields: the workers extract archives with the same limits
+# the API checked them against (seasynth.worker.scene.assets.archive), so neither side may be configured alone.
+MAX_IMAGE_PIXELS = 8192 * 8192
+MAX_ASSET_PIXELS = 4 * MAX_IMAGE_PIXELS
+# Zip uploads (seasynth.service.archives), checked from the central directory before anything is extracted.
+ARCHIVE_MAX_MEMBERS = 1000
+ARCHIVE_MAX_BYTES = 2**30  # uncompressed, over all members: what one extraction may write to disk
+# A member inflating more than this many times its compressed size is a bomb, once it is larger than the floor
+# (a small text file of repeated lines may compress 100:1 and harms no one).
+ARCHIVE_MAX_RATIO = 100
+ARCHIVE_RATIO_FLOOR_BYTES = 2**20
+
 # A pool process whose resident memory has passed this is replaced after its current task (Celery's
 # worker_max_memory_per_child; billiard reads the process's peak RSS, or the current one where psutil is
 # installed). Render caches (terrains, meshes, GL buffers) and heap fragmentation grow with what a process has
