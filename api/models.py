@@ -121,7 +121,8 @@ class AssetPublic(BaseModel):
     asset_id: str = Field(description="sha256 of the file; reference it as {\"asset_id\": ...} in a spec")
     filename: str = Field(description="The name these bytes were first uploaded under (its suffix sets the format)")
     bytes: int
-    format: str = Field(description="glb, obj, ply, stl (meshes), png or jpeg (images)")
+    format: str = Field(description="glb, obj, ply, stl, zip (meshes; a zip holds a textured glTF or OBJ with its "
+                        "files), png or jpeg (images)")
     kind: str = Field(description="mesh (targets, distractors, terrain.mesh) or image (terrain.texture)")
 
 

@@ -2,6 +2,9 @@
 
 The checks use trimesh and Pillow (pure Python plus NumPy; no OpenGL). A mesh is loaded in a child process with a
 memory budget (seasynth.api.mesh_check), so a mesh too large to load is refused (413) instead of taking the API's memory.
+A .zip is a mesh too: a glTF or OBJ with the files it names, checked and extracted in that child process
+(seasynth.service.archives) as workers extract it, then loaded the same way; a GLB's embedded images and an archive's
+images are held to the pixel budgets (seasynth.service.textures) before anything decodes them.
 """
 
 from __future__ import annotations
@@ -10,13 +13,14 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 from seasynth.service.errors import AssetError, LimitExceeded, SeasynthError
-from seasynth.service.settings import UPLOAD_CHECK_MEMORY_MIB
+from seasynth.service.settings import MAX_IMAGE_PIXELS, UPLOAD_CHECK_MEMORY_MIB
 
 MESH, IMAGE = "mesh", "image"
 ARTICLED = {MESH: "a mesh", IMAGE: "an image"}
@@ -27,19 +31,18 @@ FORMATS: dict[str, tuple[str, str]] = {
     ".obj": ("obj", MESH),
     ".ply": ("ply", MESH),
     ".stl": ("stl", MESH),
+    ".zip": ("zip", MESH),  # a textured glTF or OBJ with its files (seasynth.service.archives); stored as a .zip
     ".png": ("png", IMAGE),
     ".jpg": ("jpeg", IMAGE),
     ".jpeg": ("jpeg", IMAGE),
 }
 MESH_CHECK_TIMEOUT_S = 120
 _MESH_CHECKS = threading.BoundedSemaphore(1)
-# Decoding a texture holds all its pixels; a few bytes of PNG can declare billions of them.
-MAX_TEXTURE_PIXELS = 8192 * 8192
 
 
 @dataclass(frozen=True)
 class FileFormat:
-    format: str  # glb, obj, ply, stl, png or jpeg
+    format: str  # glb, obj, ply, stl, zip, png or jpeg
     kind: str  # mesh or image
 
     def __str__(self) -> str:  # "a mesh (ply)", "an image (png)"
@@ -72,11 +75,14 @@ def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = UPLO
 
 def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
     """Load the mesh as the workers do, in a child process (seasynth.api.mesh_check) within `budget_mib` of memory."""
-    # The script by its path: it needs only the standard library, NumPy and trimesh, not this package on sys.path.
-    cmd = [sys.executable, str(Path(__file__).with_name("mesh_check.py")), str(path), file_type, str(budget_mib)]
+    # The script by its path. Besides NumPy, trimesh and Pillow it imports seasynth.service (archives, textures) for
+    # .zip and .glb uploads. An archive is extracted into `work`, removed here even if the child is killed for time.
+    script = Path(__file__).with_name("mesh_check.py")
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     try:
-        with _MESH_CHECKS:  # one at a time: the API's memory holds one budget beside its own (deploy/core/api.yaml)
+        with _MESH_CHECKS, tempfile.TemporaryDirectory(prefix="seasynth-check-") as work:
+            # One at a time: the API's memory holds one budget beside its own (deploy/core/api.yaml).
+            cmd = [sys.executable, str(script), str(path), file_type, str(budget_mib), name, work]
             run = subprocess.run(cmd, capture_output=True, text=True, timeout=MESH_CHECK_TIMEOUT_S, env=env)
         answer = json.loads(run.stdout.strip().splitlines()[-1]) if run.stdout.strip() else {}
     except subprocess.TimeoutExpired:
@@ -88,8 +94,8 @@ def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
         raise LimitExceeded(f"{name}: loading the {file_type} mesh needs more than {budget_mib} MiB "
                             "(SEASYNTH_UPLOAD_CHECK_MEMORY_MIB); upload a smaller one (decimate it, or split it "
                             "into assets)")
-    if "error" in answer:
-        raise AssetError(f"{name}: {answer['error']}")
+    if "error" in answer:  # names the upload (and an archive's member) already
+        raise AssetError(answer["error"])
     if not answer.get("ok"):
         if "No module named" in run.stderr:
             raise ValidatorMissing(f"checking mesh uploads needs trimesh in the API's environment "
@@ -107,8 +113,8 @@ def _check_image(path: Path, name: str) -> None:
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             with Image.open(path) as image:
                 w, h = image.size
-                if w * h > MAX_TEXTURE_PIXELS:
-                    raise AssetError(f"{name}: {w}x{h} pixels is over the limit of {MAX_TEXTURE_PIXELS} pixels "
+                if w * h > MAX_IMAGE_PIXELS:
+                    raise AssetError(f"{name}: {w}x{h} pixels is over the limit of {MAX_IMAGE_PIXELS} pixels "
                                      "for a texture")
                 image.load()  # decodes every pixel: a truncated or corrupt file fails here
     except AssetError:
