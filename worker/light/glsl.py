@@ -12,6 +12,8 @@ from seasynth.worker.light.lamps import (
 )
 from seasynth.worker.light.sky import SKY_PHASE_NODES
 from seasynth.worker.light.volume import MU_SKY
+from seasynth.worker.render import materials
+from seasynth.worker.render.shaders import SURFACE_BEGIN
 
 MAX_LAMPS = 4
 SOFT_SHADOW_RADIUS_M = 0.05  # the forward-scattered sun arrives within a few degrees: its shadows blur by this
@@ -108,6 +110,7 @@ uniform float u_lamp_texel[LAMPS];   // metres per lamp-map texel per metre from
 #endif
 layout(location = 0) out vec4 o_J;
 """
+    + materials.FRAGMENT
     + _COMMON
     + """
 #ifdef WITH_CAUSTICS
@@ -144,10 +147,9 @@ float lamp_visibility(int l, vec3 p) {
 }
 #endif
 void main() {
-    float len = length(v_nrm);
-    vec3 n = len > 1e-20 ? v_nrm / len : -normalize(v_pos);
-    if (dot(n, v_pos) > 0.0) n = -n;
-    vec3 albedo = clamp(v_col * u_scale + u_bias, 0.0, 1.0);
+"""
+    + SURFACE_BEGIN
+    + """
     float depth = max(u_surface_z - (dot(u_world_z.xyz, v_pos) + u_world_z.w), 0.0);
     vec3 E = vec3(0.0);
     float pixel_m = NORMAL_OFFSET_PIXELS * u_pixel_angle * length(v_pos);
@@ -179,7 +181,7 @@ void main() {
 #endif
 #ifdef WITH_SKY
     float up = dot(u_world_z.xyz, n);   // world z of the normal
-    E += u_Esky * exp_neg3(u_K * (depth / MU_SKY)) * (0.5 + 0.5 * up);
+    E += u_Esky * exp_neg3(u_K * (depth / MU_SKY)) * ((0.5 + 0.5 * up) * occlusion);
 #endif
 #if LAMPS > 0
     for (int l = 0; l < LAMPS; ++l) {

@@ -21,6 +21,45 @@ class View:
     far: float  # metres
 
 
+@dataclass(frozen=True, eq=False)
+class Image:
+    """A texture image, uploaded once per process under `key` (with its mipmaps)."""
+
+    key: str
+    pixels: np.ndarray  # (h, w, 3) uint8, rows top first; texture coordinate (0, 0) is the top-left corner
+    srgb: bool  # colour (sRGB-encoded, decoded to linear when sampled) or data (normals, occlusion/roughness/metal)
+    source: str  # the file or procedural family it came from, named in errors
+
+
+@dataclass(frozen=True)
+class Material:
+    """What a textured surface adds per pixel (worker.render.materials): a mesh without one is vertex-coloured.
+
+    The albedo at a pixel is clamp(vertex albedo * base_gain * base(uv) * (1 - metallic) * scale + bias, 0, 1)
+    (scale and bias: the DrawItem's); the normal is the vertex normal perturbed by the tangent-space normal map
+    (xy times normal_scale, glTF's convention); occlusion (orm's red, 1 + occlusion_strength (r - 1)) dims the
+    ambient and sky light only; metallic = metallic_factor * orm's blue. The shading is diffuse, so roughness
+    (orm's green) has nothing to change and is not read.
+
+    mapping "uv": the mesh's texture coordinates and tangents (Mesh.uv, Mesh.tangents). "triplanar": no texture
+    coordinates; three planar projections of the object frame (triplanar_per_m texture repeats per metre) blended
+    by the normal, for procedural meshes that have no unwrapping.
+    """
+
+    base: Image | None = None
+    base_gain: float = 1.0
+    normal: Image | None = None
+    normal_scale: float = 1.0
+    orm: Image | None = None
+    occlusion_strength: float = 1.0
+    metallic_factor: float = 0.0
+    mapping: str = "uv"
+    triplanar_per_m: float = 1.0
+
+    def images(self) -> tuple[Image, ...]:
+        return tuple(i for i in (self.base, self.normal, self.orm) if i is not None)
+
+
 @dataclass(frozen=True)
 class Mesh:
     """Geometry uploaded once per process under `key`."""
@@ -32,6 +71,9 @@ class Mesh:
     faces: np.ndarray  # (m, 3) uint32
     radius: float  # metres: every vertex lies within this distance of `centre`
     centre: np.ndarray  # (3,) float64, object frame
+    material: Material | None = None  # per-pixel textures; None: vertex colours only
+    uv: np.ndarray | None = None  # (n, 2) float32 texture coordinates (material mapping "uv")
+    tangents: np.ndarray | None = None  # (n, 4) float32: unit tangent along +u, w = +-1 (glTF's TANGENT)
 
 
 @dataclass(frozen=True)

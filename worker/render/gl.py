@@ -9,7 +9,6 @@ passes a frame's outputs need are drawn and read back.
 
 from __future__ import annotations
 
-import ctypes
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,10 +18,12 @@ import numpy as np
 from seasynth.service.errors import RenderError
 from seasynth.service.gpus import parse_platform
 from seasynth.worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams, shaders
+from seasynth.worker.render.buffers import GpuMesh, upload_mesh
 from seasynth.worker.render.coverage import pixels_alone
 from seasynth.worker.render.depth import ClipControl, projection
 from seasynth.worker.render.devices import egl_platform, prepare_environment
 from seasynth.worker.render.frustum import sphere_in_view
+from seasynth.worker.render.materials import TEXTURE_BUDGET_BYTES, Textures
 from seasynth.worker.render.programs import Programs
 from seasynth.worker.render.readback import Pending, Readback
 from seasynth.worker.render.surface import SurfaceReads, surface_pass
@@ -45,29 +46,18 @@ class QueuedFrame:
     passes: tuple[str, ...]  # the passes drawn and attachments read, in order
 
 
-@dataclass
-class GpuMesh:
-    """A Mesh on the GPU (GLRenderer.mesh): bind vao and draw count GL_UNSIGNED_INT indices as triangles. Vertex
-    attributes 0, 1, 2: the Mesh's vertices, normals and albedo, 3 float32 each."""
-
-    vao: int
-    buffers: tuple[int, int]  # vertex and index buffer
-    count: int  # indices
-    nbytes: int  # both buffers' sizes
-    used: int  # the renderer call (see GLRenderer._call) that last drew it
-
-
 class GLRenderer:
     """One OpenGL context per process. Meshes are uploaded once by key; framebuffers are reused by size
     (`targets`, seasynth.worker.render.targets); the surface pass and its resolve are worker.render.surface.
 
     The passes in sibling modules (surface, gl_light, coverage) draw through the public members only: `gl`,
-    `programs`, `targets`, `readback`, `mesh`, `draw`, `set_view`, `bind_and_clear`, `empty_vao` and the context's
+    `programs`, `targets`, `textures`, `readback`, `mesh`, `draw`, `set_view`, `bind_and_clear`, `empty_vao` and the context's
     facts (`name`, `max_samples`, `compute_resolve`, `compute_header`, `clip_control`, `sample_positions`).
 
-    Both caches are bounded (mesh_budget_bytes of vertex and index buffers, targets_per_kind framebuffers of each
-    kind), so a long-lived worker that meets many assets and image sizes does not keep them all; what is evicted is
-    deleted and rebuilt from scratch when needed again, with the same pixels.
+    The caches are bounded (mesh_budget_bytes of vertex and index buffers, texture_budget_bytes of texture images
+    with their mipmaps, targets_per_kind framebuffers of each kind), so a long-lived worker that meets many assets
+    and image sizes does not keep them all; what is evicted is deleted and rebuilt from scratch when needed again,
+    with the same pixels.
     """
 
     def __init__(
@@ -76,6 +66,7 @@ class GLRenderer:
         mesh_budget_bytes: int = MESH_BUDGET_BYTES,
         targets_per_kind: int = TARGETS_PER_KIND,
         gpu: int | None = None,
+        texture_budget_bytes: int = TEXTURE_BUDGET_BYTES,
     ) -> None:
         platform, gpu = parse_platform(platform, gpu)
         if mesh_budget_bytes < 0:
@@ -116,6 +107,7 @@ class GLRenderer:
         self._mesh_bytes = 0
         self._call = 0  # counts render/samples/pixels_alone calls: meshes drawn by the current one stay
         self.programs = Programs(GL, self.name)
+        self.textures = Textures(GL, self.name, texture_budget_bytes)
         self.targets = Targets(GL, self.name, targets_per_kind)
         self.readback = Readback(GL)
         self.empty_vao = GL.glGenVertexArrays(1)  # no attributes: what full-screen triangles (the resolve) draw with
@@ -136,6 +128,7 @@ class GLRenderer:
         for key in list(self._meshes):
             self._drop_mesh(key)
         self.programs.clear()
+        self.textures.clear()
         self.targets.clear()
         self.readback.clear()
         GL.glDeleteVertexArrays(1, [self.empty_vao])
@@ -171,22 +164,7 @@ class GLRenderer:
             got.used = self._call
             self._meshes.move_to_end(mesh.key)
             return got
-        GL = self._gl
-        interleaved = np.ascontiguousarray(np.hstack([mesh.vertices, mesh.normals, mesh.albedo]), dtype=np.float32)
-        faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
-        vao = GL.glGenVertexArrays(1)
-        vbo, ebo = GL.glGenBuffers(2)
-        GL.glBindVertexArray(vao)
-        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
-        GL.glBufferData(GL.GL_ARRAY_BUFFER, interleaved.nbytes, interleaved, GL.GL_STATIC_DRAW)
-        for loc in range(3):
-            GL.glEnableVertexAttribArray(loc)
-            GL.glVertexAttribPointer(loc, 3, GL.GL_FLOAT, GL.GL_FALSE, 36, ctypes.c_void_p(12 * loc))
-        GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
-        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, faces.nbytes, faces, GL.GL_STATIC_DRAW)
-        GL.glBindVertexArray(0)
-        got = GpuMesh(vao=vao, buffers=(vbo, ebo), count=int(faces.size),
-                      nbytes=interleaved.nbytes + faces.nbytes, used=self._call)
+        got = upload_mesh(self._gl, mesh, self._call)
         self._meshes[mesh.key] = got
         self._mesh_bytes += got.nbytes
         while self._mesh_bytes > self.mesh_budget_bytes:
@@ -226,6 +204,8 @@ class GLRenderer:
                 GL.glUniformMatrix3fv(locs["u_nrm_cam"], 1, GL.GL_TRUE, nrm.astype(np.float32))
                 GL.glUniform3fv(locs["u_scale"], 1, item.albedo_scale.astype(np.float32))
                 GL.glUniform3fv(locs["u_bias"], 1, item.albedo_bias.astype(np.float32))
+            if lit and "u_material" in locs:
+                self.textures.bind(item.mesh.material, locs, self._call)
             if ids:
                 GL.glUniform1ui(locs["u_id"], item.instance_id)
             GL.glBindVertexArray(gpu.vao)

@@ -1,19 +1,22 @@
 """GLSL sources of the renderer's passes: surface (in-air radiance, range), ids and/or range at pixel centres, resolve
 (per-sample haze, nearest sample range)."""
 
+from seasynth.worker.render import materials
+
 # Every uniform any pass declares; a program's absent ones are simply not set.
 UNIFORMS = (
     "u_cam_from_obj", "u_nrm_cam", "u_proj", "u_scale", "u_bias", "u_sun_cam", "u_sun", "u_ambient",
     "u_range_bounds", "u_id", "u_J", "u_D", "u_depth", "u_sample_pos", "u_K_inv", "u_betaD", "u_betaB", "u_Binf",
     "u_only_sample", "u_srgb_thr",
-    "u_size",
+    "u_size", *materials.UNIFORMS,
 )
 
 # The ids pass's range is interpolated at the pixel centre; clamping to the object's bounding-sphere range bounds
 # any interpolation error by the object's size. (The surface pass writes no range: its resolve derives each sample's
 # range from the sample's depth, worker.render.depth.)
 # Every pass shares this vertex stage, so a surface lands on exactly the same pixels and ranges in each pass.
-VERTEX = """
+VERTEX = (
+    """
 #version 330 core
 layout(location = 0) in vec3 a_pos;
 layout(location = 1) in vec3 a_nrm;
@@ -25,17 +28,39 @@ out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_col;
 invariant gl_Position;
+"""
+    + materials.VERTEX_IN
+    + """
 void main() {
     vec4 p = u_cam_from_obj * vec4(a_pos, 1.0);
     v_pos = p.xyz;
     v_nrm = u_nrm_cam * a_nrm;
     v_col = a_col;
     gl_Position = u_proj * p;
+"""
+    + materials.VERTEX_MAIN
+    + """
 }
+"""
+)
+
+# A surface's normal facing the camera and its albedo (textured: per pixel, worker.render.materials), as the
+# surface passes (this one and worker.light.glsl.SURFACE) begin.
+SURFACE_BEGIN = """
+    float len = length(v_nrm);
+    vec3 n = len > 1e-20 ? v_nrm / len : -normalize(v_pos);
+    if (dot(n, v_pos) > 0.0) n = -n;   // face the camera: thin sheets are seen from both sides
+    float occlusion = 1.0;
+#ifdef TEXTURED
+    vec3 albedo = clamp(v_col * textured_albedo(n, occlusion) * u_scale + u_bias, 0.0, 1.0);
+#else
+    vec3 albedo = clamp(v_col * u_scale + u_bias, 0.0, 1.0);
+#endif
 """
 
 # In-air radiance J (linear RGB) of a Lambertian surface under a sun and an ambient term, lit from both sides.
-SURFACE = """
+SURFACE = (
+    """
 #version 330 core
 in vec3 v_pos;
 in vec3 v_nrm;
@@ -46,15 +71,18 @@ uniform vec3 u_sun_cam;        // unit vector towards the sun, camera frame
 uniform float u_sun;
 uniform float u_ambient;
 layout(location = 0) out vec4 o_J;
+"""
+    + materials.FRAGMENT
+    + """
 void main() {
-    float len = length(v_nrm);
-    vec3 n = len > 1e-20 ? v_nrm / len : -normalize(v_pos);
-    if (dot(n, v_pos) > 0.0) n = -n;   // face the camera: thin sheets are seen from both sides
-    vec3 albedo = clamp(v_col * u_scale + u_bias, 0.0, 1.0);
+"""
+    + SURFACE_BEGIN
+    + """
     // J is the in-air image (the paper's J): radiance in the sensor's range [0, 1], so clean/ is J exactly.
-    o_J = vec4(clamp(albedo * (u_ambient + u_sun * max(dot(n, u_sun_cam), 0.0)), 0.0, 1.0), 1.0);
+    o_J = vec4(clamp(albedo * (u_ambient * occlusion + u_sun * max(dot(n, u_sun_cam), 0.0)), 0.0, 1.0), 1.0);
 }
 """
+)
 
 # Instance ids (0 = terrain) and/or range at pixel centres (single sample): ids at location 0 when drawn, range
 # after them.

@@ -14,7 +14,7 @@ from seasynth.worker.frame.srgb import GLSL_SRGB8, SRGB8_THRESHOLDS_F32
 from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.glsl import SURFACE as PHYSICAL_SURFACE
 from seasynth.worker.light.glsl import VOLUME
-from seasynth.worker.render import depth, gl_light, shaders
+from seasynth.worker.render import depth, gl_light, materials, shaders
 from seasynth.worker.render.readback import Pending, Readback
 
 
@@ -48,23 +48,30 @@ def surface_pass(
     positions = r.sample_positions.get(msaa)
     if positions is None:  # the pattern is the implementation's, read once from a bound target of msaa samples
         positions = r.sample_positions[msaa] = depth.sample_positions(GL, msaa)
-    if physical:
-        prog, locs = r.programs.get(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting))
-        GL.glUseProgram(prog)
-        r.set_view(locs, view, W, H)
-        gl_light.surface_uniforms(r, locs, view, lighting, maps)
-    else:
-        prog, locs = r.programs.get(shaders.VERTEX, shaders.SURFACE)
-        GL.glUseProgram(prog)
-        r.set_view(locs, view, W, H)
-        sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
-        GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
-        GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
-        GL.glUniform1f(locs["u_ambient"], lighting.ambient)
     if msaa > 1 and sampling.per_sample_shading:
         GL.glEnable(GL.GL_SAMPLE_SHADING)
         GL.glMinSampleShading(1.0)
-    r.draw(view, items, locs, lit=True, ids=False)
+    # Textured meshes are drawn by the program's textured variants (worker.render.materials), the rest by the
+    # program itself, each group in the items' order.
+    groups: dict[tuple[bool, int], list] = {}
+    for item in items:
+        groups.setdefault(materials.variant_key(item.mesh.material), []).append(item)
+    for (textured, mapping), group in groups.items():
+        tex_defines = {"TEXTURED": textured, "MAPPING": mapping if textured else False}
+        if physical:
+            prog, locs = r.programs.get(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting), **tex_defines)
+            GL.glUseProgram(prog)
+            r.set_view(locs, view, W, H)
+            gl_light.surface_uniforms(r, locs, view, lighting, maps)
+        else:
+            prog, locs = r.programs.get(shaders.VERTEX, shaders.SURFACE, **tex_defines)
+            GL.glUseProgram(prog)
+            r.set_view(locs, view, W, H)
+            sun_cam = view.cam_from_world[:3, :3] @ lighting.sun_dir_world
+            GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
+            GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
+            GL.glUniform1f(locs["u_ambient"], lighting.ambient)
+        r.draw(view, group, locs, lit=True, ids=False)
     GL.glDisable(GL.GL_SAMPLE_SHADING)
     log.append("surface+range" if len(surf.textures) > 1 else "surface")  # range: from the depth it keeps
     if done is not None:

@@ -1,0 +1,152 @@
+"""Per-pixel textures on the GL path (worker.render.materials): a checker on a quad survives per pixel in the clean
+image, the hazed image and its 8-bit codes, under random poses; a material with no images shades as no material;
+normal maps turn the shading normal; the texture budget names the image that breaks it."""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from test_render import camera_view, pinhole
+
+from seasynth.service.errors import RenderError
+from seasynth.worker.frame.formation import haze
+from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
+from seasynth.worker.render import DrawItem, Image, Lighting, Material, Mesh, Passes, Sampling, WaterParams
+from seasynth.worker.render.gl import GLRenderer
+from seasynth.worker.render.materials import tangent_frames
+
+W, H = 128, 96
+K = pinhole(W, H, 60.0)
+VIEW = camera_view(K, W, H)
+AMBIENT_ONLY = Lighting(sun_dir_world=np.array([0.0, 0.0, -1.0]), sun_intensity=0.0, ambient=1.0)
+WATER = WaterParams(beta_D=np.array([0.30, 0.12, 0.08]), beta_B=np.array([0.25, 0.10, 0.07]),
+                    B_inf=np.array([0.05, 0.20, 0.30]))
+UV = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)  # corners in order: (0, 0) top-left
+FACES = np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
+
+
+def rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    rz = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rx = np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+    return ry @ rx @ rz
+
+
+def quad(key: str, half: float, centre, R, material: Material | None, albedo=1.0) -> DrawItem:
+    """A square 2 half metres across, its u along R's x and image up along -R's y (KITTI camera frame: y down),
+    facing the camera (normal -R's z)."""
+    local = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])
+    v = (local @ R.T + centre).astype(np.float32)
+    n = np.tile(-R[:, 2], (4, 1)).astype(np.float32)
+    mesh = Mesh(key=key, vertices=v, normals=n, albedo=np.full((4, 3), albedo, np.float32), faces=FACES,
+                radius=float(half * np.sqrt(2.0)), centre=np.asarray(centre, float), material=material,
+                uv=UV if material is not None else None,
+                tangents=tangent_frames(v, n, UV, FACES) if material is not None else None)
+    return DrawItem(mesh=mesh, world_from_obj=np.eye(4), albedo_scale=np.ones(3, np.float32),
+                    albedo_bias=np.zeros(3, np.float32), instance_id=1)
+
+
+def pixel_uv(corners_px: np.ndarray, centre, R, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """Texture coordinates (..., 2) and range (...) where the rays through pixel positions (..., 2) meet the quad's
+    plane."""
+    rays = np.concatenate([corners_px, np.ones(corners_px.shape[:-1] + (1,))], -1) @ np.linalg.inv(K).T
+    normal, origin = R[:, 2], np.asarray(centre, float)
+    t = (origin @ normal) / (rays @ normal)
+    p = rays * t[..., None] - origin
+    u = (p @ R[:, 0] + half) / (2 * half)
+    v = (p @ R[:, 1] + half) / (2 * half)
+    return np.stack([u, v], -1), t * np.linalg.norm(rays, axis=-1)
+
+
+@pytest.fixture(scope="module")
+def gl():
+    with GLRenderer("egl") as r:
+        yield r
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(checks=st.integers(2, 5), texels=st.integers(2, 6), seed=st.integers(0, 2**32 - 1),
+       yaw=st.floats(-0.6, 0.6), pitch=st.floats(-0.6, 0.6), roll=st.floats(-np.pi, np.pi),
+       distance=st.floats(1.0, 2.5))
+def test_a_checker_survives_per_pixel_in_the_clean_and_hazed_image(gl, checks, texels, seed, yaw, pitch, roll,
+                                                                    distance):
+    assume(checks * texels <= 20)  # the texture magnified over the quad: its texels span more than a pixel
+    rng = np.random.default_rng(seed)
+    case = f"{checks}/{texels}/{seed}/{yaw!r}/{pitch!r}/{roll!r}/{distance!r}"  # GL caches go by key
+    colours = rng.integers(0, 256, (checks, checks, 3)).astype(np.uint8)
+    image = Image(f"test/checker/{case}", np.repeat(np.repeat(colours, texels, 0), texels, 1),
+                  True, "checker")
+    R, centre, half = rotation(yaw, pitch, roll), np.array([0.0, 0.0, distance]), 0.5
+    item = quad(f"test/checker-quad/{case}", half, centre, R, Material(base=image))
+    out = gl.render(VIEW, [item], AMBIENT_ONLY, WATER, Sampling(msaa=4, supersample=1), Passes(clean=True, range=True))
+    codes = gl.render(VIEW, [item], AMBIENT_ONLY, WATER, Sampling(msaa=4, supersample=1), Passes(srgb8=True)).image
+
+    # A pixel is checked where the filter footprints of all its samples map inside one check, between the centres
+    # of its outer texels (bilinear filtering mixes nothing else there), with the texture magnified (no mip level
+    # but the first). A sample lies within 0.5 px of the pixel centre and its footprint (the anisotropic filter's,
+    # from the derivatives) reaches a pixel's width around it: the pixel's corners at +-1 px hold them all.
+    ys, xs = np.mgrid[0:H, 0:W].astype(float)
+    corners = np.stack([np.stack([xs + dx, ys + dy], -1) for dx in (-1.0, 1.0) for dy in (-1.0, 1.0)], -2)
+    uv, _ = pixel_uv(corners, centre, R, half)
+    centre_uv, rng_m = pixel_uv(np.stack([xs, ys], -1), centre, R, half)
+    n_tex = checks * texels
+    cell = np.floor(uv * checks).astype(int)
+    same = np.all(cell == cell[..., :1, :], axis=(-2, -1)) & np.all((cell >= 0) & (cell < checks), axis=(-2, -1))
+    margin = 0.5 / n_tex
+    inner = np.all((uv * checks - cell) * (1.0 / checks) > margin, axis=(-2, -1)) & np.all(
+        (cell + 1 - uv * checks) * (1.0 / checks) > margin, axis=(-2, -1))
+    footprint = np.abs(uv.max(axis=-2) - uv.min(axis=-2)).max(axis=-1) * n_tex
+    ok = same & inner & (footprint < 2.0)  # the corners span 2 px: under a texel a pixel
+    assert ok.sum() >= 40  # the property is checked on many pixels, not a handful
+    c = cell[..., 0, :]
+    expected_J = decode_srgb8(colours[np.clip(c[..., 1], 0, checks - 1), np.clip(c[..., 0], 0, checks - 1)],
+                              np.float64)
+    # the sRGB decode of GL's samplers and ours agree to within a few 1e-4 (8-bit tables)
+    np.testing.assert_allclose(out.clean[ok], expected_J[ok], atol=2e-3)
+    expected_I = haze(expected_J, rng_m, WATER.beta_D, WATER.beta_B, WATER.B_inf)
+    np.testing.assert_allclose(out.image[ok], expected_I[ok], atol=2e-3)
+    assert np.abs(codes[ok].astype(int) - encode_srgb8(expected_I[ok]).astype(int)).max() <= 1
+    # and the texture's pattern is there: at least two different check colours among the checked pixels
+    assert len(np.unique(expected_J[ok].round(4), axis=0)) >= 2
+    assert np.isfinite(centre_uv).all()
+
+
+@pytest.mark.parametrize("mapping", ["uv", "triplanar"])
+def test_a_material_without_images_shades_as_no_material(gl, mapping):
+    R = rotation(0.3, -0.4, 0.2)
+    plain = quad("test/plain-quad", 0.6, [0.1, 0.0, 2.0], R, None, albedo=0.6)
+    blank = quad(f"test/blank-quad/{mapping}", 0.6, [0.1, 0.0, 2.0], R, Material(mapping=mapping), albedo=0.6)
+    light = Lighting(sun_dir_world=np.array([0.3, -0.5, -0.8]) / np.linalg.norm([0.3, -0.5, -0.8]),
+                     sun_intensity=0.8, ambient=0.3)
+    a = gl.render(VIEW, [plain], light, None, Sampling(), Passes(clean=True)).clean
+    b = gl.render(VIEW, [blank], light, None, Sampling(), Passes(clean=True)).clean
+    assert (a > 0).sum() > 1000
+    np.testing.assert_allclose(b, a, atol=1e-6)
+
+
+def test_a_normal_map_turns_the_shading_normal_as_its_texels_say(gl):
+    """A constant normal map tilting the normal towards +u by 45 degrees shades as a quad turned by that much."""
+    tilt = np.array([np.sin(np.pi / 4), 0.0, np.cos(np.pi / 4)])
+    texel = np.round((tilt + 1.0) / 2.0 * 255.0).astype(np.uint8)
+    normal = Image("test/normal-tilt", np.tile(texel, (4, 4, 1)), False, "tilted normal map")
+    decoded = texel / 255.0 * 2.0 - 1.0
+    R = np.eye(3)
+    item = quad("test/normal-quad", 0.8, [0.0, 0.0, 2.0], R, Material(normal=normal))
+    sun = np.array([0.8, 0.1, -0.6]) / np.linalg.norm([0.8, 0.1, -0.6])  # camera frame: towards the sun
+    light = Lighting(sun_dir_world=sun, sun_intensity=1.0, ambient=0.0)
+    J = gl.render(VIEW, [item], light, None, Sampling(msaa=1), Passes(clean=True)).clean
+    # tangent frame of the quad: T = +x (u), image up = -y (rows run down the quad's v), N = -z (towards the camera)
+    n = decoded[0] * np.array([1.0, 0, 0]) + decoded[1] * np.array([0, -1.0, 0]) + decoded[2] * np.array([0, 0, -1.0])
+    n /= np.linalg.norm(n)
+    # the sampler returns the map's 8-bit texels at 8-bit precision (llvmpipe: 0.984375 for 0.98464): 1/255 a
+    # component moves the cosine by up to about 4e-3
+    np.testing.assert_allclose(J[H // 2, W // 2], max(n @ sun, 0.0), atol=4e-3)
+    assert abs(max(n @ sun, 0.0) - max(-sun[2], 0.0)) > 0.1  # and differs from the unmapped shading
+
+
+def test_a_texture_over_the_budget_is_refused_naming_it():
+    big = Image("test/big", np.zeros((512, 512, 3), np.uint8), True, "seabed.png")
+    item = quad("test/big-quad", 0.5, [0.0, 0.0, 2.0], np.eye(3), Material(base=big))
+    with GLRenderer("egl", texture_budget_bytes=2**20) as r, pytest.raises(RenderError, match="seabed.png"):
+        r.render(VIEW, [item], AMBIENT_ONLY, None, Sampling(msaa=1), Passes())
