@@ -113,6 +113,8 @@ def _json(data: bytes, where: str, fmt: str) -> dict[str, Any]:
         tree = json.loads(data)
     except ValueError as err:
         raise AssetError(f"{where}: not a valid {fmt} mesh (its JSON does not parse: {err})") from err
+    except RecursionError:
+        raise AssetError(f"{where}: not a valid {fmt} mesh (its JSON nests too deeply)") from None
     if not isinstance(tree, dict):
         raise AssetError(f"{where}: not a valid {fmt} mesh (its JSON is not an object)")
     return tree

@@ -224,6 +224,12 @@ def test_a_jpeg_texture_counts_and_the_budget_is_per_asset(tmp_path):
                     ("boat.zip: member 'boat/big.png'", (8192, 8192))]
 
 
+def test_a_gltf_nesting_too_deeply_is_refused_naming_it(tmp_path):
+    files = {"m/model.gltf": b"[" * 100_000 + b"]" * 100_000}
+    with pytest.raises(AssetError, match="boat.zip: member 'm/model.gltf': not a valid gltf mesh .its JSON nests too deeply"):
+        safe_extract(write(tmp_path, files), tmp_path / "out")
+
+
 # --- the worker's cache
 
 
