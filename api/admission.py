@@ -76,7 +76,8 @@ def largest_shard_size(spec: DatasetSpec, budget: float, below: int) -> int:
 
 def check_files(spec: DatasetSpec, services: Services) -> None:
     """A POSTed spec names uploaded assets only, each of the kind its field needs (a mesh, or an image for
-    terrain.texture): SpecError naming every path, every unknown asset id and every asset of the wrong kind."""
+    terrain.texture, normal_map, height_map): SpecError naming every path, every unknown asset id and every asset
+    of the wrong kind."""
     bad = []
     for where, ref in spec.file_refs():
         if ref.path is not None:

@@ -123,7 +123,7 @@ class AssetPublic(BaseModel):
     bytes: int
     format: str = Field(description="glb, obj, ply, stl, zip (meshes; a zip holds a textured glTF or OBJ with its "
                         "files), png or jpeg (images)")
-    kind: str = Field(description="mesh (targets, distractors, terrain.mesh) or image (terrain.texture)")
+    kind: str = Field(description="mesh (targets, distractors, terrain.mesh) or image (terrain.texture, normal_map, height_map)")
 
 
 class Health(BaseModel):

@@ -59,9 +59,12 @@ def format_of(filename: str) -> FileFormat | None:
     return None if got is None else FileFormat(*got)
 
 
+IMAGE_FIELDS = ("terrain.texture", "terrain.normal_map", "terrain.height_map")
+
+
 def field_kind(field: str) -> str:
-    """What a spec field that names a file needs: an image for terrain.texture, a mesh everywhere else."""
-    return IMAGE if field == "terrain.texture" else MESH
+    """What a spec field that names a file needs: an image for the terrain's texture set, a mesh everywhere else."""
+    return IMAGE if field in IMAGE_FIELDS else MESH
 
 
 def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = UPLOAD_CHECK_MEMORY_MIB) -> None:

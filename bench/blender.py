@@ -58,7 +58,8 @@ def paper_volume(beta: np.ndarray, absorption: np.ndarray, scattering: np.ndarra
 
 # The scene as the committed table measured it: the paper's water model, whose one haze a Blender volume box matches
 # (export_frame also exports the physical model's medium and surface).
-PAPER = {"water.model": "paper"}
+# The paper's model, with vertex colours (Blender's side reads each vertex's albedo, not per-pixel textures).
+PAPER = {"water.model": "paper", "materials.procedural": False}
 
 
 # ---- seasynth's side: the frame's scene as arrays -----------------------------------------------------------------

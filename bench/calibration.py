@@ -51,9 +51,10 @@ TARGET_BETA_REL = 0.10
 def scene_spec(name: str, width: int, height: int, light: str = LIGHTS[0]) -> DatasetSpec:
     base = read_spec_file(EXAMPLE)
     # terrain.far_field off: the scenes' open water above the horizon is what identifies B_inf (as designed, before
-    # the seabed reached the horizon in 0.6.0)
+    # the seabed reached the horizon in 0.6.0); vertex colours, as the scenes were before textures (0.7.0)
     overrides = {"frames": FRAMES, "camera.width": width, "camera.height": height, "quality": "fast",
                  "outputs.clean": True, "outputs.range": True, "water.model": light, "terrain.far_field": False,
+                 "materials.procedural": False,
                  **SCENES[name]}
     return DatasetSpec.model_validate(apply_overrides(base, overrides))
 

@@ -85,6 +85,8 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         # The tile alone: these configurations' path-traced references are of the near view, rendered before the
         # seabed reached the horizon (terrain.far_field); the long view is checked by configurations of its own.
         "terrain.far_field": False,
+        # Vertex colours: these references were path traced before surfaces had per-pixel textures (0.7.0).
+        "materials.procedural": False,
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))

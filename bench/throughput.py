@@ -27,6 +27,8 @@ CONFIGS: dict[str, dict] = {
     "water off": {"water.enabled": False},
     # The seabed beyond the tile (terrain.far_field, on by default): its cost beside the tile alone.
     "far field off": {"terrain.far_field": False},
+    # Per-pixel procedural textures (materials.procedural, on by default): their cost beside vertex colours.
+    "textures off": {"materials.procedural": False},
     # Sensors (seasynth.worker.sensors), each on its own beside image+labels: the FLS at its defaults (256 beams x 512
     # bins, a 1454x586 render), the side-scan sonar at its defaults, then DVL+pressure.
     "+fls": {"sensors.fls.enabled": True},

@@ -15,12 +15,13 @@ from seasynth.worker.scene.assets import AssetError
 from seasynth.worker.scene.assets.terrain import (
     STYLES,
     Terrain,
-    apply_texture,
     grid_faces,
     heightfield,
     procedural_terrain,
+    with_material,
 )
 from seasynth.worker.scene.assets.user import load_user_terrain, load_user_texture
+from seasynth.worker.scene.materials import material_key, terrain_uv, user_material
 
 SIZE, CELLS, RELIEF = 4.0, 64, 0.3
 
@@ -131,31 +132,42 @@ def test_bad_parameters_are_refused() -> None:
 # ------------------------------------------------------------------ textures
 
 
-def test_apply_texture_tiles_the_image(tmp_path: Path) -> None:
+def test_a_user_texture_set_is_drawn_per_pixel_on_a_white_terrain(tmp_path: Path) -> None:
     image = np.zeros((2, 2, 3), np.uint8)
     image[0, 0], image[0, 1], image[1, 0], image[1, 1] = [255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]
     path = tmp_path / "quad.png"
     Image.fromarray(image).save(path)
     t = procedural_terrain("sand", 0, 2.0, 8, RELIEF)
-    tile = 1.0
     texture = load_user_texture(path)
     assert texture.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
     np.testing.assert_array_equal(texture.pixels, image)
     assert load_user_texture(path) is texture  # cached by path, mtime and size
-    textured = apply_texture(t, texture, tile)
+    material = user_material(texture, None, None, 0.01, 1.0, True)
+    assert material.base.pixels is texture.pixels and material.base.srgb and material.normal is None
+    textured = with_material(t, material, material_key(material), True, 1.0)
     v = textured.mesh.vertices
     np.testing.assert_array_equal(v, t.mesh.vertices)
-    colours = textured.mesh.visual.vertex_colors
-    # Texel centres of a 2 x 2 image tiled every metre sit at x, y in {0.25, 0.75} (mod 1); the grid's
-    # vertices at 0.25 m steps hit them, e.g. (0.25, 0.75) is the top-left texel (red).
-    at = {(round(x, 3), round(y, 3)): tuple(c[:3]) for (x, y, _), c in zip(v, colours)}
-    assert at[(0.25, 0.75)] == (255, 0, 0) and at[(0.75, 0.75)] == (0, 255, 0)
-    assert at[(0.25, 0.25)] == (0, 0, 255) and at[(-0.75, -0.75)] == (0, 0, 255)  # periodic
-    assert at[(0.5, 0.75)] == (128, 128, 0)  # bilinear between red and green
+    assert (textured.mesh.visual.vertex_colors == 255).all()  # the image is the colour
+    assert textured.material is material and textured.tile_m == 1.0
     assert textured.key != t.key and t.key in textured.key
-    assert textured.key == f"{t.key}+texture/{texture.sha256}/tile=1.0"
-    assert apply_texture(t, texture, tile) is textured
+    assert with_material(t, material, material_key(material), True, 1.0) is textured
     np.testing.assert_array_equal(textured.height_at(v[:, :2]), t.height_at(v[:, :2]))
+    # The image's top-left corner sits at (0, tile_m) and its rows run towards -y: texture coordinates u = x / tile,
+    # v = -y / tile, so the top-left texel's centre (0.25, 0.25) is at x = 0.25, y = 0.75 (mod 1).
+    np.testing.assert_allclose(terrain_uv(np.array([[0.25, 0.75, 0.0]]), 1.0) % 1.0, [[0.25, 0.25]])
+
+
+def test_a_height_map_becomes_the_normal_map_of_its_relief(tmp_path: Path) -> None:
+    ramp = np.tile(np.linspace(0, 255, 16).astype(np.uint8)[None, :, None], (16, 1, 3))  # rising to the right
+    path = tmp_path / "height.png"
+    Image.fromarray(ramp).save(path)
+    albedo = tmp_path / "albedo.png"
+    Image.fromarray(np.full((4, 4, 3), 128, np.uint8)).save(albedo)
+    material = user_material(load_user_texture(albedo), None, load_user_texture(path), 0.05, 1.0, False)
+    n = material.normal.pixels.astype(float) / 255.0 * 2.0 - 1.0
+    inner = n[:, 2:-2]  # away from the periodic wrap, where the ramp falls back
+    assert (inner[..., 0] < -0.01).all() and np.abs(inner[..., 1]).max() < 0.01  # tilted away from the rise
+    assert material.mapping == "uv"
 
 
 def test_load_user_texture_bad_image(tmp_path: Path) -> None:

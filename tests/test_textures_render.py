@@ -112,7 +112,7 @@ def test_a_checker_survives_per_pixel_in_the_clean_and_hazed_image(gl, checks, t
     assert np.isfinite(centre_uv).all()
 
 
-@pytest.mark.parametrize("mapping", ["uv", "triplanar"])
+@pytest.mark.parametrize("mapping", ["uv", "tiled", "triplanar"])
 def test_a_material_without_images_shades_as_no_material(gl, mapping):
     R = rotation(0.3, -0.4, 0.2)
     plain = quad("test/plain-quad", 0.6, [0.1, 0.0, 2.0], R, None, albedo=0.6)
@@ -150,3 +150,20 @@ def test_a_texture_over_the_budget_is_refused_naming_it():
     item = quad("test/big-quad", 0.5, [0.0, 0.0, 2.0], np.eye(3), Material(base=big))
     with GLRenderer("egl", texture_budget_bytes=2**20) as r, pytest.raises(RenderError, match="seabed.png"):
         r.render(VIEW, [item], AMBIENT_ONLY, None, Sampling(msaa=1), Passes())
+
+
+def test_each_face_group_is_drawn_with_its_own_material(gl):
+    """A mesh of two face ranges, one with a red texture and one with none, shades each range as its own; the ids
+    pass draws the whole mesh."""
+    red = Image("test/red", np.tile(np.array([255, 0, 0], np.uint8), (2, 2, 1)), True, "red")
+    whole = quad("test/groups-whole", 0.8, [0.0, 0.0, 2.0], np.eye(3), Material(base=red), albedo=0.5)
+    mesh = Mesh(**{**whole.mesh.__dict__, "key": "test/groups", "groups": ((0, 1, Material(base=red)), (1, 1, None))})
+    item = DrawItem(mesh=mesh, world_from_obj=np.eye(4), albedo_scale=np.ones(3, np.float32),
+                    albedo_bias=np.zeros(3, np.float32), instance_id=7)
+    out = gl.render(VIEW, [item], AMBIENT_ONLY, None, Sampling(msaa=1), Passes(clean=True, ids=True))
+    # faces (0, 1, 2) and (0, 2, 3) of corners (-x, -y), (+x, -y), (+x, +y), (-x, +y) split along the diagonal
+    # y = x (camera frame): above it (image top right, y < x) face 0, below it face 1
+    top_right, bottom_left = out.clean[H // 2 - 15, W // 2 + 15], out.clean[H // 2 + 15, W // 2 - 15]
+    np.testing.assert_allclose(top_right, [0.5, 0.0, 0.0], atol=2e-3)  # red texture times the vertex albedo
+    np.testing.assert_allclose(bottom_left, [0.5, 0.5, 0.5], atol=1e-6)  # the vertex albedo alone
+    assert (out.instance[H // 2 - 15, W // 2 + 15], out.instance[H // 2 + 15, W // 2 - 15]) == (7, 7)

@@ -17,6 +17,7 @@ from seasynth.service.spec.scene import (
     Camera,
     Distractors,
     FileRef,
+    Materials,
     Noise,
     Targets,
     Terrain,
@@ -33,6 +34,7 @@ MAX_SHARD_SIZE = 10_000
 MAX_SHARD_MEGAPIXELS = 600.0  # shard_size * (width * height + sensors' render pixels) / 1e6
 
 Quality = Literal["draft", "fast", "default", "high"]
+TERRAIN_FILES = ("mesh", "texture", "normal_map", "height_map")  # the terrain's fields that name user files
 
 
 class DatasetSpec(SpecModel):
@@ -50,6 +52,7 @@ class DatasetSpec(SpecModel):
     lighting: Lighting = Lighting()
     water: Water = Water()
     texture: TextureRandomisation = TextureRandomisation()
+    materials: Materials = Materials()
     noise: Noise = Noise()
     outputs: Outputs = Outputs()
     sensors: Sensors = Sensors()
@@ -124,7 +127,7 @@ class DatasetSpec(SpecModel):
             for i, a in enumerate(getattr(self, role).assets):
                 if a.procedural is None:
                     out.append((f"{role}.assets.{i}", a))
-        for key in ("mesh", "texture"):
+        for key in TERRAIN_FILES:
             ref = getattr(self.terrain, key)
             if ref is not None:
                 out.append((f"terrain.{key}", ref))
@@ -207,7 +210,7 @@ def resolve_paths(data: dict[str, Any], base: Path) -> dict[str, Any]:
         refs += assets if isinstance(assets, list) else []
     terrain = out.get("terrain")
     if isinstance(terrain, dict):
-        refs += [terrain.get("mesh"), terrain.get("texture")]
+        refs += [terrain.get(key) for key in TERRAIN_FILES]
     for ref in refs:
         if isinstance(ref, dict) and "path" in ref:
             ref["path"] = fix(ref["path"])

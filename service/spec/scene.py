@@ -205,13 +205,47 @@ class Terrain(SpecModel):
     size_m: StrictFloat = Field(12.0, gt=0, le=1000)
     cells: StrictInt = Field(192, ge=2, le=MAX_TERRAIN_CELLS)
     relief_m: StrictFloat = Field(0.25, ge=0, le=100)
-    # User terrain: a mesh file (replaces the procedural heightfield) and/or a colour texture.
+    # User terrain: a mesh file (replaces the procedural heightfield).
     mesh: FileRef | None = None
+    # A base colour image (sRGB), applied per pixel and repeated every texture_tile_m: the terrain's colour (it
+    # replaces the procedural style's colour and texture).
     texture: FileRef | None = None
-    texture_tile_m: StrictFloat = Field(1.0, gt=0)
+    # With texture: its tangent-space normal map (glTF's convention: x right, green towards the image's top).
+    normal_map: FileRef | None = None
+    # With texture and no normal_map: a grey height map whose full range is height_map_m of relief, made into the
+    # normal map.
+    height_map: FileRef | None = None
+    height_map_m: StrictFloat = Field(0.01, gt=0, le=10)
+    # Metres one repeat of the user's texture set spans (procedural textures have their own sizes).
+    texture_tile_m: StrictFloat = Field(1.0, gt=0, le=1000)
+    # Anti-tiling: two lookups of the texture at offsets that change smoothly across the seabed, blended, so its
+    # repeats do not line up in a grid.
+    anti_tiling: StrictBool = True
     # The seabed continued beyond the tile out to the camera's far clip (coarser rings, the tile's mean height and
     # colour), so no ray that points down ends in open water at the tile's edge; off: the tile alone.
     far_field: StrictBool = True
+
+
+class Materials(SpecModel):
+    """Per-pixel surface detail of the built-in terrains and procedural assets."""
+
+    # Seeded procedural PBR textures (base colour detail, normal map) made at run time, no downloads: each terrain
+    # style and procedural family has its own, in `variants` variants of `texture_px` texels a side. Off: vertex
+    # colours only, as before 0.7.
+    procedural: StrictBool = True
+    # Texels a side of each procedural texture (a power of two).
+    texture_px: StrictInt = Field(512, ge=64, le=2048)
+    # Texture variants of each terrain style and procedural family: a terrain or asset variant v takes texture
+    # variant v mod variants.
+    variants: StrictInt = Field(4, ge=1, le=64)
+
+    @field_validator("texture_px")
+    @classmethod
+    def _power_of_two(cls, v: int) -> int:
+        """A power of two (mipmaps halve it down to one texel)."""
+        if v & (v - 1):
+            raise ValueError(f"{v} is not a power of two (64, 128, ..., 2048)")
+        return v
 
 
 class Workspaces(SpecModel):

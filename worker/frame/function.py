@@ -17,11 +17,19 @@ from seasynth.worker.frame import kitti, labels
 from seasynth.worker.frame.encode import encode_image, png_bytes
 from seasynth.worker.frame.meta import frame_meta
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
-from seasynth.worker.render import DrawItem, Mesh, Passes, RenderResult, Sampling, View
+from seasynth.worker.render import DrawItem, Material, Mesh, Passes, RenderResult, Sampling, View
+from seasynth.worker.render.materials import tangent_frames
 from seasynth.worker.scene.assets import Asset
 from seasynth.worker.scene.assets.procedural import procedural_asset
-from seasynth.worker.scene.assets.terrain import Terrain, apply_texture
+from seasynth.worker.scene.assets.terrain import Terrain, with_material
 from seasynth.worker.scene.assets.user import load_user_asset, load_user_terrain, load_user_texture
+from seasynth.worker.scene.materials import (
+    material_key,
+    style_material,
+    terrain_tile_m,
+    terrain_uv,
+    user_material,
+)
 from seasynth.worker.scene.sample import Placed, Scene, on_trajectory, sample_scene
 from seasynth.worker.scene.variant_cache import VariantCache
 from seasynth.worker.sensors.outputs import SensorFrame, sensor_frame, sensors_on
@@ -47,20 +55,30 @@ def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
     return [frame_file(part, index, spec.outputs.image_suffix) for part in frame_parts(spec)]
 
 
-def to_render_mesh(key: str, mesh) -> Mesh:
-    """GPU-ready arrays of a trimesh mesh whose vertex colours are sRGB-encoded uint8."""
+def to_render_mesh(key: str, mesh, material: Material | None = None, tile_m: float | None = None) -> Mesh:
+    """GPU-ready arrays of a trimesh mesh whose vertex colours are sRGB-encoded uint8, with its material; tile_m:
+    texture coordinates of a terrain (seasynth.worker.scene.materials.terrain_uv) and their tangents."""
     v = np.asarray(mesh.vertices, dtype=np.float64)
     colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre = (lo + hi) / 2
+    normals = np.nan_to_num(np.asarray(mesh.vertex_normals, dtype=np.float32))
+    faces = np.asarray(mesh.faces, dtype=np.uint32)
+    uv = tangents = None
+    if material is not None and tile_m is not None:
+        uv = terrain_uv(v, tile_m)
+        tangents = tangent_frames(v, normals, uv, faces)
     return Mesh(
         key=key,
         vertices=v.astype(np.float32),
-        normals=np.nan_to_num(np.asarray(mesh.vertex_normals, dtype=np.float32)),
+        normals=normals,
         albedo=decode_srgb8(colours, np.float32),
-        faces=np.asarray(mesh.faces, dtype=np.uint32),
+        faces=faces,
         radius=float(np.linalg.norm(v - centre, axis=1).max()),
         centre=centre,
+        material=material,
+        uv=uv,
+        tangents=tangents,
     )
 
 
@@ -148,20 +166,31 @@ class RenderSession:
 
     def terrain_for(self, spec: DatasetSpec, rng: np.random.Generator) -> Terrain:
         t = spec.terrain
+        material = None
         if t.mesh is not None:
             terrain = load_user_terrain(self._file(t.mesh))
         else:
             style = t.styles[rng.integers(len(t.styles))]
             variant = int(rng.integers(t.variants))
             terrain = self.variants.terrain(style, variant, t.size_m, t.cells, t.relief_m)
-        if t.texture is not None:
-            terrain = apply_texture(terrain, load_user_texture(self._file(t.texture)), t.texture_tile_m)
-        return terrain
+            material = style_material(style, variant, spec)
+        if t.texture is not None:  # a user's texture set: its colour replaces the terrain's
+            files = [None if ref is None else load_user_texture(self._file(ref))
+                     for ref in (t.texture, t.normal_map, t.height_map)]
+            material = user_material(*files, t.height_map_m, t.texture_tile_m, t.anti_tiling)
+        if material is None:
+            return terrain
+        tile_m = terrain_tile_m(material, spec)
+        return with_material(terrain, material, material_key(material), t.texture is not None, tile_m)
 
-    def _render_mesh(self, key: str, mesh) -> Mesh:
+    def _render_mesh(self, key: str, mesh, material: Material | None = None, tile_m: float | None = None) -> Mesh:
+        """The render mesh of a trimesh under `key` (with a material: key and material's key), cached; tile_m:
+        terrain texture coordinates repeating every tile_m metres (seasynth.worker.scene.materials.terrain_uv)."""
+        if material is not None:
+            key = f"{key}+{material_key(material)}"
         got = self._meshes.get(key)
         if got is None:
-            got = self._meshes[key] = to_render_mesh(key, mesh)
+            got = self._meshes[key] = to_render_mesh(key, mesh, material, tile_m)
         return got
 
     def _ray_norms(self, view: View) -> np.ndarray:
@@ -192,7 +221,7 @@ class RenderSession:
         t = scene.terrain
         items = [
             DrawItem(
-                mesh=self._render_mesh(t.key, t.mesh),
+                mesh=self._render_mesh(t.key, t.mesh, t.material, t.tile_m),
                 world_from_obj=np.eye(4),
                 albedo_scale=scene.terrain_albedo_scale,
                 albedo_bias=scene.terrain_albedo_bias,
@@ -202,7 +231,7 @@ class RenderSession:
         if scene.far_field is not None:  # the seabed beyond the tile: unlabelled like it, and it shadows nothing drawn
             items.append(
                 DrawItem(
-                    mesh=self._render_mesh(scene.far_field.key, scene.far_field.mesh),
+                    mesh=self._render_mesh(scene.far_field.key, scene.far_field.mesh, t.material, t.tile_m),
                     world_from_obj=np.eye(4),
                     albedo_scale=scene.terrain_albedo_scale,
                     albedo_bias=scene.terrain_albedo_bias,
@@ -213,7 +242,7 @@ class RenderSession:
         for p in scene.objects:
             items.append(
                 DrawItem(
-                    mesh=self._render_mesh(p.asset.key, p.asset.mesh),
+                    mesh=self._render_mesh(p.asset.key, p.asset.mesh, p.material),
                     world_from_obj=p.world_from_obj,
                     albedo_scale=p.albedo_scale,
                     albedo_bias=p.albedo_bias,

@@ -8,7 +8,7 @@ import json
 from seasynth import service
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.frame.labels import FrameLabels
-from seasynth.worker.render import Sampling, View
+from seasynth.worker.render import Material, Sampling, View
 from seasynth.worker.scene.sample import Placed, Scene
 from seasynth.worker.sensors.outputs import SensorFrame
 
@@ -48,6 +48,7 @@ def frame_meta(spec: DatasetSpec, index: int, scene: Scene, view: View, sampling
             "albedo_scale": scene.terrain_albedo_scale.tolist(),
             "albedo_bias": scene.terrain_albedo_bias.tolist(),
         },
+        **_material_record(scene.terrain.material, scene.terrain.tile_m, "terrain_material"),
         "objects": [_object_record(p, fl) for p in scene.objects],
         "objects_left_out": scene.dropped,
         "noise": noise,
@@ -68,6 +69,21 @@ def _water_record(scene: Scene) -> dict | None:
             "beta_B": w.beta_B.tolist(), "B_inf": w.B_inf.tolist()}
 
 
+def _material_record(m: Material | None, tile_m: float | None, name: str) -> dict:
+    """{name: what a surface's per-pixel material is made of}, or {} where it has none (meta as before textures)."""
+    if m is None:
+        return {}
+    images = {k: None if i is None else {"key": i.key, "source": i.source}
+              for k, i in (("base", m.base), ("normal", m.normal), ("orm", m.orm))}
+    record = {"mapping": m.mapping, "images": images, "base_gain": m.base_gain, "normal_scale": m.normal_scale,
+              "occlusion_strength": m.occlusion_strength, "metallic_factor": m.metallic_factor}
+    if m.mapping == "triplanar":
+        record["triplanar_per_m"] = m.triplanar_per_m
+    if tile_m is not None:
+        record["tile_m"] = tile_m
+    return {name: record}
+
+
 def _asset_record(key: str, source: str, sha256: str | None) -> dict:
     return {"key": key, "source": source, "sha256": sha256}
 
@@ -85,4 +101,5 @@ def _object_record(p: Placed, fl: FrameLabels | None) -> dict:
         "pose_world_from_object": p.world_from_obj.tolist(),
         "albedo_scale": p.albedo_scale.tolist(),
         "albedo_bias": p.albedo_bias.tolist(),
+        **_material_record(p.material, None, "material"),
     }

@@ -41,7 +41,8 @@ class Material:
     ambient and sky light only; metallic = metallic_factor * orm's blue. The shading is diffuse, so roughness
     (orm's green) has nothing to change and is not read.
 
-    mapping "uv": the mesh's texture coordinates and tangents (Mesh.uv, Mesh.tangents). "triplanar": no texture
+    mapping "uv": the mesh's texture coordinates and tangents (Mesh.uv, Mesh.tangents); "tiled": those, with
+    anti-tiling (worker.render.materials), for textures repeated over a terrain. "triplanar": no texture
     coordinates; three planar projections of the object frame (triplanar_per_m texture repeats per metre) blended
     by the normal, for procedural meshes that have no unwrapping.
     """
@@ -72,6 +73,10 @@ class Mesh:
     radius: float  # metres: every vertex lies within this distance of `centre`
     centre: np.ndarray  # (3,) float64, object frame
     material: Material | None = None  # per-pixel textures; None: vertex colours only
+    # Meshes with several materials (a user's glTF or OBJ): (first face, face count, material or None) ranges that
+    # cover the faces in order; the surface pass draws each range with its material (`material` is then unused),
+    # every other pass the whole mesh at once.
+    groups: tuple[tuple[int, int, Material | None], ...] = ()
     uv: np.ndarray | None = None  # (n, 2) float32 texture coordinates (material mapping "uv")
     tangents: np.ndarray | None = None  # (n, 4) float32: unit tangent along +u, w = +-1 (glTF's TANGENT)
 

@@ -9,6 +9,7 @@ passes a frame's outputs need are drawn and read back.
 
 from __future__ import annotations
 
+import ctypes
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -17,7 +18,18 @@ import numpy as np
 
 from seasynth.service.errors import RenderError
 from seasynth.service.gpus import parse_platform
-from seasynth.worker.render import DrawItem, Lighting, Mesh, Passes, RenderResult, Sampling, View, WaterParams, shaders
+from seasynth.worker.render import (
+    DrawItem,
+    Lighting,
+    Material,
+    Mesh,
+    Passes,
+    RenderResult,
+    Sampling,
+    View,
+    WaterParams,
+    shaders,
+)
 from seasynth.worker.render.buffers import GpuMesh, upload_mesh
 from seasynth.worker.render.coverage import pixels_alone
 from seasynth.worker.render.depth import ClipControl, projection
@@ -103,11 +115,11 @@ class GLRenderer:
         software = any(k in self.name.lower() for k in ("llvmpipe", "softpipe", "swrast"))
         self.compute_header = None if software else shaders.compute_header(GL)
         self.compute_resolve = self.compute_header is not None
+        self.textures = Textures(GL, self.name, texture_budget_bytes, anisotropic=not software)
         self._meshes: OrderedDict[str, GpuMesh] = OrderedDict()  # least recently drawn first
         self._mesh_bytes = 0
         self._call = 0  # counts render/samples/pixels_alone calls: meshes drawn by the current one stay
         self.programs = Programs(GL, self.name)
-        self.textures = Textures(GL, self.name, texture_budget_bytes)
         self.targets = Targets(GL, self.name, targets_per_kind)
         self.readback = Readback(GL)
         self.empty_vao = GL.glGenVertexArrays(1)  # no attributes: what full-screen triangles (the resolve) draw with
@@ -181,14 +193,18 @@ class GLRenderer:
         GL.glDeleteVertexArrays(1, [m.vao])
         GL.glDeleteBuffers(2, list(m.buffers))
 
-    def draw(self, view: View, items: list[DrawItem], locs: dict[str, int], *, lit: bool, ids: bool) -> None:
+    def draw(self, view: View, items: list[DrawItem], locs: dict[str, int], *, lit: bool, ids: bool,
+             parts: list[tuple[int, int | None, Material | None]] | None = None) -> None:
         """Draw with the program in use (its uniform locations `locs`) each item whose bounding sphere reaches into
         the view, setting per item u_cam_from_obj (4x4, object frame -> camera frame, metres) and, where the program
         has them, u_range_bounds (its sphere's nearest and farthest range, metres); lit: its normal matrix and
-        albedo scale and bias; ids: u_id, its instance id."""
+        albedo scale and bias, and (textured programs) its material; ids: u_id, its instance id. parts (one per
+        item): (first face, face count or None for the rest, material) to draw of it; None: every face with the
+        mesh's material."""
         GL = self._gl
         cam_from_world = view.cam_from_world
-        for item in items:
+        for k, item in enumerate(items):
+            first, count, material = parts[k] if parts is not None else (0, None, item.mesh.material)
             cam_from_obj = cam_from_world @ item.world_from_obj
             centre_world, radius = item.bounding_sphere()
             centre = cam_from_world[:3, :3] @ centre_world + cam_from_world[:3, 3]
@@ -205,11 +221,12 @@ class GLRenderer:
                 GL.glUniform3fv(locs["u_scale"], 1, item.albedo_scale.astype(np.float32))
                 GL.glUniform3fv(locs["u_bias"], 1, item.albedo_bias.astype(np.float32))
             if lit and "u_material" in locs:
-                self.textures.bind(item.mesh.material, locs, self._call)
+                self.textures.bind(material, locs, self._call)
             if ids:
                 GL.glUniform1ui(locs["u_id"], item.instance_id)
             GL.glBindVertexArray(gpu.vao)
-            GL.glDrawElements(GL.GL_TRIANGLES, gpu.count, GL.GL_UNSIGNED_INT, None)
+            n = gpu.count - 3 * first if count is None else 3 * count
+            GL.glDrawElements(GL.GL_TRIANGLES, n, GL.GL_UNSIGNED_INT, ctypes.c_void_p(12 * first) if first else None)
         GL.glBindVertexArray(0)
 
     def set_view(self, locs: dict[str, int], view: View, w: int, h: int) -> None:

@@ -53,10 +53,13 @@ def surface_pass(
         GL.glMinSampleShading(1.0)
     # Textured meshes are drawn by the program's textured variants (worker.render.materials), the rest by the
     # program itself, each group in the items' order.
-    groups: dict[tuple[bool, int], list] = {}
+    groups: dict[tuple[bool, int], tuple[list, list]] = {}
     for item in items:
-        groups.setdefault(materials.variant_key(item.mesh.material), []).append(item)
-    for (textured, mapping), group in groups.items():
+        for part in item.mesh.groups or ((0, None, item.mesh.material),):
+            drawn, parts = groups.setdefault(materials.variant_key(part[2]), ([], []))
+            drawn.append(item)
+            parts.append(part)
+    for (textured, mapping), (group, parts) in groups.items():
         tex_defines = {"TEXTURED": textured, "MAPPING": mapping if textured else False}
         if physical:
             prog, locs = r.programs.get(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting), **tex_defines)
@@ -71,7 +74,7 @@ def surface_pass(
             GL.glUniform3fv(locs["u_sun_cam"], 1, sun_cam.astype(np.float32))
             GL.glUniform1f(locs["u_sun"], lighting.sun_intensity)
             GL.glUniform1f(locs["u_ambient"], lighting.ambient)
-        r.draw(view, group, locs, lit=True, ids=False)
+        r.draw(view, group, locs, lit=True, ids=False, parts=parts)
     GL.glDisable(GL.GL_SAMPLE_SHADING)
     log.append("surface+range" if len(surf.textures) > 1 else "surface")  # range: from the depth it keeps
     if done is not None:

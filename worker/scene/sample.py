@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -14,10 +14,11 @@ from seasynth.service.spec.scene import AssetRef, Box
 from seasynth.service.water import jerlov_beta, jerlov_veiling_light
 from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.build import sample_physical
-from seasynth.worker.render import Lighting, WaterParams
+from seasynth.worker.render import Lighting, Material, WaterParams
 from seasynth.worker.scene.assets import Asset
 from seasynth.worker.scene.assets.terrain import Terrain
 from seasynth.worker.scene.far_field import FarField, far_field
+from seasynth.worker.scene.materials import asset_material
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse, rotation_between
 from seasynth.worker.scene.trajectory import vehicle_state
 from seasynth.worker.sensors import world_from_sensor
@@ -50,6 +51,7 @@ class Placed:
     albedo_scale: np.ndarray  # (3,) float32
     albedo_bias: np.ndarray  # (3,) float32
     footprint_m: float  # metres: radius of the disc about the anchor holding the object's horizontal projection
+    material: Material | None = None  # per-pixel textures of a procedural asset (seasynth.worker.scene.materials)
 
 
 @dataclass(frozen=True)
@@ -234,6 +236,7 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
                     albedo_scale=a_scale,
                     albedo_bias=a_bias,
                     footprint_m=radius,
+                    material=asset_material(asset, variant, spec),
                 )
             )
 

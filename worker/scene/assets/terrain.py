@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from seasynth.worker.render import Material
 from seasynth.worker.scene.assets import AssetError, freeze
 from seasynth.worker.scene.assets.procedural import srgb_u8, stable_seed
 
@@ -32,6 +33,8 @@ class Terrain:
     extent: tuple[float, float, float, float]  # (xmin, xmax, ymin, ymax) metres
     lookup: np.ndarray  # (ny, nx) float64 metres on a regular grid spanning `extent`; what height_at reads
     sha256: str | None = None  # hex digest of the source mesh file; None for procedural terrains
+    material: Material | None = None  # per-pixel textures (with_material); None: vertex colours only
+    tile_m: float | None = None  # metres one repeat of the material's textures spans
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Surface height (..., ) float64 metres at `xy: (..., 2)` metres; see `bilinear`."""
@@ -219,25 +222,8 @@ def procedural_terrain(style: str, variant: int, size_m: float, cells: int, reli
 
 
 # ---------------------------------------------------------------------------------------------
-# Image textures
+# Image textures (applied per pixel: seasynth.worker.scene.materials)
 # ---------------------------------------------------------------------------------------------
-
-
-def tile_lookup(image: np.ndarray, xy: np.ndarray, tile_m: float) -> np.ndarray:
-    """Bilinear, wrapping lookup of `image: (h, w, 3) uint8` tiled every `tile_m` metres at `xy: (n, 2)`.
-
-    The image's top-left corner sits at (0, tile_m) and rows run towards -y. Returns (n, 3) float64 in [0, 255].
-    """
-    h, w, _ = image.shape
-    u = np.mod(xy[:, 0] / tile_m, 1.0) * w - 0.5
-    v = (1.0 - np.mod(xy[:, 1] / tile_m, 1.0)) * h - 0.5
-    c0, r0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-    tu, tv = (u - c0)[:, None], (v - r0)[:, None]
-    c0, c1, r0, r1 = c0 % w, (c0 + 1) % w, r0 % h, (r0 + 1) % h
-    img = image.astype(np.float64)
-    upper = img[r0, c0] * (1 - tu) + img[r0, c1] * tu
-    lower = img[r1, c0] * (1 - tu) + img[r1, c1] * tu
-    return upper * (1 - tv) + lower * tv
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,18 +256,16 @@ def decode_texture(data: bytes, source: str) -> Texture:
     return Texture(sha256=hashlib.sha256(data).hexdigest(), pixels=pixels, source=source)
 
 
-@functools.lru_cache(maxsize=16)
-def apply_texture(terrain: Terrain, texture: Texture, tile_m: float) -> Terrain:
-    """`terrain` with vertex colours baked from `texture` tiled every `tile_m` metres (bilinear, in sRGB).
-
-    Cached per process by (terrain key, texture sha256, tile_m).
-    """
-    if not tile_m > 0:
-        raise ValueError(f"texture tile_m must be > 0, got {tile_m}")
-    tile_m = float(tile_m)
-    vertices = np.asarray(terrain.mesh.vertices)
-    rgb = tile_lookup(texture.pixels, vertices[:, :2], tile_m) / 255.0
-    mesh = trimesh.Trimesh(vertices=vertices, faces=np.asarray(terrain.mesh.faces), vertex_colors=srgb_u8(rgb),
-                           process=False)
-    return Terrain(key=f"{terrain.key}+texture/{texture.sha256}/tile={tile_m!r}", mesh=freeze(mesh),
-                   heights=terrain.heights, extent=terrain.extent, lookup=terrain.lookup, sha256=terrain.sha256)
+@functools.lru_cache(maxsize=64)
+def with_material(terrain: Terrain, material: Material | None, key: str, white: bool, tile_m: float) -> Terrain:
+    """`terrain` drawn with a per-pixel material (seasynth.worker.scene.materials) named by `key`, its texture
+    repeating every tile_m metres; `white`: its vertex colours set to white, for a material whose base colour is the
+    surface's whole colour (a user's texture). Heights, extent and lookup are the terrain's. Cached per process."""
+    mesh = terrain.mesh
+    if white:
+        mesh = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces),
+                               vertex_colors=np.full((len(mesh.vertices), 4), 255, np.uint8), process=False)
+        mesh = freeze(mesh)
+    return Terrain(key=f"{terrain.key}+material/{key}/tile={tile_m!r}" + ("/white" if white else ""), mesh=mesh,
+                   heights=terrain.heights, extent=terrain.extent, lookup=terrain.lookup, sha256=terrain.sha256,
+                   material=material, tile_m=float(tile_m))

@@ -187,7 +187,7 @@ def check_assets(spec: DatasetSpec) -> dict[str, str]:
     for field, ref in spec.file_refs():
         if ref.path is None:
             continue
-        if field == "terrain.texture":
+        if field in ("terrain.texture", "terrain.normal_map", "terrain.height_map"):
             # Decoded, not only read: a bad image fails here, not at a frame.
             files[field] = load_user_texture(Path(ref.path)).sha256
         elif field == "terrain.mesh":

@@ -1,0 +1,96 @@
+"""The materials of a scene's surfaces (seasynth.worker.render.Material): seeded procedural texture sets on the
+built-in terrains and procedural assets (seasynth.worker.scene.assets.textures), a user's texture set on the
+terrain, and the texture coordinates of a terrain's vertices."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.render import Image, Material
+from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets.terrain import Texture
+from seasynth.worker.scene.assets.textures import normal_map, texture_set
+
+# The texture family of each procedural asset kind and terrain style.
+ASSET_FAMILY = {"urchin": "urchin", "rock": "stone", "coral": "coral", "seaweed": "seaweed", "clam": "clam"}
+STYLE_FAMILY = {"sand": "sand", "pebbles": "pebbles", "rock": "rock"}
+
+
+@functools.lru_cache(maxsize=256)
+def procedural_material(family: str, variant: int, size: int, mapping: str) -> Material:
+    """A procedural texture set as a material: its albedo factor as the base colour (base_gain scales it so its mean
+    is 1: the surface keeps its colour and gains detail) and its normal map; triplanar mappings repeat it every
+    set's tile_m."""
+    ts = texture_set(family, variant, size)
+    return Material(base=Image(f"{ts.key}/albedo", ts.albedo, True, ts.source), base_gain=ts.albedo_gain,
+                    normal=Image(f"{ts.key}/normal", ts.normal, False, ts.source), mapping=mapping,
+                    triplanar_per_m=1.0 / ts.tile_m)
+
+
+def texture_variant(variant: int | None, spec: DatasetSpec) -> int:
+    """The texture variant of an asset or terrain variant (one texture per variant, cycling through
+    materials.variants)."""
+    return (variant or 0) % spec.materials.variants
+
+
+def asset_material(asset: Asset, variant: int | None, spec: DatasetSpec) -> Material | None:
+    """The material of a procedural asset (triplanar: their meshes have no unwrapping), None for user files (their
+    own materials come with their meshes) or with materials.procedural off."""
+    if not spec.materials.procedural or not asset.key.startswith("procedural/"):
+        return None
+    kind = asset.key.split("/")[1]
+    return procedural_material(ASSET_FAMILY[kind], texture_variant(variant, spec), spec.materials.texture_px,
+                               "triplanar")
+
+
+def style_material(style: str, variant: int, spec: DatasetSpec) -> Material | None:
+    """The procedural material of a built-in terrain style's variant; None with materials.procedural off."""
+    if not spec.materials.procedural:
+        return None
+    mapping = "tiled" if spec.terrain.anti_tiling else "uv"
+    return procedural_material(STYLE_FAMILY[style], texture_variant(variant, spec), spec.materials.texture_px, mapping)
+
+
+@functools.lru_cache(maxsize=16)
+def user_material(albedo: Texture, normal: Texture | None, height: Texture | None, height_m: float, tile_m: float,
+                  anti_tiling: bool) -> Material:
+    """A user's terrain texture set: the albedo image as the base colour (the surface's own colour is replaced:
+    terrains with one are drawn white), the normal map as given or made from the height map (grey levels spanning
+    height_m metres over a tile of tile_m)."""
+    normal_image = None
+    if normal is not None:
+        normal_image = Image(f"file/{normal.sha256}/normal", normal.pixels, False, normal.source)
+    elif height is not None:
+        grey = height.pixels.astype(np.float64).mean(axis=2) / 255.0 * height_m
+        h, w = grey.shape
+        texel_m = tile_m / max(h, w)
+        normal_image = Image(f"file/{height.sha256}/height/{height_m!r}/{tile_m!r}",
+                             normal_map(grey - grey.mean(), texel_m), False, height.source)
+    return Material(base=Image(f"file/{albedo.sha256}/albedo", albedo.pixels, True, albedo.source),
+                    normal=normal_image, mapping="tiled" if anti_tiling else "uv")
+
+
+def material_key(material: Material | None) -> str:
+    """What names a material's look: its images' keys and its factors (GPU meshes are keyed with it)."""
+    if material is None:
+        return "none"
+    images = ",".join(i.key for i in material.images())
+    return (f"{material.mapping}/{images}/{material.base_gain!r}/{material.normal_scale!r}/"
+            f"{material.triplanar_per_m!r}")
+
+
+def terrain_tile_m(material: Material | None, spec: DatasetSpec) -> float:
+    """Metres one texture repeat spans on the terrain: the procedural set's own size, else texture_tile_m."""
+    if material is not None and spec.terrain.texture is None and material.base is not None:
+        return 1.0 / material.triplanar_per_m
+    return spec.terrain.texture_tile_m
+
+
+def terrain_uv(vertices: np.ndarray, tile_m: float) -> np.ndarray:
+    """(n, 2) float32 texture coordinates of terrain vertices: world x along u, world y up the image (-v), one
+    repeat every tile_m metres."""
+    v = np.asarray(vertices, np.float64)
+    return np.column_stack([v[:, 0] / tile_m, -v[:, 1] / tile_m]).astype(np.float32)
