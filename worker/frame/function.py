@@ -19,7 +19,7 @@ from seasynth.worker.frame.meta import frame_meta
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 from seasynth.worker.render import DrawItem, Material, Mesh, Passes, RenderResult, Sampling, View
 from seasynth.worker.render.materials import tangent_frames
-from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.procedural import procedural_asset
 from seasynth.worker.scene.assets.terrain import Terrain, with_material
 from seasynth.worker.scene.assets.user import load_user_asset, load_user_terrain, load_user_texture
@@ -55,9 +55,11 @@ def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
     return [frame_file(part, index, spec.outputs.image_suffix) for part in frame_parts(spec)]
 
 
-def to_render_mesh(key: str, mesh, material: Material | None = None, tile_m: float | None = None) -> Mesh:
+def to_render_mesh(key: str, mesh, material: Material | None = None, tile_m: float | None = None,
+                   surface: UserSurface | None = None) -> Mesh:
     """GPU-ready arrays of a trimesh mesh whose vertex colours are sRGB-encoded uint8, with its material; tile_m:
-    texture coordinates of a terrain (seasynth.worker.scene.materials.terrain_uv) and their tangents."""
+    texture coordinates of a terrain (seasynth.worker.scene.materials.terrain_uv) and their tangents; surface: a
+    user mesh's texture coordinates and material groups, with their tangents."""
     v = np.asarray(mesh.vertices, dtype=np.float64)
     colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -68,6 +70,9 @@ def to_render_mesh(key: str, mesh, material: Material | None = None, tile_m: flo
     if material is not None and tile_m is not None:
         uv = terrain_uv(v, tile_m)
         tangents = tangent_frames(v, normals, uv, faces)
+    if surface is not None:
+        uv = surface.uv
+        tangents = tangent_frames(v, normals, uv, faces)
     return Mesh(
         key=key,
         vertices=v.astype(np.float32),
@@ -77,6 +82,7 @@ def to_render_mesh(key: str, mesh, material: Material | None = None, tile_m: flo
         radius=float(np.linalg.norm(v - centre, axis=1).max()),
         centre=centre,
         material=material,
+        groups=() if surface is None else surface.groups,
         uv=uv,
         tangents=tangents,
     )
@@ -183,14 +189,18 @@ class RenderSession:
         tile_m = terrain_tile_m(material, spec)
         return with_material(terrain, material, material_key(material), t.texture is not None, tile_m)
 
-    def _render_mesh(self, key: str, mesh, material: Material | None = None, tile_m: float | None = None) -> Mesh:
-        """The render mesh of a trimesh under `key` (with a material: key and material's key), cached; tile_m:
-        terrain texture coordinates repeating every tile_m metres (seasynth.worker.scene.materials.terrain_uv)."""
+    def _render_mesh(self, key: str, mesh, material: Material | None = None, tile_m: float | None = None,
+                     surface: UserSurface | None = None) -> Mesh:
+        """The render mesh of a trimesh under `key` (with a material: key and material's key; with a user surface:
+        key and its materials' keys), cached; tile_m: terrain texture coordinates repeating every tile_m metres
+        (seasynth.worker.scene.materials.terrain_uv)."""
         if material is not None:
             key = f"{key}+{material_key(material)}"
+        if surface is not None:
+            key = f"{key}+" + ";".join(material_key(m) for _, _, m in surface.groups)
         got = self._meshes.get(key)
         if got is None:
-            got = self._meshes[key] = to_render_mesh(key, mesh, material, tile_m)
+            got = self._meshes[key] = to_render_mesh(key, mesh, material, tile_m, surface)
         return got
 
     def _ray_norms(self, view: View) -> np.ndarray:
@@ -242,7 +252,7 @@ class RenderSession:
         for p in scene.objects:
             items.append(
                 DrawItem(
-                    mesh=self._render_mesh(p.asset.key, p.asset.mesh, p.material),
+                    mesh=self._render_mesh(p.asset.key, p.asset.mesh, p.material, surface=p.asset.surface),
                     world_from_obj=p.world_from_obj,
                     albedo_scale=p.albedo_scale,
                     albedo_bias=p.albedo_bias,

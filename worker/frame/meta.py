@@ -102,4 +102,16 @@ def _object_record(p: Placed, fl: FrameLabels | None) -> dict:
         "albedo_scale": p.albedo_scale.tolist(),
         "albedo_bias": p.albedo_bias.tolist(),
         **_material_record(p.material, None, "material"),
+        **_surface_record(p),
     }
+
+
+def _surface_record(p: Placed) -> dict:
+    """{"materials": each face range of a user mesh with textures and what it draws with (None: vertex colours)},
+    or {} for meshes without (meta as before textures)."""
+    surface = p.asset.surface
+    if surface is None:
+        return {}
+    return {"materials": [{"first_face": first, "face_count": count,
+                           "material": _material_record(m, None, "material").get("material")}
+                          for first, count, m in surface.groups]}

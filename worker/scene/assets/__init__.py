@@ -9,9 +9,23 @@ from typing import TYPE_CHECKING
 from seasynth.service.errors import AssetError
 
 if TYPE_CHECKING:
+    import numpy as np
     import trimesh
 
-__all__ = ["Asset", "AssetError", "freeze", "read_source"]
+    from seasynth.worker.render import Material
+
+__all__ = ["Asset", "AssetError", "UserSurface", "freeze", "read_source"]
+
+
+@dataclass(frozen=True, eq=False)
+class UserSurface:
+    """The per-pixel materials of a user mesh (seasynth.worker.scene.assets.surfaces), aligned with its Asset.mesh."""
+
+    uv: np.ndarray  # (n, 2) float32 texture coordinates of the mesh's vertices, (0, 0) the image's top-left; 0 on
+    # faces of no material
+    # (first face, face count, material or None: vertex colours only) ranges covering the faces in order, a
+    # material's faces in one range (seasynth.worker.render.Mesh.groups)
+    groups: tuple[tuple[int, int, Material | None], ...]
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,6 +40,7 @@ class Asset:
     mesh: trimesh.Trimesh  # vertex colours: (n, 4) uint8 sRGB-encoded RGBA
     sha256: str | None  # hex digest of the source file; None for procedural assets
     source: str  # human description for metadata, e.g. "procedural:urchin#3" or a file name
+    surface: UserSurface | None = None  # a user file's textures, drawn per pixel; None: vertex colours only
 
 
 def freeze(mesh: trimesh.Trimesh) -> trimesh.Trimesh:

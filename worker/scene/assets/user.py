@@ -1,4 +1,4 @@
-"""User-supplied files: meshes (glTF/GLB, OBJ, PLY, STL) as assets or seabed terrains, and terrain textures."""
+"""User-supplied files: meshes (glTF/GLB, OBJ, PLY, STL, or one of the first three zipped) as assets or seabed terrains, and terrain textures."""
 
 from __future__ import annotations
 
@@ -10,10 +10,14 @@ import numpy as np
 import trimesh
 
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.scene.assets import Asset, AssetError, freeze, read_source
+from seasynth.worker.render import Material
+from seasynth.worker.scene.assets import Asset, AssetError, UserSurface, freeze, read_source
+from seasynth.worker.scene.assets.archive import mesh_in_archive
+from seasynth.worker.scene.assets.surfaces import surface_reader
 from seasynth.worker.scene.assets.terrain import Terrain, Texture, decode_texture
 
-FORMATS = {".glb": "glb", ".gltf": "gltf", ".obj": "obj", ".ply": "ply", ".stl": "stl"}
+FORMATS = {".glb": "glb", ".gltf": "gltf", ".obj": "obj", ".ply": "ply", ".stl": "stl", ".zip": "zip"}  # zip: one of
+# the first three with its files (seasynth.worker.scene.assets.archive)
 Y_UP_FORMATS = frozenset({"glb", "gltf"})  # glTF is +y up by specification; everything else is kept as is
 MID_GREY = np.array([128, 128, 128, 255], dtype=np.uint8)
 
@@ -61,8 +65,8 @@ def file_identity(path: Path) -> tuple[Path, int, int]:
 
 @functools.lru_cache(maxsize=128)
 def _user_asset(path: Path, mtime_ns: int, size: int) -> Asset:
-    mesh, sha256 = read_mesh(path)
-    return Asset(key=f"file/{sha256}", mesh=freeze(mesh), sha256=sha256, source=path.name)
+    mesh, sha256, surface = read_user_mesh(path, textured=True)
+    return Asset(key=f"file/{sha256}", mesh=freeze(mesh), sha256=sha256, source=path.name, surface=surface)
 
 
 @functools.lru_cache(maxsize=8)
@@ -92,32 +96,98 @@ def read_mesh(path: Path) -> tuple[trimesh.Trimesh, str]:
 
     Scenes are flattened with their transforms; textures and materials are baked to vertex colours
     (colours are taken as trimesh reports them, i.e. as sRGB); uncoloured geometry is mid grey.
+    A `.zip` is read as the one mesh inside it (seasynth.worker.scene.assets.archive); sha256 is the zip's.
     """
+    mesh, sha256, _ = read_user_mesh(path, textured=False)
+    return mesh, sha256
+
+
+def read_user_mesh(path: Path, textured: bool) -> tuple[trimesh.Trimesh, str, UserSurface | None]:
+    """`read_mesh`, and with `textured` the file's textures kept per pixel (seasynth.worker.scene.assets.surfaces):
+    parts whose material names a texture are coloured by its factor instead of baking it, and come back in a
+    `UserSurface` (None if no part has one: the mesh is then `read_mesh`'s), their faces reordered so that each
+    material's are one range."""
     data = read_source(path)
     sha256 = hashlib.sha256(data).hexdigest()
     kind = FORMATS.get(path.suffix.lower())
     if kind is None:
         raise AssetError(f"{path}: unsupported mesh format {path.suffix!r}; supported: {', '.join(FORMATS)}")
+    mesh_path, where, name = path, str(path), path.name
+    if kind == "zip":
+        mesh_path = mesh_in_archive(path)
+        kind, where, name = FORMATS[mesh_path.suffix.lower()], f"{path}: {mesh_path.name}", f"{name}: {mesh_path.name}"
     try:
-        scene = trimesh.load_scene(str(path), file_type=kind)  # by path, so OBJ materials and textures resolve
-        parts = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh) and len(g.faces)]
-        vertices = [np.asarray(g.vertices, dtype=np.float64) for g in parts]
-        colours = [vertex_colours(g) for g in parts]
+        reader = surface_reader(mesh_path, kind, where, name, sha256) if textured else None
+        if reader is None:  # by path, so OBJ materials and textures resolve
+            scene = trimesh.load_scene(str(mesh_path), file_type=kind)
+            parts = [(g, np.asarray(g.vertices, dtype=np.float64), np.asarray(g.faces, dtype=np.int64))
+                     for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+            surfaces = [None] * len(parts)
+        else:
+            parts = placed_parts(reader.load_scene())
+            surfaces = [reader.part(g) for g, _, _ in parts]
+        colours = [vertex_colours(g) if s is None else s.colours for (g, _, _), s in zip(parts, surfaces)]
+    except AssetError:
+        raise
     except Exception as exc:  # any parser failure is a bad file: re-raised, naming it
-        raise AssetError(f"{path}: cannot parse as {kind} ({type(exc).__name__}: {exc})") from exc
+        raise AssetError(f"{where}: cannot parse as {kind} ({type(exc).__name__}: {exc})") from exc
     if not parts:
-        raise AssetError(f"{path}: contains no triangles")
+        raise AssetError(f"{where}: contains no triangles")
+    textured_parts = any(s is not None for s in surfaces)
+    if textured_parts:  # each material's parts together, in the order the materials first appear
+        first = {}
+        for k, s in enumerate(surfaces):
+            first.setdefault(-1 if s is None else s.group, k)
+        order = sorted(range(len(parts)), key=lambda k: first[-1 if surfaces[k] is None else surfaces[k].group])
+        parts, surfaces, colours = [parts[k] for k in order], [surfaces[k] for k in order], [colours[k] for k in order]
+    vertices = [v for _, v, _ in parts]
     offsets = np.cumsum([0] + [len(v) for v in vertices[:-1]])
-    faces = np.concatenate([np.asarray(g.faces, dtype=np.int64) + o for g, o in zip(parts, offsets)])
+    faces = np.concatenate([f + o for (_, _, f), o in zip(parts, offsets)])
     v = np.concatenate(vertices)
     if not np.all(np.isfinite(v)):
-        raise AssetError(f"{path}: vertices contain NaN or infinity")
+        raise AssetError(f"{where}: vertices contain NaN or infinity")
     if kind in Y_UP_FORMATS:
         v = np.column_stack([v[:, 0], -v[:, 2], v[:, 1]])  # +y up -> +z up (rotation about x)
     lo, hi = v.min(axis=0), v.max(axis=0)
     v = v - [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]]
     mesh = trimesh.Trimesh(vertices=v, faces=faces, vertex_colors=np.concatenate(colours), process=False)
-    return mesh, sha256
+    if not textured_parts:
+        return mesh, sha256, None
+    uv = np.concatenate([np.zeros((len(g), 2)) if s is None else s.uv for (_, g, _), s in zip(parts, surfaces)])
+    uv = uv.astype(np.float32)
+    uv.flags.writeable = False
+    return mesh, sha256, UserSurface(uv=uv, groups=face_groups([len(f) for _, _, f in parts], surfaces))
+
+
+def placed_parts(scene: trimesh.Scene) -> list[tuple[trimesh.Trimesh, np.ndarray, np.ndarray]]:
+    """(mesh, vertices (n, 3) float64, faces (m, 3) int64) of every triangle mesh of a scene as placed by its
+    graph, as `Scene.dump` places them but without copying the meshes (which would decode their textures)."""
+    parts = []
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        g = scene.geometry[name]
+        if not isinstance(g, trimesh.Trimesh) or not len(g.faces):
+            continue
+        T = np.asarray(transform, dtype=np.float64)
+        faces = np.asarray(g.faces, dtype=np.int64)
+        if np.linalg.det(T[:3, :3]) < 0:  # a mirroring transform: keep the faces' winding, as dump does
+            faces = faces[:, ::-1]
+        parts.append((g, np.asarray(g.vertices, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], faces))
+    return parts
+
+
+def face_groups(face_counts: list[int], surfaces: list) -> tuple[tuple[int, int, Material | None], ...]:
+    """(first face, face count, material) ranges of consecutive parts with one material (None: untextured)."""
+    groups: list[list] = []
+    start = 0
+    for count, s in zip(face_counts, surfaces):
+        material = None if s is None else s.material
+        if groups and groups[-1][2] is material:
+            groups[-1][1] += count
+        else:
+            groups.append([start, count, material])
+        start += count
+    return tuple((int(a), int(b), m) for a, b, m in groups)
 
 
 def vertex_colours(mesh: trimesh.Trimesh) -> np.ndarray:
