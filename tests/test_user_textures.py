@@ -11,6 +11,8 @@ import hashlib
 import io
 import json
 import struct
+import subprocess
+import sys
 import tempfile
 import zipfile
 from pathlib import Path
@@ -28,7 +30,7 @@ from seasynth.service.spec.dataset import parse_spec
 from seasynth.worker.frame.formation import haze
 from seasynth.worker.frame.function import to_render_mesh
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
-from seasynth.worker.render import DrawItem, Passes, Sampling
+from seasynth.worker.render import DrawItem, Passes, Sampling, View
 from seasynth.worker.scene.assets.textures import normal_map
 from seasynth.worker.scene.assets.user import load_user_asset, read_mesh
 
@@ -322,3 +324,48 @@ def test_base64_images_load(tmp_path):
                         ).surface.groups[0][2]
     np.testing.assert_array_equal(m.base.pixels, CORNER_IMAGE)
 
+
+MARKER = Path(__file__).resolve().parents[1] / "examples" / "assets" / "marker.glb"
+
+
+def test_make_marker_writes_the_committed_bytes(tmp_path):
+    """examples/assets/make_marker.py is deterministic: with the pinned numpy and Pillow (constraints.txt) it
+    writes examples/assets/marker.glb byte for byte."""
+    out = tmp_path / "marker.glb"
+    subprocess.run([sys.executable, str(MARKER.with_name("make_marker.py")), str(out)], check=True)
+    assert out.read_bytes() == MARKER.read_bytes()
+    assert len(out.read_bytes()) < 200_000
+
+
+def test_the_marker_seen_from_above_shows_its_code_upright(render_session):
+    """Looking straight down, with the file's -z (the code's top edge) up the image, each of the 8x8 cells of the
+    code (quiet zone, frame and bits) has the colour the script printed there."""
+    sys.path.insert(0, str(MARKER.parent))
+    try:
+        import make_marker
+    finally:
+        sys.path.remove(str(MARKER.parent))
+    asset = load_user_asset(MARKER)
+    w = h = 256
+    f = 400.0
+    K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    cam = np.eye(4)
+    cam[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # x right, world +y up the image, looking down
+    cam[:3, 3] = [0.0, 0.0, 0.5]
+    view = View(K=K, width=w, height=h, cam_from_world=cam, near=0.05, far=10.0)
+    item = DrawItem(mesh=to_render_mesh(asset.key, asset.mesh, surface=asset.surface), world_from_obj=np.eye(4),
+                    albedo_scale=np.ones(3, np.float32), albedo_bias=np.zeros(3, np.float32), instance_id=1)
+    clean = render_session.renderer.render(view, [item], AMBIENT_ONLY, None, Sampling(), Passes(clean=True)).clean
+    texture = make_marker.base_colour()
+    side, border, cells = make_marker.SIDE_M, make_marker.BORDER_PX, make_marker.CELLS
+    cell_px = (make_marker.TEXTURE_PX - 2 * border) // cells
+    top = float(asset.mesh.vertices[:, 2].max())
+    for i in range(cells):
+        for j in range(cells):
+            tx, ty = border + cell_px * (j + 0.5), border + cell_px * (i + 0.5)  # texel column, row
+            x = -side / 2 + tx / make_marker.TEXTURE_PX * side
+            y = side / 2 - ty / make_marker.TEXTURE_PX * side
+            p = cam[:3, :3] @ [x, y, top] + cam[:3, 3]
+            u, v = K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]
+            got = encode_srgb8(clean[round(v), round(u)])
+            np.testing.assert_array_equal(got, texture[int(ty), int(tx)], err_msg=f"cell {i}, {j}")
