@@ -57,9 +57,10 @@ def quad_arrays(half: float, x0: float = 0.0) -> tuple[np.ndarray, np.ndarray, n
     return pos, uv, np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
 
 
-def write_gltf(path: Path, primitives: list[tuple], materials: list[dict], images: list) -> Path:
+def write_gltf(path: Path, primitives: list[tuple], materials: list[dict], images: list, webp: bool = False) -> Path:
     """A glTF written by hand: `path`'s suffix picks .gltf (buffer in `<stem>.bin` beside it) or .glb (one BIN
-    chunk). primitives: (positions, uv or None, faces, material index or None); images: bytes (embedded) or a URI."""
+    chunk). primitives: (positions, uv or None, faces, material index or None); images: bytes (embedded) or a URI;
+    webp: textures name their images through EXT_texture_webp only."""
     blob = bytearray()
     views, accessors = [], []
 
@@ -86,14 +87,18 @@ def write_gltf(path: Path, primitives: list[tuple], materials: list[dict], image
         if material is not None:
             prim["material"] = material
         prims.append(prim)
-    image_specs = [{"bufferView": view(i), "mimeType": "image/png"} if isinstance(i, bytes) else {"uri": i}
-                   for i in images]
+    mime = "image/webp" if webp else "image/png"
+    image_specs = [{"bufferView": view(i), "mimeType": mime} if isinstance(i, bytes) else {"uri": i} for i in images]
     blob.extend(b"\0" * (-len(blob) % 4))
     tree = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
             "meshes": [{"primitives": prims}], "materials": materials, "accessors": accessors, "bufferViews": views,
             "buffers": [{"byteLength": len(blob)}]}
     if images:
-        tree.update(images=image_specs, textures=[{"source": k} for k in range(len(images))])
+        textures = [{"extensions": {"EXT_texture_webp": {"source": k}}} if webp else {"source": k}
+                    for k in range(len(images))]
+        tree.update(images=image_specs, textures=textures)
+    if webp:
+        tree.update(extensionsUsed=["EXT_texture_webp"], extensionsRequired=["EXT_texture_webp"])
     if path.suffix == ".glb":
         text = json.dumps(tree).encode()
         text += b" " * (-len(text) % 4)
@@ -316,6 +321,24 @@ def test_meta_records_a_user_assets_materials(render_session, tmp_path):
     assert (group["first_face"], group["face_count"]) == (0, 2)
     assert group["material"]["images"]["base"]["key"].startswith(f"file/{obj['asset']['sha256']}/0/base/")
     assert "material" not in obj  # the procedural assets' field
+
+
+def test_textures_without_a_source_keep_their_own_images(tmp_path):
+    """EXT_texture_webp names its image in the extension (the texture has no `source`): two such textures stay two
+    images."""
+    images = [np.full((4, 4, 3), c, np.uint8) for c in ((200, 10, 10), (10, 10, 200))]
+
+    def webp(pixels: np.ndarray) -> bytes:
+        buf = io.BytesIO()
+        PILImage.fromarray(pixels).save(buf, format="WEBP", lossless=True)
+        return buf.getvalue()
+
+    path = write_gltf(tmp_path / "w.glb", [(*quad_arrays(0.25, -0.3), 0), (*quad_arrays(0.25, 0.3), 1)],
+                      [textured(0), textured(1)], [webp(i) for i in images], webp=True)
+    groups = load_user_asset(path).surface.groups
+    assert len(groups) == 2
+    for (_, _, material), pixels in zip(groups, images):
+        np.testing.assert_array_equal(material.base.pixels, pixels)
 
 
 def test_base64_images_load(tmp_path):

@@ -168,7 +168,7 @@ class GltfSurfaces:
         self.data, self.tree = data, tree
         self.budget = PixelBudget(where)
         self._materials: dict[int, Material | None] = {}
-        self._pixels: dict[int, np.ndarray] = {}
+        self._pixels: dict[int | str, np.ndarray] = {}  # by image index
 
     def load_scene(self) -> trimesh.Scene:
         tree = dict(self.tree)
@@ -236,9 +236,10 @@ class GltfSurfaces:
         label = f"{self.where}: image {source}{named}"
         if image is None:
             raise AssetError(f"{label}, {what}, cannot be read as an image")
-        if source not in self._pixels:
-            self._pixels[source] = decode_image(image, label, self.budget)
-        return self._pixels[source]
+        key = source if isinstance(source, int) else f"texture {info['index']}"  # e.g. EXT_texture_webp's source
+        if key not in self._pixels:
+            self._pixels[key] = decode_image(image, label, self.budget)
+        return self._pixels[key]
 
 
 # ---- OBJ / MTL --------------------------------------------------------------------------------------------------
