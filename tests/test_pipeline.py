@@ -265,7 +265,10 @@ def test_meta_records_reproduction_inputs(full):
         assert np.linalg.norm(meta["lights"]["sun_direction_world"]) == pytest.approx(1.0)
         # Objects: unique ids 1..n, every id in instance/ among them, each label line named by exactly one target.
         objects = meta["objects"]
-        assert all(set(o) == OBJECT_KEYS for o in objects)
+        # procedural assets with materials.procedural on (the default): each records its triplanar material
+        assert all(set(o) == OBJECT_KEYS | {"material"} for o in objects)
+        assert all(o["material"]["mapping"] == "triplanar" and o["material"]["images"]["base"]["source"]
+                   .startswith("procedural:") for o in objects)
         ids = [o["instance_id"] for o in objects]
         assert sorted(ids) == list(range(1, len(ids) + 1))
         drawn = set(np.unique(np.asarray(Image.open(out / f"instance/{n}.png")))) - {0}

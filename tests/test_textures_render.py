@@ -112,7 +112,7 @@ def test_a_checker_survives_per_pixel_in_the_clean_and_hazed_image(gl, checks, t
     assert np.isfinite(centre_uv).all()
 
 
-@pytest.mark.parametrize("mapping", ["uv", "tiled", "triplanar"])
+@pytest.mark.parametrize("mapping", ["uv", "triplanar"])
 def test_a_material_without_images_shades_as_no_material(gl, mapping):
     R = rotation(0.3, -0.4, 0.2)
     plain = quad("test/plain-quad", 0.6, [0.1, 0.0, 2.0], R, None, albedo=0.6)

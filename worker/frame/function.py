@@ -56,9 +56,10 @@ def frame_paths(spec: DatasetSpec, index: int) -> list[str]:
 
 
 def to_render_mesh(key: str, mesh, material: Material | None = None, tile_m: float | None = None,
-                   surface: UserSurface | None = None) -> Mesh:
+                   surface: UserSurface | None = None, warp: bool = True) -> Mesh:
     """GPU-ready arrays of a trimesh mesh whose vertex colours are sRGB-encoded uint8, with its material; tile_m:
-    texture coordinates of a terrain (seasynth.worker.scene.materials.terrain_uv) and their tangents; surface: a
+    texture coordinates of a terrain (seasynth.worker.scene.materials.terrain_uv, warped unless `warp` is off) and
+    their tangents; surface: a
     user mesh's texture coordinates and material groups, with their tangents."""
     v = np.asarray(mesh.vertices, dtype=np.float64)
     colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
@@ -68,7 +69,7 @@ def to_render_mesh(key: str, mesh, material: Material | None = None, tile_m: flo
     faces = np.asarray(mesh.faces, dtype=np.uint32)
     uv = tangents = None
     if material is not None and tile_m is not None:
-        uv = terrain_uv(v, tile_m)
+        uv = terrain_uv(v, tile_m, warp)
         tangents = tangent_frames(v, normals, uv, faces)
     if surface is not None:
         uv = surface.uv
@@ -183,24 +184,24 @@ class RenderSession:
         if t.texture is not None:  # a user's texture set: its colour replaces the terrain's
             files = [None if ref is None else load_user_texture(self._file(ref))
                      for ref in (t.texture, t.normal_map, t.height_map)]
-            material = user_material(*files, t.height_map_m, t.texture_tile_m, t.anti_tiling)
+            material = user_material(*files, t.height_map_m, t.texture_tile_m, float(spec.materials.anisotropy))
         if material is None:
             return terrain
         tile_m = terrain_tile_m(material, spec)
-        return with_material(terrain, material, material_key(material), t.texture is not None, tile_m)
+        return with_material(terrain, material, material_key(material), t.texture is not None, tile_m, t.anti_tiling)
 
     def _render_mesh(self, key: str, mesh, material: Material | None = None, tile_m: float | None = None,
-                     surface: UserSurface | None = None) -> Mesh:
+                     surface: UserSurface | None = None, warp: bool = True) -> Mesh:
         """The render mesh of a trimesh under `key` (with a material: key and material's key; with a user surface:
         key and its materials' keys), cached; tile_m: terrain texture coordinates repeating every tile_m metres
         (seasynth.worker.scene.materials.terrain_uv)."""
         if material is not None:
-            key = f"{key}+{material_key(material)}"
+            key = f"{key}+{material_key(material)}" + ("" if warp else "/unwarped")
         if surface is not None:
             key = f"{key}+" + ";".join(material_key(m) for _, _, m in surface.groups)
         got = self._meshes.get(key)
         if got is None:
-            got = self._meshes[key] = to_render_mesh(key, mesh, material, tile_m, surface)
+            got = self._meshes[key] = to_render_mesh(key, mesh, material, tile_m, surface, warp)
         return got
 
     def _ray_norms(self, view: View) -> np.ndarray:
@@ -231,7 +232,7 @@ class RenderSession:
         t = scene.terrain
         items = [
             DrawItem(
-                mesh=self._render_mesh(t.key, t.mesh, t.material, t.tile_m),
+                mesh=self._render_mesh(t.key, t.mesh, t.material, t.tile_m, warp=t.uv_warp),
                 world_from_obj=np.eye(4),
                 albedo_scale=scene.terrain_albedo_scale,
                 albedo_bias=scene.terrain_albedo_bias,
@@ -241,7 +242,8 @@ class RenderSession:
         if scene.far_field is not None:  # the seabed beyond the tile: unlabelled like it, and it shadows nothing drawn
             items.append(
                 DrawItem(
-                    mesh=self._render_mesh(scene.far_field.key, scene.far_field.mesh, t.material, t.tile_m),
+                    mesh=self._render_mesh(scene.far_field.key, scene.far_field.mesh, t.material, t.tile_m,
+                                           warp=t.uv_warp),
                     world_from_obj=np.eye(4),
                     albedo_scale=scene.terrain_albedo_scale,
                     albedo_bias=scene.terrain_albedo_bias,

@@ -41,8 +41,7 @@ class Material:
     ambient and sky light only; metallic = metallic_factor * orm's blue. The shading is diffuse, so roughness
     (orm's green) has nothing to change and is not read.
 
-    mapping "uv": the mesh's texture coordinates and tangents (Mesh.uv, Mesh.tangents); "tiled": those, with
-    anti-tiling (worker.render.materials), for textures repeated over a terrain. "triplanar": no texture
+    mapping "uv": the mesh's texture coordinates and tangents (Mesh.uv, Mesh.tangents). "triplanar": no texture
     coordinates; three planar projections of the object frame (triplanar_per_m texture repeats per metre) blended
     by the normal, for procedural meshes that have no unwrapping.
     """
@@ -56,6 +55,7 @@ class Material:
     metallic_factor: float = 0.0
     mapping: str = "uv"
     triplanar_per_m: float = 1.0
+    anisotropy: float = 16.0  # the anisotropic filter's most taps (1: trilinear), within what the renderer allows
 
     def images(self) -> tuple[Image, ...]:
         return tuple(i for i in (self.base, self.normal, self.orm) if i is not None)

@@ -21,9 +21,7 @@ TEXTURE_BUDGET_BYTES = 1024 * 2**20  # textures with their mipmaps, per renderer
 MAX_ANISOTROPY = 16.0
 MATERIAL_UNIT = 10  # base colour, normal, orm on units 10, 11, 12 (shadow maps use 3..8, the resolve 0 and 1)
 UPLOAD_UNIT = 13  # where images are bound while they upload
-MAPPINGS = {"uv": 0, "triplanar": 1, "tiled": 2}  # tiled: "uv" with anti-tiling (terrains)
-ANTI_TILE_FREQ = 0.3  # anti-tiling's noise: features about 3 texture repeats apart
-ANTI_TILE_STEPS = 6.0  # offset changes across one unit of that noise
+MAPPINGS = {"uv": 0, "triplanar": 1}
 
 # 1x1 images standing in for a material's absent ones: white colour (factor 1), a flat normal, occlusion 1 and
 # metal 1 (times metallic_factor).
@@ -56,8 +54,7 @@ VERTEX_MAIN = """
 
 # Fragment stage: `vec3 textured_albedo(inout vec3 n, out float occlusion)` gives the pixel's albedo and perturbs
 # the camera-frame normal n (already facing the camera) by the normal map.
-FRAGMENT = (
-    """
+FRAGMENT = """
 #ifdef TEXTURED
 in vec2 v_uv;
 in vec4 v_tan;
@@ -70,45 +67,17 @@ uniform vec4 u_material;        // base_gain, normal_scale, occlusion_strength, 
 uniform float u_triplanar_per_m;
 uniform mat3 u_nrm_cam;
 vec3 unpack_normal(vec3 t) { return vec3((t.xy * 2.0 - 1.0) * u_material.y, t.z * 2.0 - 1.0); }
-#if MAPPING == 2
-const float ANTI_TILE_FREQ = ANTI_TILE_FREQ_VALUE;   // noise features per texture repeat
-const float ANTI_TILE_STEPS = ANTI_TILE_STEPS_VALUE;
-float tile_hash(vec2 c) {   // [0, 1) from an integer lattice point (PCG-style integer hash: exact on every GPU)
-    uvec2 q = uvec2(ivec2(floor(c)) + ivec2(1 << 20));
-    uint h = q.x * 747796405u + q.y * 2891336453u;
-    h = ((h >> ((h >> 28u) + 4u)) ^ h) * 277803737u;
-    h = (h >> 22u) ^ h;
-    return float(h >> 8u) * (1.0 / 16777216.0);
-}
-float tile_noise(vec2 p) {   // smooth value noise in [0, 1)
-    vec2 i = floor(p), t = p - i;
-    t = t * t * (3.0 - 2.0 * t);
-    return mix(mix(tile_hash(i), tile_hash(i + vec2(1.0, 0.0)), t.x),
-               mix(tile_hash(i + vec2(0.0, 1.0)), tile_hash(i + vec2(1.0, 1.0)), t.x), t.y);
-}
-#endif
 vec3 textured_albedo(inout vec3 n, out float occlusion) {
     float len = length(v_nrm);
     float side = dot(n, v_nrm) < 0.0 ? -1.0 : 1.0;   // n faces the camera: the back of a face takes -normal
-#if MAPPING != 1
-#if MAPPING == 2
-    // Anti-tiling (after Quilez's "texture repetition"): two lookups at offsets drawn per step of a smooth value
-    // noise over the texture's repeats, blended across each step, with the derivatives of the continuous uv.
-    vec2 dx = dFdx(v_uv), dy = dFdy(v_uv);
-    float l = tile_noise(v_uv * ANTI_TILE_FREQ) * ANTI_TILE_STEPS;
-    float ia = floor(l);
-    float f = smoothstep(0.2, 0.8, l - ia);
-    vec2 oa = vec2(tile_hash(vec2(ia, 1.0)), tile_hash(vec2(ia, 2.0)));
-    vec2 ob = vec2(tile_hash(vec2(ia + 1.0, 1.0)), tile_hash(vec2(ia + 1.0, 2.0)));
-    vec3 base = mix(textureGrad(u_base_tex, v_uv + oa, dx, dy).rgb, textureGrad(u_base_tex, v_uv + ob, dx, dy).rgb, f);
-    vec3 orm = mix(textureGrad(u_orm_tex, v_uv + oa, dx, dy).rgb, textureGrad(u_orm_tex, v_uv + ob, dx, dy).rgb, f);
-    vec3 m = unpack_normal(mix(textureGrad(u_normal_tex, v_uv + oa, dx, dy).xyz,
-                               textureGrad(u_normal_tex, v_uv + ob, dx, dy).xyz, f));
-#else
+#if MAPPING == 0
     vec3 base = texture(u_base_tex, v_uv).rgb;
+#ifdef HAS_ORM
     vec3 orm = texture(u_orm_tex, v_uv).rgb;
-    vec3 m = unpack_normal(texture(u_normal_tex, v_uv).xyz);
+#else
+    vec3 orm = vec3(1.0);
 #endif
+    vec3 m = unpack_normal(texture(u_normal_tex, v_uv).xyz);
     if (len > 1e-20 && dot(v_tan.xyz, v_tan.xyz) > 1e-20) {
         vec3 N = v_nrm / len;
         vec3 T = v_tan.xyz - N * dot(N, v_tan.xyz);
@@ -129,7 +98,11 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
     vec2 ux = p.zy, uy = p.xz, uz = p.xy;
     vec3 base = w.x * texture(u_base_tex, ux).rgb + w.y * texture(u_base_tex, uy).rgb
               + w.z * texture(u_base_tex, uz).rgb;
+#ifdef HAS_ORM
     vec3 orm = w.x * texture(u_orm_tex, ux).rgb + w.y * texture(u_orm_tex, uy).rgb + w.z * texture(u_orm_tex, uz).rgb;
+#else
+    vec3 orm = vec3(1.0);
+#endif
     if (len > 1e-20) {
         vec3 tx = unpack_normal(texture(u_normal_tex, ux).xyz);
         vec3 ty = unpack_normal(texture(u_normal_tex, uy).xyz);
@@ -147,16 +120,16 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
 }
 #endif
 """
-).replace("ANTI_TILE_FREQ_VALUE", repr(ANTI_TILE_FREQ)).replace("ANTI_TILE_STEPS_VALUE", repr(ANTI_TILE_STEPS))
 
 
-def variant_key(material: Material | None) -> tuple[bool, int]:
-    """(TEXTURED, MAPPING) defines of the program that draws a mesh with this material."""
+def variant_key(material: Material | None) -> tuple[bool, int, bool]:
+    """(TEXTURED, MAPPING, HAS_ORM) defines of the program that draws a mesh with this material: a material without
+    an occlusion/roughness/metal image reads none (occlusion 1, metallic_factor as given)."""
     if material is None:
-        return (False, 0)
+        return (False, 0, False)
     if material.mapping not in MAPPINGS:
         raise RenderError(f"unknown material mapping {material.mapping!r}; known: {', '.join(MAPPINGS)}")
-    return (True, MAPPINGS[material.mapping])
+    return (True, MAPPINGS[material.mapping], material.orm is not None)
 
 
 def image_bytes(image: Image) -> int:
@@ -170,11 +143,13 @@ class GpuImage:
     texture: int
     nbytes: int
     used: int  # the renderer call that last bound it
+    anisotropy: float = 1.0  # its sampler's GL_TEXTURE_MAX_ANISOTROPY now
 
 
 class Textures:
     """The texture images of one GL context, uploaded on first use with a full mipmap chain, trilinear and
-    anisotropic filtering (up to MAX_ANISOTROPY, where the context has it and `anisotropic`) and repeat wrapping;
+    anisotropic filtering (each material's anisotropy, up to MAX_ANISOTROPY where the context has it and
+    `anisotropic`) and repeat wrapping;
     least recently bound first out past budget_bytes, never one bound by the call in progress. Every call needs the
     context current.
 
@@ -233,10 +208,6 @@ class Textures:
         for k, v in ((GL.GL_TEXTURE_MIN_FILTER, GL.GL_LINEAR_MIPMAP_LINEAR), (GL.GL_TEXTURE_MAG_FILTER, GL.GL_LINEAR),
                      (GL.GL_TEXTURE_WRAP_S, GL.GL_REPEAT), (GL.GL_TEXTURE_WRAP_T, GL.GL_REPEAT)):
             GL.glTexParameteri(GL.GL_TEXTURE_2D, k, v)
-        import os
-        if os.environ.get("ANISO"): self.anisotropy = float(os.environ["ANISO"])
-        if self.anisotropy > 1.0:
-            GL.glTexParameterf(GL.GL_TEXTURE_2D, GL_TEXTURE_MAX_ANISOTROPY, self.anisotropy)
         GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
         GL.glActiveTexture(GL.GL_TEXTURE0)
         return tex
@@ -255,9 +226,14 @@ class Textures:
         GL = self._gl
         images = (material.base or WHITE, material.normal or FLAT, material.orm or ORM_ONE)
         textures = [self.get(image, call) for image in images]  # uploads first: an upload binds a unit of its own
-        for k, (name, tex) in enumerate(zip(("u_base_tex", "u_normal_tex", "u_orm_tex"), textures)):
+        anisotropy = min(max(material.anisotropy, 1.0), self.anisotropy)
+        for k, (name, image, tex) in enumerate(zip(("u_base_tex", "u_normal_tex", "u_orm_tex"), images, textures)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + MATERIAL_UNIT + k)
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+            got = self._images[image.key]
+            if self.anisotropy > 1.0 and got.anisotropy != anisotropy:
+                GL.glTexParameterf(GL.GL_TEXTURE_2D, GL_TEXTURE_MAX_ANISOTROPY, anisotropy)
+                got.anisotropy = anisotropy
             if name in locs:
                 GL.glUniform1i(locs[name], MATERIAL_UNIT + k)
         GL.glActiveTexture(GL.GL_TEXTURE0)
@@ -298,11 +274,9 @@ def tangent_frames(vertices: np.ndarray, normals: np.ndarray, uv: np.ndarray, fa
     sdir = e1 * d2[:, 1:2] - e2 * d1[:, 1:2]
     tdir = e2 * d1[:, 0:1] - e1 * d2[:, 0:1]
     sgn = np.sign(det)[:, None]
-    tan = np.zeros_like(v)
-    bit = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(tan, f[:, k], sdir * sgn)
-        np.add.at(bit, f[:, k], tdir * sgn)
+    corners = f.ravel()  # each face's contribution to its three vertices, summed per vertex (bincount, in order)
+    tan = np.column_stack([np.bincount(corners, np.repeat(sdir[:, c] * sgn[:, 0], 3), len(v)) for c in range(3)])
+    bit = np.column_stack([np.bincount(corners, np.repeat(tdir[:, c] * sgn[:, 0], 3), len(v)) for c in range(3)])
     nn = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     tan -= nn * np.sum(nn * tan, axis=1, keepdims=True)
     length = np.linalg.norm(tan, axis=1, keepdims=True)

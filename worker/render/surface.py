@@ -53,14 +53,14 @@ def surface_pass(
         GL.glMinSampleShading(1.0)
     # Textured meshes are drawn by the program's textured variants (worker.render.materials), the rest by the
     # program itself, each group in the items' order.
-    groups: dict[tuple[bool, int], tuple[list, list]] = {}
+    groups: dict[tuple[bool, int, bool], tuple[list, list]] = {}
     for item in items:
         for part in item.mesh.groups or ((0, None, item.mesh.material),):
             drawn, parts = groups.setdefault(materials.variant_key(part[2]), ([], []))
             drawn.append(item)
             parts.append(part)
-    for (textured, mapping), (group, parts) in groups.items():
-        tex_defines = {"TEXTURED": textured, "MAPPING": mapping if textured else False}
+    for (textured, mapping, orm), (group, parts) in groups.items():
+        tex_defines = {"TEXTURED": textured, "MAPPING": mapping if textured else False, "HAS_ORM": orm}
         if physical:
             prog, locs = r.programs.get(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting), **tex_defines)
             GL.glUseProgram(prog)

@@ -35,6 +35,7 @@ class Terrain:
     sha256: str | None = None  # hex digest of the source mesh file; None for procedural terrains
     material: Material | None = None  # per-pixel textures (with_material); None: vertex colours only
     tile_m: float | None = None  # metres one repeat of the material's textures spans
+    uv_warp: bool = True  # its texture coordinates warped against visible tiling (terrain.anti_tiling)
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Surface height (..., ) float64 metres at `xy: (..., 2)` metres; see `bilinear`."""
@@ -257,15 +258,16 @@ def decode_texture(data: bytes, source: str) -> Texture:
 
 
 @functools.lru_cache(maxsize=64)
-def with_material(terrain: Terrain, material: Material | None, key: str, white: bool, tile_m: float) -> Terrain:
+def with_material(terrain: Terrain, material: Material | None, key: str, white: bool, tile_m: float,
+                  uv_warp: bool = True) -> Terrain:
     """`terrain` drawn with a per-pixel material (seasynth.worker.scene.materials) named by `key`, its texture
-    repeating every tile_m metres; `white`: its vertex colours set to white, for a material whose base colour is the
+    repeating every tile_m metres (its coordinates warped: uv_warp); `white`: its vertex colours set to white, for a material whose base colour is the
     surface's whole colour (a user's texture). Heights, extent and lookup are the terrain's. Cached per process."""
     mesh = terrain.mesh
     if white:
         mesh = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces),
                                vertex_colors=np.full((len(mesh.vertices), 4), 255, np.uint8), process=False)
         mesh = freeze(mesh)
-    return Terrain(key=f"{terrain.key}+material/{key}/tile={tile_m!r}" + ("/white" if white else ""), mesh=mesh,
-                   heights=terrain.heights, extent=terrain.extent, lookup=terrain.lookup, sha256=terrain.sha256,
-                   material=material, tile_m=float(tile_m))
+    key = f"{terrain.key}+material/{key}/tile={tile_m!r}" + ("/white" if white else "") + ("" if uv_warp else "/unwarped")
+    return Terrain(key=key, mesh=mesh, heights=terrain.heights, extent=terrain.extent, lookup=terrain.lookup,
+                   sha256=terrain.sha256, material=material, tile_m=float(tile_m), uv_warp=uv_warp)
