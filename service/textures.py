@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from seasynth.service.errors import AssetError
+from seasynth.service.mtl import read_mtl
 from seasynth.service.settings import MAX_ASSET_PIXELS, MAX_IMAGE_PIXELS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -209,22 +210,22 @@ def _path_slice(path: Path) -> Callable[[int, int], bytes]:
 
 def _obj_textures(mesh: Path, where: str, resolve: Resolve, budget: PixelBudget) -> set[Path]:
     """The OBJ's material library (its first `mtllib`, the rest of that line, as trimesh reads it) and the
-    `map_Kd` images it names; other maps trimesh does not load."""
+    `map_Kd` and bump images its materials name, read as the mesh loader reads them (seasynth.service.mtl)."""
     ref = _after(mesh, b"mtllib")
     if not ref:
         return set()
     mtl, mtl_member = resolve(ref, where)
     checked: set[Path] = set()
     with open(mtl, "rb") as f:
-        for raw in f:
-            line = raw.decode("utf-8", "replace")
-            split = line.split()
-            if len(split) > 1 and split[0].lower() == "map_kd":
-                image = line[line.lower().index("map_kd") + 6:].strip()
-                path, member = resolve(image, mtl_member)
-                if path not in checked:
-                    check_image_file(path, member, budget)
-                    checked.add(path)
+        materials = read_mtl(f.read().decode("utf-8", "replace"), mtl_member)
+    for material in materials.values():
+        for image in (material.map_kd, material.bump):
+            if not image:
+                continue
+            path, member = resolve(image, mtl_member)
+            if path not in checked:
+                check_image_file(path, member, budget)
+                checked.add(path)
     return checked
 
 

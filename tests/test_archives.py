@@ -181,6 +181,18 @@ def test_an_obj_may_name_only_files_of_its_archive(tmp_path, mtl_ref, why):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("statement", ["map_Bump -bm 0.5 gone.png", "bump gone.png", "map_Kd -s 1 1 1 gone.png"])
+def test_an_obj_s_bump_and_optioned_maps_are_checked_as_the_loader_reads_them(tmp_path, statement):
+    """The check reads the MTL as the mesh loader does (seasynth.service.mtl: options before the file name), so an
+    archive a worker would refuse at its first frame is refused here."""
+    files = obj_files("m/")
+    files["m/material.mtl"] += f"\n{statement}\n".encode()
+    with pytest.raises(AssetError) as err:
+        safe_extract(write(tmp_path, files), tmp_path / "out")
+    assert str(err.value).startswith("boat.zip: member 'm/material.mtl': names 'gone.png', which the archive does "
+                                     "not hold"), err.value
+
+
 def test_a_glb_alone_embeds_its_images_and_may_name_no_file(tmp_path):
     path = tmp_path / "t.glb"
     path.write_bytes(glb(png(2, 2), "data"))
@@ -252,3 +264,10 @@ def test_mesh_in_archive_extracts_once_under_the_archives_sha256_and_trimesh_rea
     bad = write(tmp_path, {**gltf_files(), "../x": b""}, "bad.zip")
     with pytest.raises(AssetError, match="bad.zip: member '../x': the name has a '..' component"):
         mesh_in_archive(bad)
+
+
+def test_every_newmtl_gets_its_own_index_even_a_name_given_twice():
+    from seasynth.service.mtl import read_mtl
+
+    found = read_mtl("newmtl A\nmap_Kd a1.png\nnewmtl A\nmap_Kd a2.png\nnewmtl B\nmap_Kd b.png\n", "t.mtl")
+    assert {k: (m.index, m.map_kd) for k, m in found.items()} == {"A": (1, "a2.png"), "B": (2, "b.png")}

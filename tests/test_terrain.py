@@ -246,3 +246,21 @@ def test_texture_is_read_once_per_process_and_frames_are_unchanged(tmp_path: Pat
     assert r.returncode == 0, r.stderr
     assert {rel: (out / rel).read_bytes() for rel in second} == second
     assert first != second
+
+
+def test_a_non_square_height_map_slopes_as_its_image_spans_the_tile_both_ways(tmp_path: Path) -> None:
+    """The image spans texture_tile_m along its width and along its height, so columns and rows are tile / w and
+    tile / h apart: one sine cycle across the tile slopes alike along either axis."""
+    h, w = 32, 64
+    along_x = (127.5 + 127.5 * np.sin(2 * np.pi * np.arange(w) / w))[None, :].repeat(h, 0)
+    along_y = (127.5 + 127.5 * np.sin(2 * np.pi * np.arange(h) / h))[:, None].repeat(w, 1)
+    albedo = tmp_path / "albedo.png"
+    Image.fromarray(np.full((4, 4, 3), 128, np.uint8)).save(albedo)
+    slopes = []
+    for name, grey in (("x.png", along_x), ("y.png", along_y)):
+        Image.fromarray(np.round(grey).astype(np.uint8)).convert("RGB").save(tmp_path / name)
+        m = user_material(load_user_texture(albedo), None, load_user_texture(tmp_path / name), 0.05, 1.0)
+        n = m.normal.pixels.astype(float) / 255.0 * 2.0 - 1.0
+        slopes.append(np.abs(n[..., :2]).max())
+    # 0.05 m over one cycle of 1 m: slope 0.157 at most, a tangent's normal tilts by about that much
+    assert slopes[0] == pytest.approx(slopes[1], abs=0.02) and 0.12 < slopes[0] < 0.2

@@ -125,24 +125,71 @@ def test_a_material_without_images_shades_as_no_material(gl, mapping):
     np.testing.assert_allclose(b, a, atol=1e-6)
 
 
-def test_a_normal_map_turns_the_shading_normal_as_its_texels_say(gl):
-    """A constant normal map tilting the normal towards +u by 45 degrees shades as a quad turned by that much."""
-    tilt = np.array([np.sin(np.pi / 4), 0.0, np.cos(np.pi / 4)])
-    texel = np.round((tilt + 1.0) / 2.0 * 255.0).astype(np.uint8)
-    normal = Image("test/normal-tilt", np.tile(texel, (4, 4, 1)), False, "tilted normal map")
-    decoded = texel / 255.0 * 2.0 - 1.0
-    R = np.eye(3)
-    item = quad("test/normal-quad", 0.8, [0.0, 0.0, 2.0], R, Material(normal=normal))
-    sun = np.array([0.8, 0.1, -0.6]) / np.linalg.norm([0.8, 0.1, -0.6])  # camera frame: towards the sun
-    light = Lighting(sun_dir_world=sun, sun_intensity=1.0, ambient=0.0)
-    J = gl.render(VIEW, [item], light, None, Sampling(msaa=1), Passes(clean=True)).clean
-    # tangent frame of the quad: T = +x (u), image up = -y (rows run down the quad's v), N = -z (towards the camera)
-    n = decoded[0] * np.array([1.0, 0, 0]) + decoded[1] * np.array([0, -1.0, 0]) + decoded[2] * np.array([0, 0, -1.0])
+def tilted_map(tilt) -> tuple[Image, np.ndarray]:
+    """A constant normal map of the unit vector `tilt` (its texels and their decoded value)."""
+    texel = np.round((np.asarray(tilt, float) + 1.0) / 2.0 * 255.0).astype(np.uint8)
+    image = Image(f"test/normal-tilt/{texel.tolist()}", np.tile(texel, (4, 4, 1)), False, "tilted normal map")
+    return image, texel / 255.0 * 2.0 - 1.0
+
+
+TILTS = [(np.sin(0.6), 0.0, np.cos(0.6)), (0.0, np.sin(0.6), np.cos(0.6)), (0.4, -0.5, np.sqrt(1 - 0.41))]
+SUN = np.array([0.5, -0.6, -0.6]) / np.linalg.norm([0.5, -0.6, -0.6])  # camera frame: towards the sun
+
+
+def lit_centre(gl, item) -> float:
+    light = Lighting(sun_dir_world=SUN, sun_intensity=1.0, ambient=0.0)
+    return float(gl.render(VIEW, [item], light, None, Sampling(msaa=1), Passes(clean=True)).clean[H // 2, W // 2, 0])
+
+
+@pytest.mark.parametrize("tilt", TILTS)
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_a_normal_map_turns_the_shading_normal_as_its_texels_say(gl, tilt, mirrored):
+    """x along +u, y towards the image's top (-v), z along the normal (glTF), whichever way the texture coordinates
+    run (mirrored: u runs along -x, the tangent's w flips)."""
+    image, m = tilted_map(tilt)
+    item = quad(f"test/normal-quad/{tilt}/{mirrored}", 0.8, [0.0, 0.0, 2.0], np.eye(3), Material(normal=image))
+    if mirrored:
+        uv = UV[[1, 0, 3, 2]]
+        mesh = Mesh(**{**item.mesh.__dict__, "key": item.mesh.key + "/m", "uv": uv,
+                       "tangents": tangent_frames(item.mesh.vertices, item.mesh.normals, uv, FACES)})
+        item = DrawItem(mesh, item.world_from_obj, item.albedo_scale, item.albedo_bias, item.instance_id)
+    # camera frame: u along +x (mirrored: -x), v along +y (rows run down the quad), the normal -z (to the camera)
+    T, up, N = np.array([-1.0 if mirrored else 1.0, 0, 0]), np.array([0, -1.0, 0]), np.array([0, 0, -1.0])
+    n = m[0] * T + m[1] * up + m[2] * N
     n /= np.linalg.norm(n)
     # the sampler returns the map's 8-bit texels at 8-bit precision (llvmpipe: 0.984375 for 0.98464): 1/255 a
     # component moves the cosine by up to about 4e-3
-    np.testing.assert_allclose(J[H // 2, W // 2], max(n @ sun, 0.0), atol=4e-3)
-    assert abs(max(n @ sun, 0.0) - max(-sun[2], 0.0)) > 0.1  # and differs from the unmapped shading
+    assert lit_centre(gl, item) == pytest.approx(max(n @ SUN, 0.0), abs=4e-3)
+    assert abs(max(n @ SUN, 0.0) - max(-SUN[2], 0.0)) > 0.05  # and differs from the unmapped shading
+
+
+# (object-frame axes of a quad's u, t and normal under triplanar mapping, and a pose turning its normal to the camera)
+PLANES = {
+    "z": (np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, -1.0]), np.eye(3)),
+    "x": (np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), np.array([1.0, 0, 0]),
+          np.array([[0, 0, 1.0], [0, 1.0, 0], [-1.0, 0, 0]])),  # object x -> camera -z
+}
+
+
+@pytest.mark.parametrize("tilt", TILTS)
+@pytest.mark.parametrize("plane", PLANES)
+def test_a_triplanar_normal_map_turns_the_normal_as_its_texels_say(gl, tilt, plane):
+    """On a face along an object axis, the projection's u and t (x: z, y; z: x, y) take the map's x and, up the
+    image, -t its y; the object's pose carries the result to the camera."""
+    image, m = tilted_map(tilt)
+    U, V, N, R = PLANES[plane]
+    corners = np.array([-U - V, U - V, U + V, -U + V]) * 0.8 + N * 0.0
+    v = corners.astype(np.float32)
+    mesh = Mesh(key=f"test/triplanar-quad/{plane}/{tilt}", vertices=v, normals=np.tile(N, (4, 1)).astype(np.float32),
+                albedo=np.ones((4, 3), np.float32), faces=FACES, radius=1.2, centre=np.zeros(3),
+                material=Material(normal=image, mapping="triplanar"))
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R, [0.0, 0.0, 2.0]
+    item = DrawItem(mesh, pose, np.ones(3, np.float32), np.zeros(3, np.float32), 1)
+    n = R @ (m[0] * U - m[1] * V + m[2] * N)
+    n /= np.linalg.norm(n)
+    assert (R @ N)[2] < 0  # the face looks at the camera
+    assert lit_centre(gl, item) == pytest.approx(max(n @ SUN, 0.0), abs=4e-3)
 
 
 def test_a_texture_over_the_budget_is_refused_naming_it():

@@ -226,6 +226,16 @@ class Terrain(SpecModel):
     # colour), so no ray that points down ends in open water at the tile's edge; off: the tile alone.
     far_field: StrictBool = True
 
+    @model_validator(mode="after")
+    def _texture_set(self) -> Terrain:
+        """normal_map and height_map belong to a texture, and give one normal map: at most one of them."""
+        if self.texture is None and (self.normal_map is not None or self.height_map is not None):
+            which = "normal_map" if self.normal_map is not None else "height_map"
+            raise ValueError(f"{which} needs texture (the base colour image it goes with)")
+        if self.normal_map is not None and self.height_map is not None:
+            raise ValueError("give normal_map or height_map, not both (a height map is made into the normal map)")
+        return self
+
 
 class Materials(SpecModel):
     """Per-pixel surface detail of the built-in terrains and procedural assets."""

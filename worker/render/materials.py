@@ -104,10 +104,11 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
     vec3 orm = vec3(1.0);
 #endif
     if (len > 1e-20) {
-        vec3 tx = unpack_normal(texture(u_normal_tex, ux).xyz);
-        vec3 ty = unpack_normal(texture(u_normal_tex, uy).xyz);
-        vec3 tz = unpack_normal(texture(u_normal_tex, uz).xyz);
-        vec3 s = sign(on);
+        // the maps' y points up the image, towards -t: the projections' second axis runs with t, so y flips
+        vec3 flip = vec3(1.0, -1.0, 1.0);
+        vec3 tx = unpack_normal(texture(u_normal_tex, ux).xyz) * flip;
+        vec3 ty = unpack_normal(texture(u_normal_tex, uy).xyz) * flip;
+        vec3 tz = unpack_normal(texture(u_normal_tex, uz).xyz) * flip;
         tx = vec3(tx.xy + on.zy, abs(tx.z) * on.x);
         ty = vec3(ty.xy + on.xz, abs(ty.z) * on.y);
         tz = vec3(tz.xy + on.xy, abs(tz.z) * on.z);

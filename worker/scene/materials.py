@@ -69,10 +69,9 @@ def user_material(albedo: Texture, normal: Texture | None, height: Texture | Non
         normal_image = Image(f"file/{normal.sha256}/normal", normal.pixels, False, normal.source)
     elif height is not None:
         grey = height.pixels.astype(np.float64).mean(axis=2) / 255.0 * height_m
-        h, w = grey.shape
-        texel_m = tile_m / max(h, w)
+        h, w = grey.shape  # the image spans tile_m both ways: columns tile_m / w apart, rows tile_m / h
         normal_image = Image(f"file/{height.sha256}/height/{height_m!r}/{tile_m!r}",
-                             normal_map(grey - grey.mean(), texel_m), False, height.source)
+                             normal_map(grey - grey.mean(), tile_m / w, tile_m / h), False, height.source)
     return Material(base=Image(f"file/{albedo.sha256}/albedo", albedo.pixels, True, albedo.source),
                     normal=normal_image, mapping="uv", anisotropy=anisotropy)
 

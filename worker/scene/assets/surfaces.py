@@ -34,7 +34,7 @@ from seasynth.service.errors import AssetError
 from seasynth.service.textures import PixelBudget
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 from seasynth.worker.render import Image, Material
-from seasynth.worker.scene.assets.mtl import MtlMaterial, read_mtl
+from seasynth.service.mtl import MtlMaterial, read_mtl
 from seasynth.worker.scene.assets.textures import normal_map
 
 # trimesh is handed the glTF with material i named MATERIAL_NAME + i: its parts then say which material they have.
@@ -56,11 +56,13 @@ class PartSurface:
     group: int  # the material's index in its file: parts of one material share it
 
 
-def flip_v(uv: np.ndarray | None, n: int) -> np.ndarray:
+def flip_v(uv: np.ndarray | None, n: int, where: str = "a textured part") -> np.ndarray:
     """trimesh's texture coordinates ((0, 0) bottom-left: it flips glTF's v, keeps OBJ's) -> the renderer's
-    ((0, 0) the image's top-left); (n, 2) zeros where a part has none."""
+    ((0, 0) the image's top-left); AssetError naming `where` if a textured part has none for its n vertices (it
+    would draw one texel's colour everywhere)."""
     if uv is None or len(uv) != n:
-        return np.zeros((n, 2))
+        have = "none" if uv is None else f"{len(uv)} for {n} vertices"
+        raise AssetError(f"{where}: has textures but no texture coordinates ({have})")
     uv = np.asarray(uv, np.float64)
     return np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
 
@@ -193,8 +195,8 @@ class GltfSurfaces:
         n = len(mesh.vertices)
         colour = mesh.visual.vertex_attributes.get("color")
         base = np.tile(WHITE, (n, 1)) if colour is None or len(colour) != n else trimesh.visual.color.to_rgba(colour)
-        return PartSurface(scaled_colours(base, [float(f) for f in factor[:3]]), flip_v(mesh.visual.uv, n), material,
-                           index)
+        uv = flip_v(mesh.visual.uv, n, f"{self.path.name}: material {index}")
+        return PartSurface(scaled_colours(base, [float(f) for f in factor[:3]]), uv, material, index)
 
     def _material(self, index: int, pbr) -> Material | None:
         spec = self.tree["materials"][index]
@@ -288,8 +290,8 @@ class ObjSurfaces:
             self._materials[entry.index] = self._material(entry)
         n = len(mesh.vertices)
         kd = entry.kd if entry.kd is not None and len(entry.kd) == 3 else (1.0, 1.0, 1.0)
-        return PartSurface(scaled_colours(np.tile(WHITE, (n, 1)), kd), flip_v(getattr(mesh.visual, "uv", None), n),
-                           self._materials[entry.index], entry.index)
+        uv = flip_v(getattr(mesh.visual, "uv", None), n, f"{self.path.name}: material {entry.index}")
+        return PartSurface(scaled_colours(np.tile(WHITE, (n, 1)), kd), uv, self._materials[entry.index], entry.index)
 
     def _material(self, entry: MtlMaterial) -> Material:
         base = normal = None

@@ -347,12 +347,14 @@ GENERATORS: dict[str, Callable[[np.random.Generator, int], tuple[np.ndarray, np.
 # ---------------------------------------------------------------------------------------------
 
 
-def normal_map(height_m: np.ndarray, texel_m: float) -> np.ndarray:
-    """Tangent-space normals of `height_m: (n, n)` metres, texels `texel_m` apart: (n, n, 3) uint8, (v + 1) / 2
-    * 255 rounded; periodic central differences, x towards increasing column, y towards decreasing row."""
+def normal_map(height_m: np.ndarray, texel_m: float, row_m: float | None = None) -> np.ndarray:
+    """Tangent-space normals of `height_m: (h, w)` metres, columns `texel_m` apart and rows `row_m` apart (default
+    texel_m): (h, w, 3) uint8, (v + 1) / 2 * 255 rounded; periodic central differences, x towards increasing
+    column, y towards decreasing row."""
     h = np.asarray(height_m, np.float64)
+    row_m = texel_m if row_m is None else row_m
     hx = (np.roll(h, -1, axis=1) - np.roll(h, 1, axis=1)) / (2.0 * texel_m)
-    hy = (np.roll(h, 1, axis=0) - np.roll(h, -1, axis=0)) / (2.0 * texel_m)
+    hy = (np.roll(h, 1, axis=0) - np.roll(h, -1, axis=0)) / (2.0 * row_m)
     z = 1.0 / np.sqrt(hx * hx + hy * hy + 1.0)
     v = np.stack([-hx * z, -hy * z, z], axis=-1)
     return np.clip(np.floor((v + 1.0) * 127.5 + 0.5), 0, 255).astype(np.uint8)

@@ -1,5 +1,6 @@
-"""Wavefront MTL material libraries, as far as the mesh loader reads them (seasynth.worker.scene.assets.surfaces):
-each material's Kd, map_Kd and bump map with its -bm scale."""
+"""Wavefront MTL material libraries, as far as the mesh loader reads them (seasynth.worker.scene.assets.surfaces)
+and the upload check checks them (seasynth.service.textures): each material's Kd, map_Kd and bump map with its -bm
+scale."""
 
 from __future__ import annotations
 
@@ -51,10 +52,12 @@ def read_mtl(text: str, where: str) -> dict[str, MtlMaterial]:
     """The materials of an MTL library by name (trimesh's reading: `newmtl` takes the rest of its line)."""
     found: dict[str, MtlMaterial] = {}
     name, fields = None, {}
+    count = [0]  # newmtl statements so far: a name given twice keeps its last definition, under a fresh index
 
     def close() -> None:
         if name is not None:
-            found[name] = MtlMaterial(len(found), **fields)
+            found[name] = MtlMaterial(count[0], **fields)
+            count[0] += 1
 
     for line in text.splitlines():
         split = line.strip().split()
