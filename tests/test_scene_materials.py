@@ -92,3 +92,20 @@ def test_a_texture_set_read_from_the_shared_folder_is_the_built_one(tmp_path):
     finally:
         share_in(None)
         shared_texture_set.cache_clear()
+
+
+def test_a_user_mesh_s_textures_are_filtered_as_the_spec_says():
+    from pathlib import Path
+
+    from seasynth.worker.scene.assets.user import load_user_asset
+    from seasynth.worker.scene.materials import user_surface
+
+    asset = load_user_asset(Path(__file__).resolve().parents[1] / "examples" / "assets" / "marker.glb")
+    assert asset.surface is not None
+    for anisotropy in (1, 4, 16):
+        spec = DatasetSpec.model_validate({"materials": {"anisotropy": anisotropy}})
+        got = user_surface(asset, spec)
+        assert user_surface(asset, spec) is got  # cached by asset and setting
+        assert [m.anisotropy for _, _, m in got.groups if m is not None] == [float(anisotropy)] * sum(
+            m is not None for _, _, m in asset.surface.groups)
+        assert got.uv is asset.surface.uv and [g[:2] for g in got.groups] == [g[:2] for g in asset.surface.groups]

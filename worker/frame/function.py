@@ -254,7 +254,7 @@ class RenderSession:
         for p in scene.objects:
             items.append(
                 DrawItem(
-                    mesh=self._render_mesh(p.asset.key, p.asset.mesh, p.material, surface=p.asset.surface),
+                    mesh=self._render_mesh(p.asset.key, p.asset.mesh, p.material, surface=p.surface),
                     world_from_obj=p.world_from_obj,
                     albedo_scale=p.albedo_scale,
                     albedo_bias=p.albedo_bias,

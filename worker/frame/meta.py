@@ -76,7 +76,8 @@ def _material_record(m: Material | None, tile_m: float | None, name: str) -> dic
     images = {k: None if i is None else {"key": i.key, "source": i.source}
               for k, i in (("base", m.base), ("normal", m.normal), ("orm", m.orm))}
     record = {"mapping": m.mapping, "images": images, "base_gain": m.base_gain, "normal_scale": m.normal_scale,
-              "occlusion_strength": m.occlusion_strength, "metallic_factor": m.metallic_factor}
+              "occlusion_strength": m.occlusion_strength, "metallic_factor": m.metallic_factor,
+              "anisotropy": m.anisotropy}
     if m.mapping == "triplanar":
         record["triplanar_per_m"] = m.triplanar_per_m
     if tile_m is not None:
@@ -109,7 +110,7 @@ def _object_record(p: Placed, fl: FrameLabels | None) -> dict:
 def _surface_record(p: Placed) -> dict:
     """{"materials": each face range of a user mesh with textures and what it draws with (None: vertex colours)},
     or {} for meshes without (meta as before textures)."""
-    surface = p.asset.surface
+    surface = p.surface if p.surface is not None else p.asset.surface
     if surface is None:
         return {}
     return {"materials": [{"first_face": first, "face_count": count,

@@ -4,13 +4,14 @@ terrain, and the texture coordinates of a terrain's vertices."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
 
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.render import Image, Material
-from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.procedural import stable_seed
 from seasynth.worker.scene.assets.terrain import Texture, value_noise
 from seasynth.worker.scene.assets.textures import normal_map
@@ -47,6 +48,27 @@ def asset_material(asset: Asset, variant: int | None, spec: DatasetSpec) -> Mate
     m = spec.materials
     return procedural_material(ASSET_FAMILY[kind], texture_variant(variant, spec), m.texture_px, "triplanar",
                                float(m.anisotropy))
+
+
+def user_surface(asset: Asset, spec: DatasetSpec) -> UserSurface | None:
+    """A user mesh's own materials, filtered with the spec's materials.anisotropy like every texture (None: the
+    mesh has no texture)."""
+    surface = asset.surface
+    if surface is None:
+        return None
+    anisotropy = float(spec.materials.anisotropy)
+    key = (asset.key, anisotropy)
+    got = _user_surfaces.get(key)
+    if got is None or got[0] is not surface:
+        groups = tuple((first, count, None if m is None else dataclasses.replace(m, anisotropy=anisotropy))
+                       for first, count, m in surface.groups)
+        got = _user_surfaces[key] = (surface, UserSurface(uv=surface.uv, groups=groups))
+        while len(_user_surfaces) > 64:
+            _user_surfaces.pop(next(iter(_user_surfaces)))
+    return got[1]
+
+
+_user_surfaces: dict[tuple[str, float], tuple[UserSurface, UserSurface]] = {}  # (asset key, anisotropy) -> (its, ours)
 
 
 def style_material(style: str, variant: int, spec: DatasetSpec) -> Material | None:

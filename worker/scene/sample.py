@@ -15,10 +15,10 @@ from seasynth.service.water import jerlov_beta, jerlov_veiling_light
 from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.build import sample_physical
 from seasynth.worker.render import Lighting, Material, WaterParams
-from seasynth.worker.scene.assets import Asset
+from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.terrain import Terrain
 from seasynth.worker.scene.far_field import FarField, far_field
-from seasynth.worker.scene.materials import asset_material
+from seasynth.worker.scene.materials import asset_material, user_surface
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse, rotation_between
 from seasynth.worker.scene.trajectory import vehicle_state
 from seasynth.worker.sensors import world_from_sensor
@@ -52,6 +52,7 @@ class Placed:
     albedo_bias: np.ndarray  # (3,) float32
     footprint_m: float  # metres: radius of the disc about the anchor holding the object's horizontal projection
     material: Material | None = None  # per-pixel textures of a procedural asset (seasynth.worker.scene.materials)
+    surface: UserSurface | None = None  # a user mesh's own textures, filtered as the spec says (materials.user_surface)
 
 
 @dataclass(frozen=True)
@@ -237,6 +238,7 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
                     albedo_bias=a_bias,
                     footprint_m=radius,
                     material=asset_material(asset, variant, spec),
+                    surface=user_surface(asset, spec),
                 )
             )
 
