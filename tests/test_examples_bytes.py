@@ -31,10 +31,15 @@ def generate(name: str, out: Path) -> dict[str, str]:
 
 
 def located(path: Path) -> bytes:
-    """A file's bytes, the dataset record's absolute paths of the checkout's own files (an example's assets, as the
-    spec file names them) written as <repo>: the same bytes wherever the repo is checked out."""
+    """A file's bytes; the dataset record of an example that names the checkout's own files (its assets, made
+    absolute as the spec file is loaded) with those paths written as <repo> and without its spec digest, which
+    digests them: the same bytes wherever the repo is checked out."""
     data = path.read_bytes()
-    return data.replace(str(ROOT).encode(), b"<repo>") if path.name == "seasynth.json" else data
+    if path.name != "seasynth.json" or str(ROOT).encode() not in data:
+        return data
+    record = json.loads(data)
+    record.pop("spec_sha256")
+    return json.dumps(record, sort_keys=True).replace(str(ROOT), "<repo>").encode()
 
 
 def renderer_of(out: Path) -> str:
