@@ -42,8 +42,13 @@ def shared_texture_set(family: str, variant: int, size: int) -> TextureSet:
 
 
 def _store(path: Path, t: TextureSet) -> None:
-    arrays = {"key": np.array(t.key), "source": np.array(t.source), "gain": np.array(t.albedo_gain),
-              "tile_m": np.array(t.tile_m), "albedo": t.albedo, "normal": t.normal, "height_m": t.height_m}
+    store_npz(path, {"key": np.array(t.key), "source": np.array(t.source), "gain": np.array(t.albedo_gain),
+                     "tile_m": np.array(t.tile_m), "albedo": t.albedo, "normal": t.normal, "height_m": t.height_m})
+
+
+def store_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write arrays to path whole: into a temporary file beside it, renamed into place (readers never see half a
+    file). A full or read-only disk costs the writer its speed-up, nothing more."""
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -51,7 +56,7 @@ def _store(path: Path, t: TextureSet) -> None:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
         os.replace(tmp, path)
-    except OSError:  # a full or read-only disk costs this process its speed-up, nothing more
+    except OSError:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
 

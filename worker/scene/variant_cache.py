@@ -11,8 +11,6 @@ a few milliseconds. Files are written whole and renamed into place; one that can
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 import zipfile
 from collections import OrderedDict
 from pathlib import Path
@@ -23,7 +21,7 @@ import trimesh
 from seasynth import service
 from seasynth.worker.scene.assets import freeze
 from seasynth.worker.scene.assets.terrain import Terrain, procedural_terrain
-from seasynth.worker.scene.texture_cache import share_in
+from seasynth.worker.scene.texture_cache import share_in, store_npz
 
 KEEP = 32  # variants kept in memory, as procedural_terrain's own cache
 
@@ -64,19 +62,9 @@ def _digest(args: tuple) -> str:
 
 def _store(path: Path, t: Terrain) -> None:
     m = t.mesh
-    arrays = {"key": np.array(t.key), "extent": np.array(t.extent, dtype=np.float64), "heights": t.heights,
-              "vertices": np.asarray(m.vertices), "faces": np.asarray(m.faces),
-              "colours": np.asarray(m.visual.vertex_colors), "normals": np.asarray(m.vertex_normals)}
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".part-", suffix=".npz")
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except OSError:  # a full or read-only disk costs this process its speed-up, nothing more
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
+    store_npz(path, {"key": np.array(t.key), "extent": np.array(t.extent, dtype=np.float64), "heights": t.heights,
+                     "vertices": np.asarray(m.vertices), "faces": np.asarray(m.faces),
+                     "colours": np.asarray(m.visual.vertex_colors), "normals": np.asarray(m.vertex_normals)})
 
 
 def _load(path: Path) -> Terrain | None:

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
 
     from seasynth.worker.render import Material
 
-__all__ = ["Asset", "AssetError", "UserSurface", "freeze", "read_source"]
+__all__ = ["Asset", "AssetError", "UserSurface", "file_identity", "freeze", "read_source"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,3 +59,15 @@ def read_source(path: Path) -> bytes:
         raise AssetError(f"{path}: file not found") from None
     except OSError as exc:
         raise AssetError(f"{path}: cannot read file ({exc.strerror or exc})") from exc
+
+
+def file_identity(path: Path) -> tuple[Path, int, int]:
+    """(resolved path, mtime in ns, size in bytes) of a user file; `AssetError` if it is missing."""
+    try:
+        resolved = Path(path).resolve()
+        stat = resolved.stat()
+    except FileNotFoundError:
+        raise AssetError(f"{path}: file not found") from None
+    except OSError as exc:
+        raise AssetError(f"{path}: cannot read file ({exc.strerror or exc})") from exc
+    return resolved, stat.st_mtime_ns, stat.st_size

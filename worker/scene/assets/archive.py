@@ -10,6 +10,7 @@ from pathlib import Path
 
 from seasynth.service.archives import safe_extract
 from seasynth.service.errors import AssetError
+from seasynth.worker.scene.assets import file_identity
 
 CACHE_FOLDER = "seasynth-archives"  # under the system's temporary folder
 
@@ -19,14 +20,8 @@ def mesh_in_archive(path: Path) -> Path:
     `tempfile.gettempdir()/seasynth-archives/<sha256 of the zip>` (checked as the API checks uploads, then renamed
     into place whole, so processes sharing the folder never see half an extraction); `AssetError` names the
     archive and the member at fault."""
-    try:
-        resolved = Path(path).resolve()
-        stat = resolved.stat()
-    except FileNotFoundError:
-        raise AssetError(f"{path}: file not found") from None
-    except OSError as exc:
-        raise AssetError(f"{path}: cannot read file ({exc.strerror or exc})") from exc
-    sha256 = _sha256(resolved, stat.st_mtime_ns, stat.st_size)
+    resolved, mtime_ns, size = file_identity(path)
+    sha256 = _sha256(resolved, mtime_ns, size)
     return safe_extract(resolved, Path(tempfile.gettempdir()) / CACHE_FOLDER / sha256, name=Path(path).name)
 
 

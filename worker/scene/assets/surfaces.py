@@ -31,10 +31,10 @@ import numpy as np
 import trimesh
 
 from seasynth.service.errors import AssetError
+from seasynth.service.mtl import MtlMaterial, read_mtl
 from seasynth.service.textures import PixelBudget
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 from seasynth.worker.render import Image, Material
-from seasynth.service.mtl import MtlMaterial, read_mtl
 from seasynth.worker.scene.assets.textures import normal_map
 
 # trimesh is handed the glTF with material i named MATERIAL_NAME + i: its parts then say which material they have.

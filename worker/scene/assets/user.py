@@ -11,7 +11,7 @@ import trimesh
 
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.render import Material
-from seasynth.worker.scene.assets import Asset, AssetError, UserSurface, freeze, read_source
+from seasynth.worker.scene.assets import Asset, AssetError, UserSurface, file_identity, freeze, read_source
 from seasynth.worker.scene.assets.archive import mesh_in_archive
 from seasynth.worker.scene.assets.surfaces import surface_reader
 from seasynth.worker.scene.assets.terrain import Terrain, Texture, decode_texture
@@ -49,18 +49,6 @@ def load_user_texture(path: Path) -> Texture:
     """
     resolved, mtime_ns, size = file_identity(path)
     return _user_texture(resolved, mtime_ns, size)
-
-
-def file_identity(path: Path) -> tuple[Path, int, int]:
-    """(resolved path, mtime in ns, size in bytes) of a user file; `AssetError` if it is missing."""
-    try:
-        resolved = Path(path).resolve()
-        stat = resolved.stat()
-    except FileNotFoundError:
-        raise AssetError(f"{path}: file not found") from None
-    except OSError as exc:
-        raise AssetError(f"{path}: cannot read file ({exc.strerror or exc})") from exc
-    return resolved, stat.st_mtime_ns, stat.st_size
 
 
 @functools.lru_cache(maxsize=128)
