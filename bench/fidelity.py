@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import statistics
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from seasynth.bench.accuracy import EXAMPLE, psnr_db, write_results
+from seasynth.bench.fidelity_scene import FRAME, SEED, paper_water, path_traced_scene
 from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
 # The table's frame size: the references at 320x240 are converged past every row's error, and seasynth's fixed
@@ -31,7 +31,6 @@ WIDTH, HEIGHT = 320, 240
 # in turbid water), while its 8 x 8 block means are converged far beyond what is scored: the light model's error at
 # the scale it works on (its terms are smooth in the image) is judged there.
 BLOCK = 8
-SEED, FRAME = 7, 3
 LAMPS = [
     {"offset_m": [-0.35, 0.1, 0.0], "direction": [0.15, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
      "intensity": [3.0, 3.0]},
@@ -47,11 +46,28 @@ CONFIGS: dict[str, str] = {
     "ocean-sun-lamp": "II:sun+lamp@10",
 }
 PRESET_NAMES = ("draft", "fast", "default", "high")
+# The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
+# frame holds seabed from ~2 m out to where the water hides it and open water above.
+LONG_VIEW = {"workspaces.camera": {"min": [0.0, -1.7, 1.2], "max": [0.0, -1.7, 1.2]},
+             "workspaces.look_at": {"min": [0.0, 6.0, 0.0], "max": [0.0, 6.0, 0.0]}, "camera.look_at_jitter_m": 0.0}
+
+
+VIEWS = ("textured", "long")
+
+
+def config_options(text: str) -> tuple[str, frozenset[str]]:
+    """'WATER:LIGHT[@DEPTH] [OPTION ...]' -> ('WATER:LIGHT[@DEPTH]', options): `textured` (the procedural textures
+    on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above)."""
+    head, *options = text.split()
+    unknown = sorted(set(options) - set(VIEWS))
+    if unknown:
+        raise SystemExit(f"configuration {text!r}: unknown option(s) {', '.join(unknown)}; known: {', '.join(VIEWS)}")
+    return head, frozenset(options)
 
 
 def parse_config(text: str) -> tuple[str, str, float]:
-    """'WATER:LIGHT[@DEPTH]' -> (water, light, depth_m)."""
-    water, _, rest = text.partition(":")
+    """'WATER:LIGHT[@DEPTH] [OPTION ...]' -> (water, light, depth_m)."""
+    water, _, rest = config_options(text)[0].partition(":")
     light, _, depth = rest.partition("@")
     if light not in ("sun", "lamp", "sun+lamp") or not water:
         raise SystemExit(f"configuration {text!r}: give WATER:LIGHT[@DEPTH], LIGHT one of sun, lamp, sun+lamp")
@@ -74,6 +90,7 @@ def _water_overrides(water: str) -> dict:
 def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSpec:
     """The configuration's spec; `size` (width, height) other than the table's for a look at how it scales."""
     water, light, depth = parse_config(text)
+    options = config_options(text)[1]
     sun = "sun" in light
     overrides = {
         "seed": SEED, "frames": FRAME + 1, "camera.width": size[0], "camera.height": size[1],
@@ -82,56 +99,16 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         "lighting.sun_intensity": [1.2, 1.2] if sun else [0.0, 0.0],
         "lighting.ambient": [0.25, 0.25] if sun else [0.0, 0.0],
         "lighting.lamps": LAMPS if "lamp" in light else [],
-        # The tile alone: these configurations' path-traced references are of the near view, rendered before the
-        # seabed reached the horizon (terrain.far_field); the long view is checked by configurations of its own.
-        "terrain.far_field": False,
-        # Vertex colours: these references were path traced before surfaces had per-pixel textures (0.7.0).
-        "materials.procedural": False,
+        # The tile alone in the near view: its references were rendered before the seabed reached the horizon
+        # (terrain.far_field), which these frames do not see; the long view shows it.
+        "terrain.far_field": "long" in options,
+        # Vertex colours unless `textured`: the near view's first references were path traced before surfaces had
+        # per-pixel textures (0.7.0).
+        "materials.procedural": "textured" in options,
+        **(LONG_VIEW if "long" in options else {}),
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
-
-
-def path_traced_scene(session, spec: DatasetSpec):
-    """The frame's scene for the path tracer, in its units (radiance: our J = albedo x irradiance is pi times less
-    than a Lambertian surface's radiance under the same irradiance, so lights are scaled by pi)."""
-    from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
-    from seasynth.worker.light import SNELL_CONE_DEG
-
-    scene = session.scene(spec, FRAME)
-    view = session.view(spec, scene)
-    light = scene.light
-    meshes = []
-    for it in session.draw_items(scene):
-        v, albedo = it.world_vertices(), it.shaded_albedo()
-        meshes.append(PTMesh(vertices=v.astype(np.float32), faces=it.mesh.faces, albedo=albedo.astype(np.float32),
-                             instance_id=it.instance_id))
-    world_from_cam = scene.world_from_cam
-    lamps = tuple(
-        PTLamp(position_world=world_from_cam[:3, :3] @ lp.position_cam + world_from_cam[:3, 3],
-               direction_world=world_from_cam[:3, :3] @ lp.direction_cam, cutoff_deg=math.degrees(lp.cutoff_rad),
-               beam_width_deg=math.degrees(lp.beam_rad), intensity_rgb=math.pi * lp.intensity)
-        for lp in light.lamps
-    )
-    sky = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
-    return PTScene(meshes=tuple(meshes), K=view.K, width=view.width, height=view.height,
-                   world_from_cam=world_from_cam, sigma_a=light.medium.a, sigma_s=light.medium.b, g=light.medium.g,
-                   surface_z=light.medium.surface_z, sun_dir_world=light.sun_dir_world,
-                   sun_irradiance_rgb=math.pi * light.sun_irradiance, sky_radiance_rgb=sky, lamps=lamps,
-                   sky_cone_deg=SNELL_CONE_DEG)
-
-
-def paper_water(scene, view):
-    """The deferred model's coefficients from the same water: beta_D = beta_B = c, and B_inf the physical model's
-    open water looking horizontally at the camera's depth."""
-    from seasynth.worker.light.volume import camera_depth, volume
-    from seasynth.worker.render import WaterParams
-
-    light = scene.light
-    w = np.array([[1.0, 0.0, 0.0]])
-    b_inf = volume(np.zeros((1, 3)), np.array([np.inf]), w, w, camera_depth(light, scene.world_from_cam), light)[0]
-    c = light.medium.c
-    return WaterParams(beta_D=c, beta_B=c, B_inf=b_inf)
 
 
 def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:

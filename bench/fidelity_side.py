@@ -20,9 +20,9 @@ from seasynth.bench.fidelity import (
     config_spec,
     equal_error_spp,
     mse,
-    path_traced_scene,
     stored_reference,
 )
+from seasynth.bench.fidelity_scene import path_traced_scene
 
 REFERENCES = Path(__file__).resolve().parent / "results" / "cpu" / "fidelity-references"
 

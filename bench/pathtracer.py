@@ -41,12 +41,14 @@ KITTI_FROM_MITSUBA_CAM = np.diag([-1.0, -1.0, 1.0, 1.0])  # Mitsuba's camera: x 
 @dataclass(frozen=True)
 class PTMesh:
     """One triangle mesh: vertices (n, 3) float32 world m (z up); faces (m, 3) uint32;
-    albedo (n, 3) float32 linear RGB per vertex in [0, 1]; instance_id int (0 = terrain)."""
+    albedo (n, 3) float32 linear RGB per vertex in [0, 1]; instance_id int (0 = terrain); material: per-pixel
+    textures (pathtracer_textures.PTMaterial; albedo is then the vertex albedo before its scale and bias) or None."""
 
     vertices: np.ndarray
     faces: np.ndarray
     albedo: np.ndarray
     instance_id: int
+    material: object | None = None
 
 
 @dataclass(frozen=True)
@@ -179,7 +181,12 @@ def _water_box(scene: PTScene, mi) -> tuple[dict, float]:
 
 
 def _mesh(mesh: PTMesh, name: str, mi):
-    """An mi.Mesh built from arrays, two-sided Lambertian with per-vertex albedo, smooth (angle-weighted) normals."""
+    """An mi.Mesh built from arrays, two-sided Lambertian with per-vertex albedo, smooth (angle-weighted) normals;
+    textured (pathtracer_textures) where the mesh has a material."""
+    if mesh.material is not None:
+        from seasynth.bench.pathtracer_textures import textured_mesh
+
+        return textured_mesh(mesh, name, mi)
     vertices = np.asarray(mesh.vertices, dtype=np.float32)
     faces = np.asarray(mesh.faces, dtype=np.uint32)
     props = mi.Properties()

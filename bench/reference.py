@@ -27,6 +27,7 @@ import numpy as np
 
 from seasynth.bench import pathtracer
 from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
+from seasynth.bench.pathtracer_textures import PTMaterial
 
 SCENE_SUFFIX = ".scene.npz"
 REF_SUFFIX = ".ref.npz"
@@ -42,6 +43,11 @@ def _scene_arrays(scene: PTScene) -> dict[str, np.ndarray]:
                 out[f"mesh{i}_faces"] = np.asarray(m.faces, np.uint32)
                 out[f"mesh{i}_albedo"] = np.asarray(m.albedo, np.float32)
                 out[f"mesh{i}_instance_id"] = np.asarray(m.instance_id, np.int64)
+                if m.material is not None:
+                    for g in dataclasses.fields(PTMaterial):
+                        value = getattr(m.material, g.name)
+                        if value is not None:
+                            out[f"mesh{i}_mat_{g.name}"] = np.asarray(value)
         elif f.name == "lamps":
             for i, lamp in enumerate(value):
                 for g in dataclasses.fields(PTLamp):
@@ -69,7 +75,8 @@ def load_scene(path: Path) -> PTScene:
     with np.load(path) as z:
         a = {k: z[k] for k in z.files}
     meshes = tuple(PTMesh(a[f"mesh{i}_vertices"], a[f"mesh{i}_faces"], a[f"mesh{i}_albedo"],
-                          int(a[f"mesh{i}_instance_id"])) for i in range(sum(k.endswith("_faces") for k in a)))
+                          int(a[f"mesh{i}_instance_id"]), _material(a, f"mesh{i}_mat_"))
+                   for i in range(sum(k.endswith("_faces") for k in a)))
     lamps = tuple(PTLamp(**{g.name: (float(a[f"lamp{i}_{g.name}"]) if a[f"lamp{i}_{g.name}"].ndim == 0
                                      else a[f"lamp{i}_{g.name}"]) for g in dataclasses.fields(PTLamp)})
                   for i in range(sum(k.endswith("_intensity_rgb") for k in a)))
@@ -77,6 +84,14 @@ def load_scene(path: Path) -> PTScene:
     rest = {f.name: (scalars[f.name](a[f.name]) if f.name in scalars else a[f.name])
             for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps")}
     return PTScene(meshes=meshes, lamps=lamps, **rest)
+
+
+def _material(a: dict[str, np.ndarray], prefix: str) -> PTMaterial | None:
+    if f"{prefix}mapping" not in a:
+        return None
+    kinds = {"base_gain": float, "normal_scale": float, "metallic": float, "triplanar_per_m": float, "mapping": str}
+    return PTMaterial(**{g.name: (kinds[g.name](a[prefix + g.name]) if g.name in kinds else a.get(prefix + g.name))
+                         for g in dataclasses.fields(PTMaterial)})
 
 
 @dataclasses.dataclass(frozen=True)

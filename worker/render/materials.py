@@ -70,6 +70,11 @@ uniform mat3 u_nrm_cam;
 #define LOD_BIAS 0.0
 #endif
 vec3 unpack_normal(vec3 t) { return vec3((t.xy * 2.0 - 1.0) * u_material.y, t.z * 2.0 - 1.0); }
+// The length of a filtered normal-map lookup: its texels are unit normals, so a footprint over relief averages to
+// a shorter one, and a Lambertian surface's mean shading over the footprint is that length times the shading of
+// the mean direction (irradiance linear in the normal). 8-bit texels leave a unit normal's length up to ~2/255 off 1:
+// lengths count from there.
+float spread(vec3 t) { return min(length(t * 2.0 - 1.0) * (255.0 / 253.0), 1.0); }
 vec3 textured_albedo(inout vec3 n, out float occlusion) {
     float len = length(v_nrm);
     float side = dot(n, v_nrm) < 0.0 ? -1.0 : 1.0;   // n faces the camera: the back of a face takes -normal
@@ -80,7 +85,9 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
 #else
     vec3 orm = vec3(1.0);
 #endif
-    vec3 m = unpack_normal(texture(u_normal_tex, v_uv, LOD_BIAS).xyz);
+    vec3 t = texture(u_normal_tex, v_uv, LOD_BIAS).xyz;
+    vec3 m = unpack_normal(t);
+    float relief = spread(t);
     if (len > 1e-20 && dot(v_tan.xyz, v_tan.xyz) > 1e-20) {
         vec3 N = v_nrm / len;
         vec3 T = v_tan.xyz - N * dot(N, v_tan.xyz);
@@ -98,6 +105,7 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
     vec3 w = pow(abs(on), vec3(4.0));
     w /= max(w.x + w.y + w.z, 1e-20);
     vec3 p = v_obj * u_triplanar_per_m;
+    float relief = 1.0;
     vec2 ux = p.zy, uy = p.xz, uz = p.xy;
     vec3 base = w.x * texture(u_base_tex, ux, LOD_BIAS).rgb + w.y * texture(u_base_tex, uy, LOD_BIAS).rgb
               + w.z * texture(u_base_tex, uz, LOD_BIAS).rgb;
@@ -110,9 +118,13 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
     if (len > 1e-20) {
         // the maps' y points up the image, towards -t: the projections' second axis runs with t, so y flips
         vec3 flip = vec3(1.0, -1.0, 1.0);
-        vec3 tx = unpack_normal(texture(u_normal_tex, ux, LOD_BIAS).xyz) * flip;
-        vec3 ty = unpack_normal(texture(u_normal_tex, uy, LOD_BIAS).xyz) * flip;
-        vec3 tz = unpack_normal(texture(u_normal_tex, uz, LOD_BIAS).xyz) * flip;
+        vec3 sx = texture(u_normal_tex, ux, LOD_BIAS).xyz;
+        vec3 sy = texture(u_normal_tex, uy, LOD_BIAS).xyz;
+        vec3 sz = texture(u_normal_tex, uz, LOD_BIAS).xyz;
+        relief = w.x * spread(sx) + w.y * spread(sy) + w.z * spread(sz);
+        vec3 tx = unpack_normal(sx) * flip;
+        vec3 ty = unpack_normal(sy) * flip;
+        vec3 tz = unpack_normal(sz) * flip;
         tx = vec3(tx.xy + on.zy, abs(tx.z) * on.x);
         ty = vec3(ty.xy + on.xz, abs(ty.z) * on.y);
         tz = vec3(tz.xy + on.xy, abs(tz.z) * on.z);
@@ -121,7 +133,7 @@ vec3 textured_albedo(inout vec3 n, out float occlusion) {
     }
 #endif
     occlusion = 1.0 + u_material.z * (orm.r - 1.0);
-    return base * (u_material.x * (1.0 - u_material.w * orm.b));
+    return base * (u_material.x * (1.0 - u_material.w * orm.b) * relief);
 }
 #endif
 """

@@ -342,10 +342,6 @@ GENERATORS: dict[str, Callable[[np.random.Generator, int], tuple[np.ndarray, np.
 }
 
 
-# ---------------------------------------------------------------------------------------------
-# Encoding and the cached entry point
-# ---------------------------------------------------------------------------------------------
-
 
 def normal_map(height_m: np.ndarray, texel_m: float, row_m: float | None = None) -> np.ndarray:
     """Tangent-space normals of `height_m: (h, w)` metres, columns `texel_m` apart and rows `row_m` apart (default
@@ -377,10 +373,9 @@ def read_only(a: np.ndarray) -> np.ndarray:
     return a
 
 
-@functools.lru_cache(maxsize=64)
 def texture_set(family: str, variant: int, size: int = 512) -> TextureSet:
     """Variant `variant` (>= 0) of texture `family` at `size` x `size` texels (a power of two, 16..2048);
-    byte-identical in every process, cached per process."""
+    byte-identical in every process, cached per process (after the checks: True must not find variant 1)."""
     if family not in GENERATORS:
         raise ValueError(f"texture family must be one of {', '.join(FAMILIES)}; got {family!r}")
     if isinstance(variant, bool) or not isinstance(variant, (int, np.integer)) or variant < 0:
@@ -388,7 +383,11 @@ def texture_set(family: str, variant: int, size: int = 512) -> TextureSet:
     if (isinstance(size, bool) or not isinstance(size, (int, np.integer)) or not 16 <= size <= 2048
             or size & (size - 1)):
         raise ValueError(f"texture size must be a power of two from 16 to 2048, got {size!r}")
-    variant, size = int(variant), int(size)
+    return _texture_set(family, int(variant), int(size))
+
+
+@functools.lru_cache(maxsize=64)
+def _texture_set(family: str, variant: int, size: int) -> TextureSet:
     rng = np.random.default_rng(np.random.SeedSequence([stable_seed("texture/" + family), variant]))
     height, factor = GENERATORS[family](rng, size)
     height_m = (height - height.mean()).astype(np.float32)
