@@ -113,6 +113,11 @@ def finish(vertices: np.ndarray, faces: np.ndarray, rgb: np.ndarray, centred: bo
                            process=False)
 
 
+def widened(vertices: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """`vertices: (n, 3)` moved away from the z axis by `factor: (n,)` (heights kept)."""
+    return vertices * np.column_stack([factor, factor, np.ones(len(factor))])
+
+
 def pick_colour(rng: np.random.Generator, palette: np.ndarray, spread: float) -> np.ndarray:
     """One sRGB colour (3,) from `palette: (k, 3)` with multiplicative jitter of about `spread`."""
     base = palette[rng.integers(len(palette))]
@@ -134,7 +139,7 @@ def revolve(r: np.ndarray, z: np.ndarray, sides: int, closed: bool = False) -> t
     """A solid of revolution about +z from a profile `r, z: (..., S)` metres (r > 0), traversed with the solid on its
     left in the (r, z) half-plane (up the outside, down the inside) -> vertices (V, 3), outward faces (F, 3).
 
-    Open profiles are capped flat at both ends (start and end near the axis); closed ones (`closed`: the last point
+    Open profiles are capped flat at both ends (fans: each end's ring is a circle); closed ones (`closed`: the last point
     joins the first) give a ring-shaped solid: a tyre, a pipe with its wall. Leading axes are separate solids.
     """
     theta = 2.0 * np.pi * np.arange(sides) / sides
@@ -193,3 +198,18 @@ def hinged_pair(vertices: np.ndarray, faces: np.ndarray, hinge_y: float, opening
                              (vertices[:, 1] - hinge_y) * sin + vertices[:, 2] * cos])
     return (np.concatenate([lower, upper]),
             np.concatenate([faces[:, ::-1], faces + len(vertices)]))  # the mirror flips the winding
+
+
+def capped(rings: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A closed body from `rings: (S, sides, 3)` metres along its axis (each counter-clockwise about the direction
+    of travel) and `ends: (2, 3)` its two tips (before the first ring, after the last) -> vertices (S * sides + 2, 3)
+    and outward faces (F, 3): the side of tube_faces and a fan from each tip, so no ring needs to be convex."""
+    sections, sides = rings.shape[:2]
+    k = np.arange(sides)
+    k1 = (k + 1) % sides
+    side = tube_faces(sections, sides)[: 2 * (sections - 1) * sides]
+    first, last = sections * sides, sections * sides + 1
+    top = (sections - 1) * sides
+    faces = np.concatenate([side, np.stack([np.full(sides, first), k1, k], -1),
+                            np.stack([np.full(sides, last), top + k, top + k1], -1)])
+    return np.concatenate([rings.reshape(-1, 3), ends]), faces

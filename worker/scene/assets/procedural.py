@@ -1,4 +1,5 @@
-"""Deterministic procedural meshes: the sea urchin and the distractors (rock, coral, seaweed, clam)."""
+"""Deterministic procedural meshes: the sea urchin and the distractors (rock, coral, seaweed, clam), and the registry
+of every procedural kind, with the marine animals (marine.py) and litter (litter.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from collections.abc import Callable
 import numpy as np
 import trimesh
 
-from seasynth.worker.scene.assets import Asset, freeze
+from seasynth.worker.scene.assets import Asset, freeze, litter, marine
 from seasynth.worker.scene.assets.geometry import (
     cones,
     finish,
@@ -200,6 +201,20 @@ PROCEDURAL: dict[str, Callable[[np.random.Generator], trimesh.Trimesh]] = {
     "coral": coral,
     "seaweed": seaweed,
     "clam": clam,
+    "starfish": marine.starfish,
+    "sea_cucumber": marine.sea_cucumber,
+    "scallop": marine.scallop,
+    "anemone": marine.anemone,
+    "sponge": marine.sponge,
+    "fish": marine.fish,
+    "plastic_bottle": litter.plastic_bottle,
+    "glass_bottle": litter.glass_bottle,
+    "can": litter.can,
+    "tyre": litter.tyre,
+    "rope": litter.rope,
+    "net": litter.net,
+    "cinder_block": litter.cinder_block,
+    "pipe": litter.pipe,
 }
 
 
