@@ -5,6 +5,7 @@ renderer: test_vocabulary_labels.py."""
 from __future__ import annotations
 
 import hashlib
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -20,7 +21,8 @@ from seasynth.worker.scene.assets.procedural import PROCEDURAL, procedural_asset
 from seasynth.worker.scene.assets.textures import FAMILIES
 from seasynth.worker.scene.materials import ASSET_FAMILY
 
-# kind: (largest bounding-box extent in metres; triangle budget)
+GUIDE = Path(__file__).resolve().parents[1] / "docs" / "spec-guide.md"
+# kind: (largest bounding-box extent in metres, as docs/spec-guide.md's table states it; triangle budget)
 VOCABULARY = {
     "starfish": ((0.06, 0.30), 2200),
     "sea_cucumber": ((0.10, 0.36), 1600),
@@ -61,6 +63,15 @@ def test_every_kind_is_registered_in_the_spec_and_has_a_texture_family():
     assert set(VOCABULARY) | {"urchin", "rock", "coral", "seaweed", "clam"} == set(PROCEDURAL)
     assert list(get_args(ProceduralTarget)) == list(PROCEDURAL)
     assert set(ASSET_FAMILY) == set(PROCEDURAL) and set(ASSET_FAMILY.values()) <= set(FAMILIES)
+
+
+def test_the_guide_s_table_states_the_tested_sizes_and_the_texture_families():
+    rows = re.findall(r"^\| `(\w+)` \| [^|]+ \| (\d+)-(\d+) cm \| (\w+) \| (\w+) \|$", GUIDE.read_text(), re.MULTILINE)
+    assert [kind for kind, *_ in rows] == list(PROCEDURAL)
+    stated = {kind: (int(lo) / 100, int(hi) / 100) for kind, lo, hi, *_ in rows}
+    assert {kind: stated[kind] for kind in VOCABULARY} == {kind: size for kind, (size, _) in VOCABULARY.items()}
+    assert {watertight for *_, watertight, _ in rows} == {"yes"}
+    assert {kind: family for kind, *_, family in rows} == ASSET_FAMILY
 
 
 @pytest.mark.parametrize("kind", KINDS)
