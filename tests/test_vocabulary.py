@@ -24,20 +24,20 @@ from seasynth.worker.scene.materials import ASSET_FAMILY
 GUIDE = Path(__file__).resolve().parents[1] / "docs" / "spec-guide.md"
 # kind: (largest bounding-box extent in metres, as docs/spec-guide.md's table states it; triangle budget)
 VOCABULARY = {
-    "starfish": ((0.06, 0.30), 2200),
-    "sea_cucumber": ((0.10, 0.36), 1600),
-    "scallop": ((0.05, 0.16), 1600),
+    "starfish": ((0.06, 0.30), 2016),
+    "sea_cucumber": ((0.10, 0.36), 1450),
+    "scallop": ((0.05, 0.16), 1536),
     "anemone": ((0.03, 0.30), 2500),
-    "sponge": ((0.08, 0.56), 1400),
-    "fish": ((0.09, 0.60), 900),
-    "plastic_bottle": ((0.15, 0.34), 1200),
-    "glass_bottle": ((0.19, 0.35), 1000),
-    "can": ((0.09, 0.17), 1000),
+    "sponge": ((0.10, 0.50), 1280),
+    "fish": ((0.09, 0.60), 680),
+    "plastic_bottle": ((0.15, 0.34), 828),
+    "glass_bottle": ((0.19, 0.35), 636),
+    "can": ((0.09, 0.17), 572),
     "tyre": ((0.55, 0.83), 2400),
-    "rope": ((0.15, 1.25), 1300),
-    "net": ((0.18, 1.10), 2400),
-    "cinder_block": ((0.38, 0.46), 1100),
-    "pipe": ((0.20, 1.20), 1200),
+    "rope": ((0.15, 1.25), 1260),
+    "net": ((0.18, 1.10), 2208),
+    "cinder_block": ((0.38, 0.46), 840),
+    "pipe": ((0.20, 1.20), 576),
 }
 KINDS = sorted(VOCABULARY)
 variants = st.integers(0, 10**6)

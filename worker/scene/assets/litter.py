@@ -53,7 +53,7 @@ def crushed(vertices: np.ndarray, rng: np.random.Generator, size: float, most: f
 
 def plastic_bottle(rng: np.random.Generator) -> trimesh.Trimesh:
     """Plastic drinks bottle 15-34 cm long (0.33-2 l), capped, with a label band on half of them, intact or crushed,
-    mostly lying on its side (1.2k triangles)."""
+    mostly lying on its side (828 triangles)."""
     radius = rng.uniform(0.025, 0.045)
     height = radius * rng.uniform(5.5, 7.0) + 0.02
     neck, cap = rng.uniform(0.0125, 0.014), rng.uniform(0.0145, 0.016)
@@ -73,7 +73,7 @@ def plastic_bottle(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def glass_bottle(rng: np.random.Generator) -> trimesh.Trimesh:
-    """Glass bottle 19-34 cm long (beer to wine), a long neck with a lip ring, mostly lying on its side (960
+    """Glass bottle 19-34 cm long (beer to wine), a long neck with a lip ring, mostly lying on its side (636
     triangles)."""
     radius = rng.uniform(0.028, 0.04)
     height = rng.uniform(0.19, 0.34)
@@ -91,7 +91,7 @@ def glass_bottle(rng: np.random.Generator) -> trimesh.Trimesh:
 
 def can(rng: np.random.Generator) -> trimesh.Trimesh:
     """Drinks can 9-17 cm long (5.3-6.6 cm across), domed base and necked top, intact or crushed, rusting on a
-    third of them, mostly lying on its side (1k triangles)."""
+    third of them, mostly lying on its side (572 triangles)."""
     radius = rng.uniform(0.0265, 0.033)
     height = rng.uniform(0.093, 0.168)
     r = radius * np.array([0.55, 0.8, 0.97, 1.0, 1.0, 0.86, 0.87, 0.87, 0.8])
@@ -107,7 +107,7 @@ def can(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def tyre(rng: np.random.Generator) -> trimesh.Trimesh:
-    """Car or van tyre 55-80 cm across and 15-30 cm wide without its wheel, a block tread on its crown, lying flat
+    """Car or van tyre 55-83 cm across and 15-30 cm wide without its wheel, a block tread on its crown, lying flat
     or on its edge (2.4k triangles)."""
     outer = rng.uniform(0.275, 0.4)
     inner = outer * rng.uniform(0.55, 0.7)
@@ -127,8 +127,8 @@ def tyre(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def rope(rng: np.random.Generator) -> trimesh.Trimesh:
-    """A fragment of three-strand rope 30-120 cm long and 1.2-3 cm thick, lying in gentle curves on the seabed
-    (<= 1.3k triangles)."""
+    """A fragment of three-strand rope 30-120 cm long (15-125 cm across) and 1.2-3 cm thick, lying in gentle curves on
+    the seabed (316-1260 triangles)."""
     length = rng.uniform(0.3, 1.2)
     radius = rng.uniform(0.006, 0.015)
     sections, sides = max(int(length / 0.015), 12), 8
@@ -150,8 +150,8 @@ def rope(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def net(rng: np.random.Generator) -> trimesh.Trimesh:
-    """A torn fragment of fishing net 30-100 cm across, draped over the seabed's bumps: 8-12 strands each way,
-    3-12 cm apart and 2-5 mm thick, each a closed tube (<= 2.4k triangles)."""
+    """A torn fragment of fishing net 18-110 cm across, draped over the seabed's bumps: 8-12 strands each way,
+    3-9 cm apart and 2-5 mm thick, each a closed tube (<= 2.2k triangles)."""
     n = int(rng.integers(8, 13))
     mesh = rng.uniform(0.03, 0.09)
     radius = rng.uniform(0.001, 0.0025)
@@ -203,7 +203,7 @@ def slab_faces(solid: np.ndarray) -> np.ndarray:
 
 def cinder_block(rng: np.random.Generator) -> trimesh.Trimesh:
     """Concrete cinder block 39-44 cm long, 19-22 cm high and 14-22 cm wide with two or three hollow cores, weathered
-    and chipped, standing or on its side (<= 1.1k triangles)."""
+    and chipped, standing or on its side (612-840 triangles)."""
     length, high, wide = rng.uniform(0.39, 0.44), rng.uniform(0.19, 0.215), rng.uniform(0.14, 0.215)
     cores = int(rng.integers(2, 4))
     shell, web = rng.uniform(0.025, 0.035), rng.uniform(0.025, 0.04)
@@ -231,7 +231,7 @@ def cinder_block(rng: np.random.Generator) -> trimesh.Trimesh:
 
 def pipe(rng: np.random.Generator) -> trimesh.Trimesh:
     """A pipe segment 20-120 cm long and 4-30 cm across with open ends and a wall 4-12% of its diameter (PVC,
-    HDPE, steel or concrete), lying on its side (1.1k triangles)."""
+    HDPE, steel or concrete), lying on its side (576 triangles)."""
     length = rng.uniform(0.2, 1.2)
     outer = 0.5 * rng.uniform(0.04, 0.3)
     inner = outer * (1.0 - 2.0 * rng.uniform(0.04, 0.12))

@@ -37,8 +37,8 @@ FISH_BACK = np.array([[0.20, 0.28, 0.35], [0.28, 0.32, 0.20], [0.40, 0.32, 0.22]
 
 
 def starfish(rng: np.random.Generator) -> trimesh.Trimesh:
-    """Starfish 8-30 cm across: 5 arms (4 or 6 in a quarter of them) tapering from a central disc, flattened (a
-    flat underside), their tips curled up a little (<= 2.2k triangles)."""
+    """Starfish 6-30 cm across: 5 arms (4 or 6 in a quarter of them) tapering from a central disc, flattened (a
+    flat underside), their tips curled up a little (1.3k-2k triangles)."""
     arms = int(rng.choice([4, 5, 6], p=[0.1, 0.75, 0.15]))
     radius = rng.uniform(0.04, 0.15)  # centre to the longest arm's tip
     disc = radius * rng.uniform(0.2, 0.35)
@@ -70,7 +70,7 @@ def starfish(rng: np.random.Generator) -> trimesh.Trimesh:
 
 def sea_cucumber(rng: np.random.Generator) -> trimesh.Trimesh:
     """Sea cucumber 10-35 cm long: a soft, slightly bent cylindrical body with rounded ends and a flat sole,
-    wrinkled, with 20-60 conical papillae on its back and two rows of tube-feet bumps along its sole (<= 1.6k
+    wrinkled, with 20-60 conical papillae on its back and two rows of tube-feet bumps along its sole (<= 1.45k
     triangles)."""
     length = rng.uniform(0.10, 0.35)
     radius = length * rng.uniform(0.09, 0.15)
@@ -113,8 +113,8 @@ def reach(p: np.ndarray, d: np.ndarray, normals: np.ndarray, offsets: np.ndarray
 
 
 def scallop(rng: np.random.Generator) -> trimesh.Trimesh:
-    """Scallop 5-15 cm wide: two fan-shaped valves with 14-24 strong radial ribs and a straight hinge with its two
-    ears, opened 3-15 degrees (1.1k triangles)."""
+    """Scallop 5-16 cm wide: two fan-shaped valves with 14-24 strong radial ribs and a straight hinge with its two
+    ears, opened 3-15 degrees (1.5k triangles)."""
     a = rng.uniform(0.025, 0.075)  # the fan's radius
     alpha = np.deg2rad(rng.uniform(42.0, 55.0))  # half-angle of the fan at the umbo
     ear = a * rng.uniform(0.35, 0.5)
@@ -146,8 +146,8 @@ def scallop(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def anemone(rng: np.random.Generator) -> trimesh.Trimesh:
-    """Sea anemone 3-20 cm tall: a column (1-4 cm radius) flaring to an oral disc, crowned by 20-48 tapering,
-    curving tentacles in two whorls (<= 2.5k triangles)."""
+    """Sea anemone 2-19 cm tall and up to 30 cm across its tentacles: a column (1-4 cm radius) flaring to an oral
+    disc, crowned by 20-48 tapering, curving tentacles in two whorls (1.2k-2.5k triangles)."""
     rc = rng.uniform(0.01, 0.04)
     hc = rc * rng.uniform(1.0, 3.0)
     flare = rng.uniform(1.1, 1.5)
@@ -179,14 +179,15 @@ def anemone(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def sponge(rng: np.random.Generator) -> trimesh.Trimesh:
-    """Sponge: a barrel or vase 10-50 cm tall with its central cavity open at the top (half the variants; 1.4k
-    triangles), or a lumpy encrusting mound 10-40 cm across and 3-15 cm high with dark oscula (1280 triangles)."""
+    """Sponge: a barrel or vase 10-50 cm tall (and narrower) with its central cavity open at the top (half the
+    variants; 948 triangles), or a lumpy encrusting mound 10-40 cm across and 2-15 cm high with dark oscula (1280
+    triangles)."""
     colour = pick_colour(rng, SPONGE_PALETTE, 0.15)
     if rng.random() < 0.5:
         height = rng.uniform(0.10, 0.50)
-        r0 = height * rng.uniform(0.15, 0.3)
+        r0 = height * rng.uniform(0.12, 0.22)
         t = np.linspace(0.0, 1.0, 8)
-        outer = r0 * (1.0 + rng.uniform(0.1, 0.7) * np.sin(np.pi * t) ** 1.5 + rng.uniform(0.0, 0.6) * t)
+        outer = r0 * (1.0 + rng.uniform(0.1, 0.5) * np.sin(np.pi * t) ** 1.5 + rng.uniform(0.0, 0.5) * t)  # <= height / 2
         wall = rng.uniform(0.25, 0.45)
         floor = height * rng.uniform(0.2, 0.4)
         z_in = floor + (height - floor) * t[::-1][:-1]  # the cavity's wall, down from the lip
@@ -208,6 +209,7 @@ def sponge(rng: np.random.Generator) -> trimesh.Trimesh:
         vertices = d * rad[:, None] * axes
         floor = -0.3 * axes[2]
         vertices[:, 2] = np.where(vertices[:, 2] < floor, floor + 0.1 * (vertices[:, 2] - floor), vertices[:, 2])
+        vertices *= width / np.ptp(vertices[:, :2], axis=0).max()  # `width` across, whatever the lobes
         faces = np.asarray(sphere.faces)
         shade = 1.0 - 0.6 * smoothstep(0.97, 0.995, (d @ bumps.T).max(axis=1))  # oscula atop the lobes
     mottle = 1.0 + 0.1 * wave_field(rng, vertices * 20.0, 12, 1.0)
@@ -215,9 +217,10 @@ def sponge(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def fish(rng: np.random.Generator) -> trimesh.Trimesh:
-    """Fish 10-60 cm long, nose along +x and back up (+z), its origin at its bounding box's centre (to hang in the
+    """Fish 9-60 cm long, nose along +x and back up (+z), its origin at its bounding box's centre (to hang in the
     water column): a fusiform body of one of three plans (slender, deep-bodied, flat: a flatfish lying on its
-    side), a forked tail, a dorsal fin, two pectoral fins and two eyes (<= 900 triangles)."""
+    side), a forked tail, a dorsal fin (a flatfish: a fringe along each side), two pectoral fins and two eyes
+    (<= 680 triangles)."""
     plan = int(rng.integers(3))  # 0 slender, 1 deep-bodied, 2 flat
     length = rng.uniform(0.10, 0.60)
     height = length / (rng.uniform(4.5, 6.0), rng.uniform(2.0, 2.8), rng.uniform(7.0, 10.0))[plan]
