@@ -36,7 +36,7 @@ VOCABULARY = {
     "tyre": ((0.55, 0.83), 2400),
     "rope": ((0.15, 1.25), 1260),
     "net": ((0.18, 1.10), 2208),
-    "cinder_block": ((0.38, 0.46), 840),
+    "cinder_block": ((0.38, 0.46), 1224),
     "pipe": ((0.20, 1.20), 576),
 }
 KINDS = sorted(VOCABULARY)

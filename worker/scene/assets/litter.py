@@ -179,16 +179,18 @@ def net(rng: np.random.Generator) -> trimesh.Trimesh:
                   colour * (1.0 + 0.1 * wave_field(rng, vertices * 10.0, 12, 1.0))[:, None])
 
 
-def slab_faces(solid: np.ndarray) -> np.ndarray:
+def slab_faces(solid: np.ndarray, layers: int) -> np.ndarray:
     """Outward faces (F, 3) of the prism over the cells `solid: (nx, ny) bool` of a grid, vertex `(i * (ny + 1) + j)
-    * 2 + top` at grid node (i, j) (x, y increasing), bottom (0) or top (1)."""
+    * layers + l` at grid node (i, j) (x, y increasing) on layer l (0 the bottom face, layers - 1 the top); its walls
+    are cut at every layer, so their shading bends only near the edges."""
     nx, ny = solid.shape
 
-    def node(i: np.ndarray, j: np.ndarray, top: int) -> np.ndarray:
-        return (i * (ny + 1) + j) * 2 + top
+    def node(i: np.ndarray, j: np.ndarray, layer: int) -> np.ndarray:
+        return (i * (ny + 1) + j) * layers + layer
 
     i, j = np.nonzero(solid)
-    quads = [np.stack([node(i, j, 1), node(i + 1, j, 1), node(i + 1, j + 1, 1), node(i, j + 1, 1)], -1),
+    top = layers - 1
+    quads = [np.stack([node(i, j, top), node(i + 1, j, top), node(i + 1, j + 1, top), node(i, j + 1, top)], -1),
              np.stack([node(i, j, 0), node(i, j + 1, 0), node(i + 1, j + 1, 0), node(i + 1, j, 0)], -1)]
     padded = np.pad(solid, 1)
     for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):  # a wall where a solid cell meets an empty one
@@ -196,14 +198,14 @@ def slab_faces(solid: np.ndarray) -> np.ndarray:
         # the cell's edge on that side, counter-clockwise seen from outside
         a = {(1, 0): (i + 1, j), (-1, 0): (i, j + 1), (0, 1): (i + 1, j + 1), (0, -1): (i, j)}[(di, dj)]
         b = {(1, 0): (i + 1, j + 1), (-1, 0): (i, j), (0, 1): (i, j + 1), (0, -1): (i + 1, j)}[(di, dj)]
-        quads.append(np.stack([node(*a, 0), node(*b, 0), node(*b, 1), node(*a, 1)], -1))
+        quads += [np.stack([node(*a, k), node(*b, k), node(*b, k + 1), node(*a, k + 1)], -1) for k in range(top)]
     q = np.concatenate(quads)
     return np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
 
 
 def cinder_block(rng: np.random.Generator) -> trimesh.Trimesh:
     """Concrete cinder block 39-44 cm long, 19-22 cm high and 14-22 cm wide with two or three hollow cores, weathered
-    and chipped, standing or on its side (612-840 triangles)."""
+    and chipped, standing or on its side (900-1224 triangles)."""
     length, high, wide = rng.uniform(0.39, 0.44), rng.uniform(0.19, 0.215), rng.uniform(0.14, 0.215)
     cores = int(rng.integers(2, 4))
     shell, web = rng.uniform(0.025, 0.035), rng.uniform(0.025, 0.04)
@@ -217,16 +219,21 @@ def cinder_block(rng: np.random.Generator) -> trimesh.Trimesh:
     ys = np.interp(np.arange(split * 3 + 1) / split, np.arange(4), ys)
     solid = np.repeat(np.repeat(cells, split, 0), split, 1)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    vertices = np.stack([np.repeat(gx.ravel(), 2), np.repeat(gy.ravel(), 2), np.tile([0.0, high], gx.size)], -1)
+    z = np.array([0.0, 0.01, high - 0.01, high])
+    vertices = np.stack([np.repeat(gx.ravel(), len(z)), np.repeat(gy.ravel(), len(z)), np.tile(z, gx.size)], -1)
+    faces = slab_faces(solid, len(z))
+    used = np.unique(faces)  # nodes inside the faces have no wall: their middle layers are unused
+    vertices, faces = vertices[used], np.searchsorted(used, faces)
     wear = 0.002 * wave_field(rng, vertices * 30.0, 12, 1.0)[:, None] * rng.normal(1.0, 0.3, (len(vertices), 3))
-    rim = np.minimum(np.minimum(gx, length - gx), np.minimum(gy, wide - gy)).ravel().repeat(2) < 1e-9
+    rim = np.minimum(np.minimum(vertices[:, 0], length - vertices[:, 0]),
+                     np.minimum(vertices[:, 1], wide - vertices[:, 1])) < 1e-9
     chip = rim[:, None] * rng.uniform(0.0, 0.004, (len(vertices), 3)) * np.sign([0.5 * length, 0.5 * wide, 0.5 * high]
                                                                                - vertices)
     vertices = vertices + wear + chip
     if rng.random() < 0.35:  # on its side: the cores run horizontally
         vertices = np.column_stack([vertices[:, 0], -vertices[:, 2], vertices[:, 1]])
     colour = pick_colour(rng, CONCRETE_PALETTE, 0.1)
-    return finish(vertices, slab_faces(solid), colour * (1.0 + 0.1 * wave_field(rng, vertices * 15.0, 12, 1.0))[:, None])
+    return finish(vertices, faces, colour * (1.0 + 0.1 * wave_field(rng, vertices * 15.0, 12, 1.0))[:, None])
 
 
 def pipe(rng: np.random.Generator) -> trimesh.Trimesh:
