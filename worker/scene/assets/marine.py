@@ -160,9 +160,9 @@ def anemone(rng: np.random.Generator) -> trimesh.Trimesh:
     angle = 2.0 * np.pi * (np.arange(n) + 0.5 * whorl) / n + rng.normal(0.0, 0.05, n)
     out = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(n)])
     base = out * (rc * flare * (0.9 - 0.3 * whorl))[:, None] + [0.0, 0.0, hc]
-    length = rc * rng.uniform(1.0, 2.5) * rng.uniform(0.8, 1.1, n) * (1.0 - 0.25 * whorl)
+    length = rc * rng.uniform(1.0, 2.2) * rng.uniform(0.8, 1.1, n) * (1.0 - 0.25 * whorl)
     rise = np.deg2rad(rng.uniform(25.0, 60.0, n))
-    droop = rng.uniform(0.0, 0.5, n)
+    droop = rng.uniform(0.15, 0.8, n)
     s = np.linspace(0.0, 1.0, 6)
     lead = out * np.cos(rise)[:, None] + np.array([0.0, 0.0, 1.0]) * np.sin(rise)[:, None]
     sag = 0.5 * out - [0.0, 0.0, 0.7]
