@@ -187,36 +187,44 @@ def test_a_far_target_covering_one_pixel_centre_gets_a_1x1_box(render_session):
 # --- sampled scenes ---------------------------------------------------------------------------------------------
 
 
+def check_sampled_frame(session, spec, index: int) -> tuple[labels.FrameLabels, int, int]:
+    """Frame `index` of `spec` as the frame function samples and labels it, checked: each target with a visible pixel
+    has one line, whose 2D box is the tight box of its instance pixels and whose 3D box is the yaw-only box of its
+    vertices, enclosing the 2D box where it lies past the near plane. Returns (labels, labelled, enclosed)."""
+    scene = session.scene(spec, index)
+    view = session.view(spec, scene)
+    items = session.draw_items(scene)
+    result = session.renderer.render(view, items, scene.lighting, scene.water, PRESETS[spec.quality],
+                                     Passes(ids=True))
+    fl = session.labels(view, scene, items, result)
+    boxes = labels.tight_boxes(result.instance)
+    targets = [p.instance_id for p in scene.objects if p.role == "target"]
+    expected_ids = [i for i in targets if i in boxes]
+    assert list(fl.line_of) == expected_ids and list(fl.line_of.values()) == list(range(len(expected_ids)))
+    enclosed = 0
+    for i in expected_ids:
+        obj, box = fl.objects[fl.line_of[i]], boxes[i]
+        assert obj.box2d == (box.left, box.top, box.right, box.bottom)
+        assert fl.visible[i] == box.pixels <= fl.alone[i]
+        assert obj.type == spec.targets.class_name
+        placed_obj = next(p for p in scene.objects if p.instance_id == i)
+        corners = box3d_of(obj).corners()
+        # The 3D box is the yaw-only box of the object's vertices in the camera frame.
+        T = view.cam_from_world @ placed_obj.world_from_obj
+        pts = np.asarray(placed_obj.asset.mesh.vertices) @ T[:3, :3].T + T[:3, 3]
+        assert labels.box3d(pts) == box3d_of(obj)
+        if corners[:, 2].min() > view.near:
+            assert_encloses(obj, np.asarray(spec.camera.K()))
+            enclosed += 1
+    return fl, len(expected_ids), enclosed
+
+
 def test_label_boxes_are_the_tight_boxes_of_the_instance_image(render_session):
     spec = load_spec(EXAMPLE, {"camera.width": 96, "camera.height": 72})
-    K_spec = np.asarray(spec.camera.K())
     labelled = enclosed = 0
     for index in range(4):
-        scene = render_session.scene(spec, index)
-        view = render_session.view(spec, scene)
-        items = render_session.draw_items(scene)
-        result = render_session.renderer.render(view, items, scene.lighting, scene.water, PRESETS[spec.quality],
-                                                Passes(ids=True))
-        fl = render_session.labels(view, scene, items, result)
-        boxes = labels.tight_boxes(result.instance)
-        targets = [p.instance_id for p in scene.objects if p.role == "target"]
-        expected_ids = [i for i in targets if i in boxes]
-        assert list(fl.line_of) == expected_ids and list(fl.line_of.values()) == list(range(len(expected_ids)))
-        for i in expected_ids:
-            obj, box = fl.objects[fl.line_of[i]], boxes[i]
-            assert obj.box2d == (box.left, box.top, box.right, box.bottom)
-            assert fl.visible[i] == box.pixels <= fl.alone[i]
-            assert obj.type == spec.targets.class_name
-            placed_obj = next(p for p in scene.objects if p.instance_id == i)
-            corners = box3d_of(obj).corners()
-            # The 3D box is the yaw-only box of the object's vertices in the camera frame.
-            T = view.cam_from_world @ placed_obj.world_from_obj
-            pts = np.asarray(placed_obj.asset.mesh.vertices) @ T[:3, :3].T + T[:3, 3]
-            assert labels.box3d(pts) == box3d_of(obj)
-            if corners[:, 2].min() > view.near:
-                assert_encloses(obj, K_spec)
-                enclosed += 1
-        labelled += len(expected_ids)
+        fl, n, e = check_sampled_frame(render_session, spec, index)
+        labelled, enclosed = labelled + n, enclosed + e
         if index == 0:
             files = render_session.frame_files(spec, index)
             assert files["label_2/000000.txt"].decode() == kitti.format_label_file(fl.objects)

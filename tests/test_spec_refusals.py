@@ -85,7 +85,7 @@ REFUSED = [
     # unknown names
     ({"water": {"jerlov": ["II", "9Z"]}}, "water.jerlov", "unknown Jerlov type '9Z'"),
     ({"quality": "ultra"}, "quality", "'draft', 'fast', 'default' or 'high'"),
-    ({"targets": {"assets": [{"procedural": "starfish"}]}}, "targets.assets.0.procedural", "'urchin'"),
+    ({"targets": {"assets": [{"procedural": "kraken"}]}}, "targets.assets.0.procedural", "'urchin'"),
     ({"terrain": {"styles": ["mud"]}}, "terrain.styles.0", "'sand', 'pebbles' or 'rock'"),
     # asset refs: exactly one source
     (

@@ -38,7 +38,9 @@ MAX_VARIANTS = 1024
 MAX_ASSETS = 256  # entries in targets.assets and in distractors.assets
 MAX_PATH_CHARS = 4096
 
-ProceduralTarget = Literal["urchin", "rock", "coral", "seaweed", "clam"]
+ProceduralTarget = Literal["urchin", "rock", "coral", "seaweed", "clam",
+                          "starfish", "sea_cucumber", "scallop", "anemone", "sponge", "fish",
+                          "plastic_bottle", "glass_bottle", "can", "tyre", "rope", "net", "cinder_block", "pipe"]
 TerrainStyle = Literal["sand", "pebbles", "rock"]
 
 

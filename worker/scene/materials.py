@@ -18,7 +18,14 @@ from seasynth.worker.scene.assets.textures import normal_map
 from seasynth.worker.scene.texture_cache import shared_texture_set
 
 # The texture family of each procedural asset kind and terrain style.
-ASSET_FAMILY = {"urchin": "urchin", "rock": "stone", "coral": "coral", "seaweed": "seaweed", "clam": "clam"}
+ASSET_FAMILY = {"urchin": "urchin", "rock": "stone", "coral": "coral", "seaweed": "seaweed", "clam": "clam",
+                # animals: ossicles and papillae read as tubercles, sponges have pores, scales as fine growth lines
+                "starfish": "urchin", "sea_cucumber": "urchin", "scallop": "clam", "anemone": "seaweed",
+                "sponge": "coral", "fish": "clam",
+                # litter: silted smooth surfaces (mud: a 1 m tile, so a bottle sees its gentle mottling), fibres,
+                # weathered concrete and rubber
+                "plastic_bottle": "mud", "glass_bottle": "mud", "can": "mud", "tyre": "stone", "rope": "seaweed",
+                "net": "seaweed", "cinder_block": "stone", "pipe": "mud"}
 STYLE_FAMILY = {"sand": "sand", "pebbles": "pebbles", "rock": "rock"}
 
 

@@ -1,4 +1,5 @@
-"""Meshes the scene sampler places: procedural urchins and distractors, user files, and their shared types."""
+"""Meshes the scene sampler places: procedural kinds (urchins, distractors, marine animals and litter), user files,
+and their shared types."""
 
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ class UserSurface:
 
 @dataclass(frozen=True, eq=False)
 class Asset:
-    """One placeable mesh: metres, +z up, base at z = 0, bounding box centred on x, y = 0.
+    """One placeable mesh: metres, +z up, base at z = 0, bounding box centred on x, y = 0 (a procedural fish: its
+    whole bounding box centred on 0, nose along +x, for the water column).
 
     `mesh` is shared through per-process caches: its vertex, face and colour arrays are read-only
     and callers must copy it (`mesh.copy()`) before changing anything else on it.

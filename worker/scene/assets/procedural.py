@@ -1,4 +1,5 @@
-"""Deterministic procedural meshes: the sea urchin and the distractors (rock, coral, seaweed, clam)."""
+"""Deterministic procedural meshes: the sea urchin and the distractors (rock, coral, seaweed, clam), and the registry
+of every procedural kind, with the marine animals (marine.py) and litter (litter.py)."""
 
 from __future__ import annotations
 
@@ -10,128 +11,25 @@ from collections.abc import Callable
 import numpy as np
 import trimesh
 
-from seasynth.worker.scene.assets import Asset, freeze
+from seasynth.worker.scene.assets import Asset, freeze, litter, marine
+from seasynth.worker.scene.assets.geometry import (
+    cones,
+    finish,
+    hinged_pair,
+    perpendicular_frames,
+    pick_colour,
+    ring_points,
+    smoothstep,
+    tubes,
+    unit,
+    valve,
+    wave_field,
+)
 
 
 def stable_seed(name: str) -> int:
     """A process-independent 32-bit integer for `name` (CRC-32 of its UTF-8 bytes; never `hash()`)."""
     return zlib.crc32(name.encode("utf-8"))
-
-
-# ---------------------------------------------------------------------------------------------
-# Geometry helpers (free functions on arrays)
-# ---------------------------------------------------------------------------------------------
-
-
-def unit(v: np.ndarray) -> np.ndarray:
-    """Rows of `v: (n, 3) float64` scaled to unit length."""
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def perpendicular_frames(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit `u, v: (n, 3) float64` with (u, v, d) a right-handed orthonormal frame; `d: (n, 3)` unit."""
-    helper = np.where(np.abs(d[:, 2:3]) < 0.9, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-    u = unit(np.cross(helper, d))
-    return u, np.cross(d, u)
-
-
-def smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
-    """Hermite step from 0 at `lo` to 1 at `hi`; same shape as `x`."""
-    t = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
-
-
-def ring_points(centre: np.ndarray, axis: np.ndarray, radius: np.ndarray, sides: int) -> np.ndarray:
-    """Polygon corners counter-clockwise about `axis`: (n, sides, 3) metres.
-
-    centre, axis: (n, 3) (axis unit); radius: (n,) metres.
-    """
-    u, v = perpendicular_frames(axis)
-    theta = 2.0 * np.pi * np.arange(sides) / sides
-    offset = np.cos(theta)[None, :, None] * u[:, None] + np.sin(theta)[None, :, None] * v[:, None]
-    return centre[:, None] + radius[:, None, None] * offset
-
-
-def tube_faces(sections: int, sides: int, flip: np.ndarray | None = None) -> np.ndarray:
-    """Outward faces (F, 3) int64 of one closed tube of `sections` rings of `sides` corners.
-
-    Vertex `s * sides + k` is corner k of ring s; rings run along the tube axis and each ring is
-    counter-clockwise about that axis. Both ends are capped with triangle fans. Side quads from
-    corner k to k + 1 are split along the diagonal (k, s)-(k+1, s+1), or (k+1, s)-(k, s+1) where
-    `flip: (sides,) bool` is set.
-    """
-    k = np.arange(sides)
-    k1 = (k + 1) % sides
-    s = np.arange(sections - 1)[:, None]
-    a, b = s * sides + k, s * sides + k1
-    c, e = a - k + k1 + sides, a + sides
-    f = np.zeros(sides, bool) if flip is None else np.asarray(flip, bool)
-    first = np.where(f[:, None], np.stack([a, b, e], -1), np.stack([a, b, c], -1))
-    second = np.where(f[:, None], np.stack([b, c, e], -1), np.stack([a, c, e], -1))
-    side = np.stack([first, second], axis=1).reshape(-1, 3)
-    fan = np.arange(1, sides - 1)
-    zero = np.zeros_like(fan)
-    bottom = np.stack([zero, fan + 1, fan], -1)
-    top = (sections - 1) * sides + np.stack([zero, fan, fan + 1], -1)
-    return np.concatenate([side, bottom, top])
-
-
-def tubes(rings: np.ndarray, flip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Closed tubes from `rings: (m, sections, sides, 3)` metres -> vertices (V, 3), faces (F, 3) int64."""
-    m, sections, sides, _ = rings.shape
-    template = tube_faces(sections, sides, flip)
-    faces = template[None] + (np.arange(m) * sections * sides)[:, None, None]
-    return rings.reshape(-1, 3), faces.reshape(-1, 3)
-
-
-def cones(base: np.ndarray, axis: np.ndarray, length: np.ndarray, radius: np.ndarray, sides: int
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """Closed pointed cones -> vertices (n * (sides + 1), 3) metres, outward faces (n * (2 sides - 2), 3).
-
-    base, axis: (n, 3) metres / unit; length, radius: (n,) metres. Per cone: `sides` base corners, then the tip.
-    """
-    n = len(base)
-    ring = ring_points(base, axis, radius, sides)
-    tip = base + length[:, None] * axis
-    vertices = np.concatenate([ring, tip[:, None]], axis=1).reshape(-1, 3)
-    k = np.arange(sides)
-    fan = np.arange(1, sides - 1)
-    template = np.concatenate([
-        np.stack([k, (k + 1) % sides, np.full(sides, sides)], -1),
-        np.stack([np.zeros_like(fan), fan + 1, fan], -1),
-    ])
-    faces = template[None] + (np.arange(n) * (sides + 1))[:, None, None]
-    return vertices, faces.reshape(-1, 3)
-
-
-def wave_field(rng: np.random.Generator, p: np.ndarray, waves: int, frequency: float) -> np.ndarray:
-    """Smooth random field at points `p: (n, 3)`: sum of random plane waves, unit RMS; (n,) float64."""
-    k = rng.normal(size=(waves, 3)) * frequency
-    phase = rng.uniform(0.0, 2.0 * np.pi, waves)
-    amplitude = 1.0 / (1.0 + np.linalg.norm(k, axis=1))
-    field = np.sin(p @ k.T + phase) @ amplitude
-    return field / np.sqrt(np.mean(field**2))
-
-
-def srgb_u8(rgb: np.ndarray) -> np.ndarray:
-    """sRGB-encoded colours `rgb: (n, 3)` in [0, 1] -> opaque RGBA (n, 4) uint8."""
-    out = np.full((len(rgb), 4), 255, dtype=np.uint8)
-    out[:, :3] = np.round(np.clip(rgb, 0.0, 1.0) * 255.0)
-    return out
-
-
-def finish(vertices: np.ndarray, faces: np.ndarray, rgb: np.ndarray) -> trimesh.Trimesh:
-    """Mesh resting on z = 0 with its x, y bounding box centred on 0; `rgb: (n, 3)` sRGB in [0, 1]."""
-    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-    shift = np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]])
-    return trimesh.Trimesh(vertices=vertices - shift, faces=faces, vertex_colors=srgb_u8(rgb),
-                           process=False)
-
-
-def pick_colour(rng: np.random.Generator, palette: np.ndarray, spread: float) -> np.ndarray:
-    """One sRGB colour (3,) from `palette: (k, 3)` with multiplicative jitter of about `spread`."""
-    base = palette[rng.integers(len(palette))]
-    return np.clip(base * rng.uniform(1.0 - spread, 1.0 + spread) + rng.normal(0.0, spread / 8, 3), 0, 1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -277,18 +175,7 @@ def clam_valve(a: float, b: float, c: float, ribs: int, rings: int, sides: int
     umbo = np.array([0.0, -0.55 * b])
     xy = umbo + rho[..., None] * (outline - umbo)  # (rings, sides, 2)
     z = c * (1.0 - rho**2) ** 0.6 * (1.0 + 0.08 * np.abs(np.cos(ribs * phi)))
-    vertices = np.concatenate([[[*umbo, c]], np.concatenate([xy, z[..., None]], -1).reshape(-1, 3),
-                               [[*umbo, 0.0]]])
-    k = np.arange(sides)
-    k1 = (k + 1) % sides
-    i = np.arange(rings - 1)[:, None]
-    a_, b_ = 1 + i * sides + k, 1 + i * sides + k1
-    quads = np.stack([np.stack([a_, a_ + sides, b_ + sides], -1),
-                      np.stack([a_, b_ + sides, b_], -1)], axis=1).reshape(-1, 3)
-    rim = 1 + (rings - 1) * sides
-    centre = len(vertices) - 1
-    faces = np.concatenate([np.stack([np.zeros(sides, int), 1 + k, 1 + k1], -1), quads,
-                            np.stack([np.full(sides, centre), rim + k1, rim + k], -1)])
+    vertices, faces = valve(umbo, xy, z, c)
     rho_v = np.concatenate([[0.0], np.repeat(rho[:, 0], sides), [-1.0]])
     return vertices, faces, rho_v
 
@@ -300,20 +187,12 @@ def clam(rng: np.random.Generator) -> trimesh.Trimesh:
     c = b * rng.uniform(0.3, 0.5)
     ribs = int(rng.integers(14, 30))
     vertices, faces, rho = clam_valve(a, b, c, ribs, rings=8, sides=24)
-    lower = vertices * [1.0, 1.0, -1.0]
-    hinge_y = -b
-    opening = np.deg2rad(rng.uniform(5.0, 25.0))
-    cos, sin = np.cos(opening), np.sin(opening)
-    upper = np.column_stack([vertices[:, 0],
-                             hinge_y + (vertices[:, 1] - hinge_y) * cos - vertices[:, 2] * sin,
-                             (vertices[:, 1] - hinge_y) * sin + vertices[:, 2] * cos])
+    shell_v, shell_f = hinged_pair(vertices, faces, -b, np.deg2rad(rng.uniform(5.0, 25.0)))
     colour = pick_colour(rng, CLAM_PALETTE, 0.15)
     bands = rng.uniform(5.0, 12.0)
     shade = 0.85 + 0.15 * np.sin(2.0 * np.pi * bands * rho)
     rgb = np.where(rho[:, None] < 0, np.clip(colour * 1.3 + 0.1, 0, 1), colour * shade[:, None])
-    return finish(np.concatenate([lower, upper]),
-                  np.concatenate([faces[:, ::-1], faces + len(vertices)]),  # mirror flips the winding
-                  np.concatenate([rgb, rgb]))
+    return finish(shell_v, shell_f, np.concatenate([rgb, rgb]))
 
 
 PROCEDURAL: dict[str, Callable[[np.random.Generator], trimesh.Trimesh]] = {
@@ -322,6 +201,20 @@ PROCEDURAL: dict[str, Callable[[np.random.Generator], trimesh.Trimesh]] = {
     "coral": coral,
     "seaweed": seaweed,
     "clam": clam,
+    "starfish": marine.starfish,
+    "sea_cucumber": marine.sea_cucumber,
+    "scallop": marine.scallop,
+    "anemone": marine.anemone,
+    "sponge": marine.sponge,
+    "fish": marine.fish,
+    "plastic_bottle": litter.plastic_bottle,
+    "glass_bottle": litter.glass_bottle,
+    "can": litter.can,
+    "tyre": litter.tyre,
+    "rope": litter.rope,
+    "net": litter.net,
+    "cinder_block": litter.cinder_block,
+    "pipe": litter.pipe,
 }
 
 

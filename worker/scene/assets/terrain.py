@@ -13,7 +13,8 @@ import trimesh
 
 from seasynth.worker.render import Material
 from seasynth.worker.scene.assets import AssetError, freeze
-from seasynth.worker.scene.assets.procedural import srgb_u8, stable_seed
+from seasynth.worker.scene.assets.geometry import srgb_u8
+from seasynth.worker.scene.assets.procedural import stable_seed
 
 STYLES = ("sand", "pebbles", "rock")
 LATTICE = 256  # value-noise lattice period, in lattice cells
