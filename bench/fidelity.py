@@ -45,6 +45,18 @@ CONFIGS: dict[str, str] = {
     "turbid-lamps": "3C:lamp@40",
     "ocean-sun-lamp": "II:sun+lamp@10",
 }
+# The world the light falls on (textures and the far field), in configurations of their own: the near view with
+# per-pixel textures, and the long view (`long`) out to where the water hides the seabed, clear and turbid, sun
+# with and without lamps.
+WORLD_CONFIGS: dict[str, str] = {
+    "clear-ocean-sun-textured": "I:sun@15 textured",
+    "ocean-sun-textured": "II:sun@10 textured",
+    "coastal-sun-textured": "1C:sun@6 textured",
+    "long-clear-sun": "I:sun@15 long textured",
+    "long-clear-sun-lamp": "I:sun+lamp@15 long textured",
+    "long-turbid-sun": "III:sun@20 long textured",
+    "long-turbid-sun-lamp": "III:sun+lamp@20 long textured",
+}
 PRESET_NAMES = ("draft", "fast", "default", "high")
 # The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
 # frame holds seabed from ~2 m out to where the water hides it and open water above.

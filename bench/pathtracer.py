@@ -170,10 +170,14 @@ def _medium(scene: PTScene) -> dict:
 
 
 def _water_box(scene: PTScene, mi) -> tuple[dict, float]:
-    """The `cube` holding the water (null boundary) and its horizontal half-size in metres."""
+    """The `cube` holding the water (null boundary) and its horizontal half-size in metres: at least
+    BOX_MIN_HALF_M and 10 mean free paths from the camera, and past every mesh (a far seabed)."""
     sigma_t = np.asarray(scene.sigma_a, dtype=np.float64) + np.asarray(scene.sigma_s, dtype=np.float64)
     half = max(BOX_MIN_HALF_M, 10.0 / sigma_t[sigma_t > 0].min()) if np.any(sigma_t > 0) else BOX_MIN_HALF_M
     cx, cy = (float(x) for x in scene.world_from_cam[:2, 3])
+    for mesh in scene.meshes:
+        v = np.asarray(mesh.vertices, np.float64)
+        half = max(half, 1.01 * float(np.abs(v[:, :2] - [cx, cy]).max()) + 1.0)
     to_world = mi.ScalarTransform4f().translate([cx, cy, scene.surface_z - BOX_DEPTH_M / 2]).scale(
         [half, half, BOX_DEPTH_M / 2])  # `cube` spans [-1, 1]^3
     return {"type": "cube", "to_world": to_world, "bsdf": {"type": "null"},

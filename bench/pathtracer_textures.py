@@ -13,6 +13,7 @@ not modelled (they dim only the renderer's ambient and sky terms): a material wi
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,8 +21,10 @@ import numpy as np
 
 @dataclass(frozen=True)
 class PTMaterial:
-    """One textured surface. Images (h, w, 3) float32, rows top first, texture coordinate (0, 0) at the top-left:
-    `base` linear RGB (sRGB decoded) or None, `normal` the tangent-space normal map as stored (in [0, 1]) or None.
+    """One textured surface. Images (h, w, 3) uint8 as the renderer uploads them, rows top first, texture coordinate
+    (0, 0) at the top-left: `base` sRGB-encoded colour or None, `normal` the tangent-space normal map or None;
+    `base_key`/`normal_key` name a procedural image (worker.scene.assets.textures) that can be made again from
+    its name, so a stored scene holds its name and digest rather than its pixels (`procedural_image`).
     Per vertex (n = the mesh's vertex count), world frame: `normals` (n, 3); mapping "uv": `uv` (n, 2) and
     `tangents` (n, 4) (xyz the +u direction, w the handedness); mapping "triplanar": `obj_vertices` and
     `obj_normals` (n, 3) in the object frame and `normal_to_world` (3, 3)."""
@@ -41,6 +44,8 @@ class PTMaterial:
     obj_vertices: np.ndarray | None = None
     obj_normals: np.ndarray | None = None
     normal_to_world: np.ndarray | None = None
+    base_key: str | None = None
+    normal_key: str | None = None
 
 
 def srgb_to_linear(u8: np.ndarray) -> np.ndarray:
@@ -58,12 +63,15 @@ def from_render_material(material, item) -> PTMaterial:
     to_world_n = np.linalg.inv(R).T
     normals = np.asarray(mesh.normals, np.float64) @ to_world_n.T
 
-    def image(img):
-        if img is None:
-            return None
-        return srgb_to_linear(img.pixels) if img.srgb else (np.asarray(img.pixels, np.float32) / 255.0)
+    if material.base is not None and not material.base.srgb:
+        raise ValueError(f"{material.base.source}: a base colour image must be sRGB")
 
-    common = {"base": image(material.base), "normal": image(material.normal),
+    def key(img):
+        return img.key if img is not None and PROCEDURAL_KEY.fullmatch(img.key) else None
+
+    common = {"base": None if material.base is None else material.base.pixels, "base_key": key(material.base),
+              "normal": None if material.normal is None else material.normal.pixels,
+              "normal_key": key(material.normal),
               "base_gain": float(material.base_gain), "normal_scale": float(material.normal_scale),
               "metallic": float(material.metallic_factor), "mapping": material.mapping,
               "triplanar_per_m": float(material.triplanar_per_m),
@@ -75,6 +83,20 @@ def from_render_material(material, item) -> PTMaterial:
                           tangents=np.column_stack([tangents[:, :3] @ R.T, tangents[:, 3]]).astype(np.float32))
     return PTMaterial(**common, obj_vertices=np.asarray(mesh.vertices, np.float32),
                       obj_normals=np.asarray(mesh.normals, np.float32), normal_to_world=to_world_n)
+
+
+PROCEDURAL_KEY = re.compile(r"texture/(\w+)/(\d+)/size=(\d+)/(albedo|normal)")
+
+
+def procedural_image(key: str) -> np.ndarray:
+    """The pixels of the procedural image named `key` (as worker.scene.materials names them), made again."""
+    from seasynth.worker.scene.assets.textures import texture_set
+
+    m = PROCEDURAL_KEY.fullmatch(key)
+    if m is None:
+        raise ValueError(f"{key!r} names no procedural image")
+    ts = texture_set(m.group(1), int(m.group(2)), int(m.group(3)))
+    return ts.albedo if m.group(4) == "albedo" else ts.normal
 
 
 _REGISTERED: dict[str, type] = {}
@@ -98,8 +120,8 @@ def bsdf_class(mi):
 
         def setup(self, m: PTMaterial) -> Textured:
             self.m = m
-            self.base = texture(m.base) if m.base is not None else None
-            self.normal = texture(m.normal) if m.normal is not None else None
+            self.base = texture(srgb_to_linear(m.base)) if m.base is not None else None
+            self.normal = texture(np.asarray(m.normal, np.float32) / 255.0) if m.normal is not None else None
             self.gain = m.base_gain * (1.0 - m.metallic)
             self.scale = mi.Color3f(*(float(x) for x in m.albedo_scale))
             self.bias = mi.Color3f(*(float(x) for x in m.albedo_bias))

@@ -136,7 +136,8 @@ def bench_fidelity(
     out: Annotated[Optional[Path], typer.Option("--out", help="Folder for fidelity.json, .md and .png.")] = None,
     config: Annotated[
         Optional[list[str]],
-        typer.Option("--config", help="A pinned configuration's name, or NAME=WATER:LIGHT[@DEPTH] (repeatable)."),
+        typer.Option("--config", help="A pinned configuration's name, or NAME='WATER:LIGHT[@DEPTH] [textured] [long]' "
+                    "(repeatable; default: the near-view table's)."),
     ] = None,
     spp: Annotated[int, typer.Option("--spp", min=1, help="Path-traced samples per pixel of each half of a "
                                      "reference rendered here (when none is stored).")] = 1024,
@@ -156,16 +157,17 @@ def bench_fidelity(
     gl: PlatformOpt = "egl",
 ) -> None:
     """seasynth's frames against a volumetric path tracer of the same scene: PSNR, MAE, time, per term."""
-    from seasynth.bench.fidelity import CONFIGS, parse_config, run
+    from seasynth.bench.fidelity import CONFIGS, WORLD_CONFIGS, parse_config, run
     from seasynth.bench.fidelity import export_scenes as export
 
+    pinned = {**CONFIGS, **WORLD_CONFIGS}
     chosen: dict[str, str] = {}
     for c in config or list(CONFIGS):
         name, _, text = c.partition("=")
-        if not text and name not in CONFIGS:
-            raise typer.BadParameter(f"unknown configuration {name!r}; pinned: {', '.join(CONFIGS)}",
+        if not text and name not in pinned:
+            raise typer.BadParameter(f"unknown configuration {name!r}; pinned: {', '.join(pinned)}",
                                      param_hint="--config")
-        chosen[name] = text or CONFIGS[name]
+        chosen[name] = text or pinned[name]
         parse_config(chosen[name])
     size = _size(resolution)
     if export_scenes is not None:

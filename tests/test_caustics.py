@@ -58,21 +58,34 @@ def test_the_shader_matches_its_numpy_twin_on_a_sunlit_floor(renderer):
     lt = overhead(c)
     res = renderer.render(SHADOW_VIEW, [FLOOR], lt, None, ONE, Passes(ids=True, range=True))
     plain = renderer.render(SHADOW_VIEW, [FLOOR], overhead(None), None, ONE, Passes()).image
-    p = hit_points(SHADOW_VIEW, SHADOW_WORLD_FROM_CAM, res.range_m.astype(np.float64))
     floor = np.isfinite(res.range_m)
     assert floor.sum() > 1000
     m = lt.medium
-    depth = m.surface_z - p[..., 2]
     mu = lt.sun_dir_world[2]
-    total, direct = np.exp(-m.k * depth[..., None] / mu), np.exp(-m.c * depth[..., None] / mu)
-    C = factor(c, np.where(floor[..., None], p, 0.0), m.surface_z, lt.sun_dir_world)[..., None]
     albedo = FLOOR.mesh.albedo[0].astype(np.float64)
-    cos_i = mu  # flat floor, normal +z
-    want = albedo * 0.9 * cos_i * (total + direct * (C - 1.0)) * np.exp(-m.k * res.range_m[..., None])
-    # The curves' steep edges turn a sub-millimetre difference in the interpolated position into ~0.5%: on llvmpipe
-    # every pixel agrees within 3e-3; on an H100, 98.6% of them (the rest within 5e-3).
+
+    def twin(range_m: np.ndarray) -> np.ndarray:
+        """The floor's radiance where each pixel's ray meets it at range_m (flat floor: cos_i = mu)."""
+        p = np.where(floor[..., None], hit_points(SHADOW_VIEW, SHADOW_WORLD_FROM_CAM, range_m), 0.0)
+        depth = m.surface_z - p[..., 2]
+        total, direct = np.exp(-m.k * depth[..., None] / mu), np.exp(-m.c * depth[..., None] / mu)
+        C = factor(c, p, m.surface_z, lt.sun_dir_world)[..., None]
+        return albedo * 0.9 * mu * (total + direct * (C - 1.0)) * np.exp(-m.k * range_m[..., None])
+
+    r = np.where(floor, res.range_m.astype(np.float64), 1.0)
+    want = twin(r)
     err = np.abs(res.image[floor] - want[floor]) / np.maximum(want[floor], 1e-5)
-    assert err.max() < 1e-2 and np.mean(err < 3e-3) > 0.98
+    assert err.max() < 1e-2
+    # The curves' steep edges (up to ~2% per mm) turn a sub-millimetre difference between where the shader shaded
+    # and where the depth buffer puts the floor into a visible one. llvmpipe agrees within 3e-3 everywhere; an H200
+    # only at 97.2% of the pixels (the rest within 6.7e-3), and there each pixel's error is the twin moved along
+    # its ray by the same distance in all three channels (correlation 0.995): a position, not the shading, of up to
+    # 7e-5 of the range (the GPU's depth and attribute interpolation). So every pixel must agree within 3e-3 with
+    # the twin at some point within 7e-5 of the range along its ray.
+    along = np.stack([twin(r * (1.0 + t * 7e-5)) for t in np.linspace(-1.0, 1.0, 9)])
+    tol = 3e-3 * np.maximum(want, 1e-5)
+    inside = (res.image >= along.min(axis=0) - tol) & (res.image <= along.max(axis=0) + tol)
+    assert inside[floor].all()
     # the pattern is visible: bright curves and dimmer floor round the caustics-free image
     ratio = res.image[floor][:, 1] / plain[floor][:, 1]
     assert ratio.max() > 1.3 and ratio.min() < 0.9
