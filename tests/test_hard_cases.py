@@ -206,7 +206,7 @@ def test_label_boxes_are_the_tight_boxes_of_the_instance_image(render_session):
             obj, box = fl.objects[fl.line_of[i]], boxes[i]
             assert obj.box2d == (box.left, box.top, box.right, box.bottom)
             assert fl.visible[i] == box.pixels <= fl.alone[i]
-            assert obj.type == spec.targets.class_name
+            assert obj.type == spec.targets[0].class_name
             placed_obj = next(p for p in scene.objects if p.instance_id == i)
             corners = box3d_of(obj).corners()
             # The 3D box is the yaw-only box of the object's vertices in the camera frame.

@@ -97,8 +97,9 @@ def coco_head(info: ExportInfo, split: str) -> dict:
                  "dataset_seed": info.dataset_seed, "spec_sha256": info.spec_sha256,
                  "split": split, "split_fractions": dict(zip(SPLITS, info.fractions))},
         "licenses": [],
-        "categories": [{"id": k + 1, "name": name, "supercategory": "target" if k == 0 else "distractor"}
-                       for k, name in enumerate(info.categories)],
+        "categories": [{"id": k + 1, "name": name,
+                        "supercategory": "distractor" if info.distractors and k == len(info.categories) - 1
+                        else "target"} for k, name in enumerate(info.categories)],
     }
 
 
@@ -164,7 +165,7 @@ class CocoExporter:
                 "category_id": obj.category + 1,
                 "bbox": coco_bbox(obj.box),
                 "area": obj.pixels,
-                "iscrowd": 0,
+                "iscrowd": int(obj.ignore),
                 "segmentation": {"size": [frame.height, frame.width], "counts": rle_string(counts)},
                 "instance_id": obj.instance_id,
                 "truncated": obj.truncated,

@@ -70,7 +70,8 @@ class YoloExporter:
     def add(self, frame: Frame, split: str) -> None:
         image, labels = self.frame_outputs(split, frame.name)
         place_file(frame.image, self._info.out / image)
-        text = "".join(yolo_line(o.category, o.box, frame.width, frame.height) + "\n" for o in frame.objects)
+        text = "".join(yolo_line(o.category, o.box, frame.width, frame.height) + "\n" for o in frame.objects
+                       if not o.ignore)  # a DontCare region has no YOLO form: left out
         write_atomic(self._info.out / labels, text.encode())
 
     def finish(self) -> None:
