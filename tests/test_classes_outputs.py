@@ -24,8 +24,8 @@ from seasynth.worker.local.generate import generate
 
 pytest.importorskip("pycocotools")
 pytest.importorskip("mcap_ros2")
-from pycocotools import mask as coco_mask  # noqa: E402
-from test_export_mcap import read_bag  # noqa: E402
+from pycocotools import mask as coco_mask
+from test_export_mcap import read_bag
 
 FRAMES = 3
 # Three classes, one of each placement (the water class in schools), seen close enough to have boxes of all sizes.
@@ -153,7 +153,7 @@ def test_targets_below_the_label_filters_are_regions_to_ignore_in_every_format(t
 def test_the_filters_change_only_label_lines_coco_and_the_detections(unfiltered, tmp_path):
     """The same frames, filtered: images, instance, semantic, calib and meta keep their bytes (the meta's
     label_line still names each line); only the targets below the filters turn into DontCare lines."""
-    out, spec = unfiltered
+    out, _ = unfiltered
     filtered = tmp_path / "ds"
     generate(three_class_spec(5, min_px=30, min_fraction=0.5), filtered, workers=1)
     seen = 0
@@ -168,3 +168,28 @@ def test_the_filters_change_only_label_lines_coco_and_the_detections(unfiltered,
         assert all(a == b or a["type"] == "DontCare" for a, b in zip(after, before))
         seen += sum(a["type"] == "DontCare" for a in after)
     assert seen >= 1
+
+
+def test_the_preview_counts_label_lines_per_class(unfiltered, tmp_path):
+    from seasynth.worker.preview.sheet import make_preview
+
+    out, _ = unfiltered
+    lines = [line.split()[0] for i in range(FRAMES) for line in (out / f"label_2/{i:06d}.txt").read_text().splitlines()]
+    preview = make_preview(out, tmp_path / "sheet.png")
+    assert preview.summary.objects_per_class == {name: lines.count(name) for name in dict.fromkeys(lines)}
+
+
+@settings(max_examples=300, deadline=None)
+@given(left=st.integers(0, 4000), top=st.integers(0, 3000), w=st.integers(0, 100), h=st.integers(0, 100),
+       visible=st.integers(1, 10**6), extra=st.integers(0, 10**6))
+def test_a_dontcare_line_is_its_box_and_kittis_placeholders_and_the_defaults_label_every_target(left, top, w, h,
+                                                                                                visible, extra):
+    from seasynth.worker.frame.labels import Box2D, dont_care, labelled
+
+    line = kitti.format_label_line(dont_care(Box2D(left, top, left + w, top + h, visible)))
+    assert line == (f"DontCare -1.00 -1 -10.00 {left}.00 {top}.00 {left + w}.00 {top + h}.00 -1.00 -1.00 -1.00 "
+                    "-1000.00 -1000.00 -1000.00 -10.00")
+    assert labelled(visible, visible + extra, 1, 0.0)  # the defaults keep every target with a visible pixel
+    assert labelled(visible, visible + extra, visible, 0.0) and not labelled(visible, visible + extra, visible + 1, 0)
+    assert labelled(visible, visible, 1, 1.0)  # a target wholly visible passes any fraction
+    assert labelled(visible, visible + extra, 1, 0.5) == (2 * visible >= visible + extra)

@@ -113,6 +113,15 @@ def check_scene(spec: DatasetSpec, scene: Scene) -> None:
         k = int(np.argmin(np.linalg.norm(verts - rest, axis=1)))
         assert np.linalg.norm(verts[k] - rest) < 1e-9
         np.testing.assert_allclose(up, normals[k] / np.linalg.norm(normals[k]), atol=1e-9)
+        if kind == "seabed":
+            # The stated tolerance: the seabed covers a seabed object's base at most by as much as it rises above
+            # the tangent plane at the anchor within the object's footprint (plus a terrain cell).
+            v = world_vertices(p)
+            radius = float(np.linalg.norm(v[:, :2] - rest[:2], axis=1).max())
+            edge = 2 * spec.terrain.size_m / spec.terrain.cells
+            near = verts[np.linalg.norm(verts[:, :2] - rest[:2], axis=1) <= radius + edge]
+            rise = float(((near - rest) @ up / up[2]).max())
+            assert float((terrain.height_at(v[:, :2]) - v[:, 2]).max()) <= max(rise, 0.0) + EPS
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,

@@ -82,6 +82,13 @@ def test_a_yaml_targets_section_left_empty_is_the_default_class(tmp_path):
     (tmp_path / "l.yaml").write_text("targets:\n  - class_name: A\n    placement: water\n  - class_name: B\n")
     spec = load_spec(tmp_path / "l.yaml")
     assert spec.class_names == ("A", "B") and isinstance(spec.targets[0].placement, InWater)
+    # Relative asset paths of every class resolve against the spec file's folder, as a single class's do.
+    (tmp_path / "p.yaml").write_text("targets:\n  - {class_name: A, assets: [{path: a.glb}]}\n"
+                                     "  - {class_name: B, assets: [{procedural: rock}, {path: sub/b.obj}]}\n")
+    spec = load_spec(tmp_path / "p.yaml")
+    assert [a.path for c in spec.targets for a in c.assets] == [str(tmp_path / "a.glb"), None,
+                                                                 str(tmp_path / "sub/b.obj")]
+    assert [f for f, _ in spec.file_refs()] == ["targets.0.assets.0", "targets.1.assets.1"]
 
 
 def test_repeated_class_names_are_refused_naming_them():
