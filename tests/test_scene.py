@@ -12,14 +12,9 @@ from seasynth.service.seeds import frame_rng
 from seasynth.service.spec.dataset import load_spec
 from seasynth.service.spec.scene import Box
 from seasynth.worker.frame.function import RenderSession
-from seasynth.worker.scene.sample import (
-    CAMERA_CLEARANCE_M,
-    Scene,
-    footprint_radius,
-    in_box,
-    rotation_between,
-    sample_scene,
-)
+from seasynth.worker.scene.placement import footprint_radius, in_box
+from seasynth.worker.scene.poses import rotation_between
+from seasynth.worker.scene.sample import CAMERA_CLEARANCE_M, Scene, sample_scene
 
 EXAMPLE = "examples/urchins.yaml"
 FRAMES = range(40)

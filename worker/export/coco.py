@@ -6,10 +6,11 @@ stays flat in the number of frames.
 
 - image: `id` = frame index, `file_name` = "000123.png" (or .jpg; under images/{split}/), `width`, `height` (px).
 - annotation: `id` = frame index * 65536 + instance id (unique, >= 1, the same whatever the split), `image_id`,
-  `category_id` (1 = the spec's target class, 2 = "distractor" with --distractors), `bbox` (coco_bbox), `area`
-  = the instance's pixel count, `iscrowd` = 0, `segmentation` = compressed COCO RLE of the instance id's pixels
-  in instance/ (or re-rendered ones), and KITTI's `truncated`, `occluded` and 0-based `kitti_line` (null for
-  distractors, which have no label line), and the `instance_id`.
+  `category_id` (i + 1 for the spec's i-th target class, then "distractor" with --distractors), `bbox`
+  (coco_bbox), `area` = the instance's pixel count, `iscrowd` = 0, or 1 for a region to ignore (a DontCare line:
+  a target below the spec's label filters), `segmentation` = compressed COCO RLE of the instance id's pixels in
+  instance/ (or re-rendered ones), and KITTI's `truncated`, `occluded` (null for distractors and regions to
+  ignore) and 0-based `kitti_line` (null for distractors, which have no label line), and the `instance_id`.
 """
 
 from __future__ import annotations

@@ -20,15 +20,8 @@ from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.terrain import Terrain
 from seasynth.worker.scene.far_field import FarField, far_field
 from seasynth.worker.scene.materials import asset_material, user_surface
-from seasynth.worker.scene.placement import (  # noqa: F401 (footprint_radius, in_box: the scene's geometry)
-    Pose,
-    footprint_radius,
-    in_box,
-    neighbours,
-    place,
-    place_school,
-)
-from seasynth.worker.scene.poses import look_at_pose, rigid_inverse, rotation_between  # noqa: F401
+from seasynth.worker.scene.placement import Pose, in_box, neighbours, place, place_school
+from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 from seasynth.worker.scene.trajectory import vehicle_state
 from seasynth.worker.sensors import world_from_sensor
 
