@@ -121,14 +121,13 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
     t_bias = rng.uniform(*tex.bias, size=3).astype(np.float32)
 
     placed: list[Placed] = []
-    counts = []
-    for cls in spec.targets:
-        before = len(placed)
-        drawn = _place_group(spec, rng, terrain, asset_for, cls, "target", placed)
-        counts.append((cls.class_name, drawn, drawn - (len(placed) - before)))
-    before = len(placed)
-    drawn = _place_group(spec, rng, terrain, asset_for, spec.distractors, "distractor", placed)
-    dropped = sum(c[2] for c in counts) + drawn - (len(placed) - before)
+    counts, dropped = [], 0
+    for group, role in [*((cls, "target") for cls in spec.targets), (spec.distractors, "distractor")]:
+        new, drawn = _place_group(spec, rng, terrain, asset_for, group, role, placed)
+        placed += new
+        dropped += drawn - len(new)
+        if role == "target":
+            counts.append((group.class_name, drawn, drawn - len(new)))
 
     spheres = [_bounding_sphere(p) for p in placed]
     if spec.trajectory.kind == "random":
@@ -171,28 +170,30 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
 
 
 def _place_group(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, asset_for: AssetSource,
-                 group: Targets | Distractors, role: str, placed: list[Placed]) -> int:
-    """Draw a target class's or the distractors' objects and append those placed to `placed`; the number drawn.
-    Per object: asset, variant, scale, albedo, then its pose, in that order (schools: the school's size and
-    spacing first, then its members' draws, then their poses)."""
+                 group: Targets | Distractors, role: str, before: list[Placed]) -> tuple[list[Placed], int]:
+    """(the objects placed, how many were drawn) of a target class or the distractors, clear of the objects
+    placed `before` and of each other, numbered after them. Per object: asset, variant, scale, albedo, then its
+    pose, in that order (schools: the school's size and spacing first, then its members' draws, then their
+    poses)."""
     box = spec.workspaces.targets if role == "target" else spec.workspaces.distractors
     placement = getattr(group, "placement", Seabed(kind="seabed"))
     school = placement.school if isinstance(placement, InWater) else None
     n = int(rng.integers(group.count[0], group.count[1] + 1))
-    drawn = 0
+    drawn, new = 0, []
     for _ in range(n):
         size = 1 if school is None else int(rng.integers(school.size[0], school.size[1] + 1))
         members = [_draw_object(spec, rng, asset_for, group) for _ in range(size)]
         drawn += size
+        others = neighbours([*before, *new])
         if school is None:
-            poses = [place(rng, terrain, box, members[0][1], members[0][2], placement, neighbours(placed))]
+            poses = [place(rng, terrain, box, members[0][1], members[0][2], placement, others)]
         else:
-            poses = place_school(rng, terrain, box, [(m[1], m[2]) for m in members], placement, neighbours(placed))
+            poses = place_school(rng, terrain, box, [(m[1], m[2]) for m in members], placement, others)
         for (ref, asset, scale, variant, a_scale, a_bias), pose in zip(members, poses):
             if pose is not None:
-                placed.append(_placed(spec, len(placed) + 1, role, group, placement, asset, variant, scale,
-                                      a_scale, a_bias, pose))
-    return drawn
+                new.append(_placed(spec, len(before) + len(new) + 1, role, group, placement, asset, variant, scale,
+                                   a_scale, a_bias, pose))
+    return new, drawn
 
 
 def _draw_object(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSource, group):
