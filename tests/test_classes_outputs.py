@@ -46,8 +46,15 @@ THREE_CLASSES = {
 }
 
 
-def three_class_spec(seed: int, min_px: int = 1, min_fraction: float = 0.0) -> DatasetSpec:
-    return parse_spec({**THREE_CLASSES, "seed": seed,
+KINDS = ("urchin", "rock", "coral", "seaweed", "clam")
+
+
+def three_class_spec(seed: int, min_px: int = 1, min_fraction: float = 0.0,
+                     kinds: tuple[str, ...] = ("urchin", "rock", "clam")) -> DatasetSpec:
+    """THREE_CLASSES with this seed and these filters, the classes drawing from these procedural kinds."""
+    targets = [{**c, "assets": [{"procedural": kind, "variants": 2}]}
+               for c, kind in zip(THREE_CLASSES["targets"], kinds)]
+    return parse_spec({**THREE_CLASSES, "seed": seed, "targets": targets,
                        "labels": {"min_visible_px": min_px, "min_visible_fraction": min_fraction}})
 
 
@@ -138,13 +145,14 @@ def test_a_three_class_dataset_names_every_class_in_every_output(unfiltered):
     assert seen["ignored"] == 0 and seen["labelled"] >= 6 and seen["classes"] == set(spec.class_names)
 
 
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                  HealthCheck.too_slow])
-@given(seed=st.integers(0, 1000), min_px=st.integers(1, 80), min_fraction=st.floats(0.0, 1.0))
+@given(seed=st.integers(0, 1000), min_px=st.integers(1, 80), min_fraction=st.floats(0.0, 1.0),
+       kinds=st.permutations(KINDS))
 def test_targets_below_the_label_filters_are_regions_to_ignore_in_every_format(tmp_path_factory, seed, min_px,
-                                                                               min_fraction):
+                                                                               min_fraction, kinds):
     out = tmp_path_factory.mktemp("filtered") / "ds"
-    spec = three_class_spec(seed, min_px, min_fraction)
+    spec = three_class_spec(seed, min_px, min_fraction, tuple(kinds[:3]))
     generate(spec, out, workers=1)
     export_generated(out)
     check_dataset(out, spec)
