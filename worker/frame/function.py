@@ -280,7 +280,8 @@ class RenderSession:
         o = spec.outputs
         noisy = spec.noise.gaussian_sigma > 0
         # Without sensor noise the image needs nothing more in float: its 8-bit codes come from the GPU.
-        passes = Passes(clean=o.clean, ids=o.labels or o.instance or o.semantic, range=o.range or o.depth, srgb8=not noisy)
+        passes = Passes(clean=o.clean, ids=o.labels or o.instance or o.semantic, range=o.range or o.depth,
+                        srgb8=not noisy)
         result = self.renderer.render(
             view, items, scene_light(scene), scene.water, PRESETS[spec.quality], passes, mark=timer
         )
