@@ -21,12 +21,11 @@ def check_limits(spec: DatasetSpec, settings: Settings) -> None:
         v = getattr(spec.camera, side)
         if v > settings.max_side:
             over.append(f"camera.{side}: {v} is over the limit of {settings.max_side} (SEASYNTH_MAX_SIDE)")
-    for role in ("targets", "distractors"):
-        hi = getattr(spec, role).count[1]
+    # One class: its count, as before classes; several: their count maxima together (a role's objects a frame).
+    where = "targets.count: max" if len(spec.targets) == 1 else "targets: the classes' count maxima total"
+    for what, hi in ((where, spec.most_targets()), ("distractors.count: max", spec.distractors.count[1])):
         if hi > settings.max_objects:
-            over.append(
-                f"{role}.count: max {hi} is over the limit of {settings.max_objects} objects (SEASYNTH_MAX_OBJECTS)"
-            )
+            over.append(f"{what} {hi} is over the limit of {settings.max_objects} objects (SEASYNTH_MAX_OBJECTS)")
     # A shard must finish well inside the task time limit on a slow worker (service/shards.py's cost model).
     shard = shard_over_time_limit(spec, settings.task_soft_time_limit_s)
     if shard is not None:

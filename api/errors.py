@@ -26,6 +26,7 @@ from seasynth.service.errors import (
     Unauthorized,
     Unavailable,
 )
+from seasynth.service.spec.dataset import field_path
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +100,7 @@ def install(app: FastAPI, retry_after_s: int) -> None:
             loc = list(e.get("loc", ()))
             if loc and loc[0] == "body":  # the body is the spec: name fields as spec files do
                 loc = loc[1:]
-            where = ".".join(str(p) for p in loc) or "(body)"
+            where = field_path(loc, err.body) or "(body)"
             lines.append(f"{where}: {str(e.get('msg', 'invalid')).removeprefix('Value error, ')}")
         return JSONResponse({"detail": "invalid request\n" + "\n".join(lines), "errors": lines}, status_code=422)
 

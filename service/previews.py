@@ -32,6 +32,7 @@ from seasynth.service.sheet import (
     tile_size,
 )
 from seasynth.service.spec.dataset import DatasetSpec, parse_spec
+from seasynth.service.spec.targets import DONT_CARE
 from seasynth.service.storage import ObjectStore
 
 SHEET_FRAMES = 12  # tiles on a sheet by default
@@ -166,15 +167,18 @@ def _tile(spec: DatasetSpec, name: str, files: dict[str, bytes], boxes: tuple, w
                 instance=read("instance") if o.instance else None)
 
 
-def _label_lines(data: bytes | None, where: str) -> list[tuple[str, tuple[int, int, int, int], float, int]]:
-    """(class, box of whole pixels, truncated, occluded) of each label_2 line; none without label_2."""
+def _label_lines(data: bytes | None, where: str) -> list[tuple[str, tuple[int, int, int, int], float | None,
+                                                              int | None]]:
+    """(class, box of whole pixels, truncated, occluded) of each label_2 line (truncated and occluded None on a
+    DontCare line); none without label_2."""
     if data is None:
         return []
     try:
         lines = parse_label_file(data.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as err:
         raise ExportError(f"{where}: unreadable label_2 ({err})") from None
-    return [(o["type"], tuple(int(round(v)) for v in o["bbox"]), o["truncated"], o["occluded"]) for o in lines]
+    return [(o["type"], tuple(int(round(v)) for v in o["bbox"]), *((None, None) if o["type"] == DONT_CARE else
+                                                                   (o["truncated"], o["occluded"]))) for o in lines]
 
 
 def _json(data: bytes, where: str) -> dict:

@@ -40,7 +40,7 @@ TERRAIN_BUILD_CELL_S = 1e-5  # per cell, once per distinct terrain a process dra
 OUTPUT_SHARE = 0.25  # each of clean, range, depth, instance: this share of the image's sample cost again
 # Export formats (outputs.coco, yolo, mcap) count as outputs too: each writes the shard's images again with its
 # labels, and COCO also renders and encodes the instance ids.
-EXTRA_OUTPUTS = ("clean", "range", "depth", "instance", "coco", "yolo", "mcap")
+EXTRA_OUTPUTS = ("clean", "range", "depth", "instance", "semantic", "coco", "yolo", "mcap")
 # Sonar and navigation sensors (seasynth.service.spec.sensors): their renders (one sample per pixel, then the echo model's numpy
 # work per pixel) and a fixed cost per enabled sensor. Measured on the same machine: FLS at defaults (852,044 render
 # pixels) 0.219 s, i.e. 3.9e6 pixels/s; SSS at defaults (2 x 27,060 pixels) 0.016 s; DVL + pressure 0.014 s.
@@ -104,7 +104,7 @@ def spec_cost_terms(spec) -> dict[str, int]:
     t = spec.terrain
     cells = MAX_TERRAIN_CELLS_COSTED if t.mesh is not None else t.cells
     return {
-        "objects": spec.targets.count[1] + spec.distractors.count[1],
+        "objects": spec.most_targets() + spec.distractors.count[1],
         "terrain_cells": cells,
         "extra_outputs": sum(bool(getattr(spec.outputs, name)) for name in EXTRA_OUTPUTS),
         # A user mesh is one terrain; procedural ones come in len(styles) x variants (repeats weight the draw).
@@ -213,6 +213,7 @@ FRAME_PARTS: dict[str, tuple[str, str]] = {
     "meta": ("meta", ".json"),
     "depth": ("depth", ".png"),
     "instance": ("instance", ".png"),
+    "semantic": ("semantic", ".png"),
     "clean": ("clean", ".png"),
     "range": ("range", ".npy"),
     # Sonar and navigation sensors (seasynth.service.spec.sensors), where the spec switches them on.
@@ -260,7 +261,7 @@ def frame_parts(spec) -> list[str]:
     """The parts (FRAME_PARTS keys) every frame of `spec` (a seasynth.service.spec.dataset.DatasetSpec) has."""
     o, s = spec.outputs, spec.sensors
     wanted = (("image", True), ("calib", True), ("label", o.labels), ("meta", o.meta), ("depth", o.depth),
-              ("instance", o.instance), ("clean", o.clean), ("range", o.range))
+              ("instance", o.instance), ("semantic", o.semantic), ("clean", o.clean), ("range", o.range))
     sensors_on = {"fls": s.fls.enabled, "sss": s.sss.enabled, "nav": s.any_nav}
     return [part for part, want in wanted if want] + [
         part for sensor, parts in PARTS_OF_SENSOR.items() if sensors_on[sensor] for part in parts]

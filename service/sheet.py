@@ -75,14 +75,17 @@ class SummaryCounter:
         self.occluded = [0] * len(OCCLUDED_LEVELS)
         self.jerlov: dict[str, int] = {}
 
-    def add(self, objects: Iterable[tuple[str, tuple[int, int, int, int], float, int]], water: str | None) -> None:
-        """One frame: its (class, box, truncated, occluded) label lines and its Jerlov type (None if unknown)."""
+    def add(self, objects: Iterable[tuple[str, tuple[int, int, int, int], float | None, int | None]],
+            water: str | None) -> None:
+        """One frame: its (class, box, truncated, occluded) label lines and its Jerlov type (None if unknown). A
+        DontCare line (truncated and occluded None) counts under its type and box height only."""
         self.frames += 1
         for name, box, truncated, occluded in objects:
             self.classes[name] = self.classes.get(name, 0) + 1
             self.heights[height_bin(box[3] - box[1] + 1)] += 1
-            self.truncated += truncated > 0
-            self.occluded[OCCLUDED_LEVELS.index(occluded)] += 1
+            if occluded is not None:
+                self.truncated += truncated > 0
+                self.occluded[OCCLUDED_LEVELS.index(occluded)] += 1
         if water is not None:
             self.jerlov[water] = self.jerlov.get(water, 0) + 1
 

@@ -206,8 +206,8 @@ def check_sampled_frame(session, spec, index: int) -> tuple[labels.FrameLabels, 
         obj, box = fl.objects[fl.line_of[i]], boxes[i]
         assert obj.box2d == (box.left, box.top, box.right, box.bottom)
         assert fl.visible[i] == box.pixels <= fl.alone[i]
-        assert obj.type == spec.targets.class_name
         placed_obj = next(p for p in scene.objects if p.instance_id == i)
+        assert obj.type == placed_obj.class_name
         corners = box3d_of(obj).corners()
         # The 3D box is the yaw-only box of the object's vertices in the camera frame.
         T = view.cam_from_world @ placed_obj.world_from_obj

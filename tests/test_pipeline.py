@@ -157,7 +157,7 @@ def test_labels_are_tight_boxes_of_instances(full):
         for obj in targets:
             line = lines[obj["label_line"]]
             b = boxes[obj["instance_id"]]
-            assert line["type"] == spec.targets.class_name
+            assert line["type"] == spec.targets[0].class_name
             assert list(line["bbox"]) == [b.left, b.top, b.right, b.bottom]
             labelled += 1
             # The projected 3D box, as written (2 decimals), encloses every pixel centre of the 2D box.
@@ -240,7 +240,7 @@ def test_rehazing_clean_with_range_reproduces_image(request, dataset, model):
 
 
 OBJECT_KEYS = {"instance_id", "class", "role", "label_line", "visible_pixels", "pixels_alone", "asset", "scale",
-               "pose_world_from_object", "albedo_scale", "albedo_bias"}
+               "pose_world_from_object", "albedo_scale", "albedo_bias", "placement"}
 
 
 def test_meta_records_reproduction_inputs(full):
@@ -269,6 +269,11 @@ def test_meta_records_reproduction_inputs(full):
         assert all(set(o) == OBJECT_KEYS | {"material"} for o in objects)
         assert all(o["material"]["mapping"] == "triplanar" and o["material"]["images"]["base"]["source"]
                    .startswith("procedural:") for o in objects)
+        # One class: its objects drawn and left out, the left out counted in objects_left_out too.
+        ((name, drawn, left),) = [(c["class"], c["drawn"], c["left_out"]) for c in meta["targets"]]
+        assert name == spec.targets[0].class_name and spec.targets[0].count[0] <= drawn <= spec.targets[0].count[1]
+        assert drawn - left == sum(o["role"] == "target" for o in objects) and left <= meta["objects_left_out"]
+        assert all(o["placement"] == {"kind": "seabed"} for o in objects)
         ids = [o["instance_id"] for o in objects]
         assert sorted(ids) == list(range(1, len(ids) + 1))
         drawn = set(np.unique(np.asarray(Image.open(out / f"instance/{n}.png")))) - {0}

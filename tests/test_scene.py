@@ -12,14 +12,9 @@ from seasynth.service.seeds import frame_rng
 from seasynth.service.spec.dataset import load_spec
 from seasynth.service.spec.scene import Box
 from seasynth.worker.frame.function import RenderSession
-from seasynth.worker.scene.sample import (
-    CAMERA_CLEARANCE_M,
-    Scene,
-    footprint_radius,
-    in_box,
-    rotation_between,
-    sample_scene,
-)
+from seasynth.worker.scene.placement import footprint_radius, in_box
+from seasynth.worker.scene.poses import rotation_between
+from seasynth.worker.scene.sample import CAMERA_CLEARANCE_M, Scene, sample_scene
 
 EXAMPLE = "examples/urchins.yaml"
 FRAMES = range(40)
@@ -126,13 +121,14 @@ def test_ids_roles_counts_scales_and_albedo(spec, scenes):
         roles = [p.role for p in objs]
         n_t = roles.count("target")
         assert roles == ["target"] * n_t + ["distractor"] * (len(objs) - n_t)  # targets first
-        assert n_t <= spec.targets.count[1] and len(objs) - n_t <= spec.distractors.count[1]
-        lo = spec.targets.count[0] + spec.distractors.count[0]
-        hi = spec.targets.count[1] + spec.distractors.count[1]
+        (targets,) = spec.targets
+        assert n_t <= targets.count[1] and len(objs) - n_t <= spec.distractors.count[1]
+        lo = targets.count[0] + spec.distractors.count[0]
+        hi = targets.count[1] + spec.distractors.count[1]
         assert lo <= len(objs) + scene.dropped <= hi
         for p in objs:
-            group = spec.targets if p.role == "target" else spec.distractors
-            assert p.class_name == (spec.targets.class_name if p.role == "target" else None)
+            group = targets if p.role == "target" else spec.distractors
+            assert p.class_name == (targets.class_name if p.role == "target" else None)
             kinds = {a.procedural for a in group.assets}
             kind, variant = p.asset.key.split("/")[1:3]
             assert kind in kinds and int(variant) == p.variant
@@ -214,7 +210,7 @@ def test_placed_objects_do_not_interpenetrate(session, spec, scenes):
 def test_an_object_with_no_free_spot_is_left_out(session, spec):
     one_vertex = Box(min=(-0.01, -0.01, -2.0), max=(0.01, 0.01, 2.0))  # the terrain vertex at (0, 0)
     s = spec.model_copy(update={
-        "targets": spec.targets.model_copy(update={"count": (3, 3)}),
+        "targets": [spec.targets[0].model_copy(update={"count": (3, 3)})],
         "distractors": spec.distractors.model_copy(update={"count": (0, 0)}),
         "workspaces": spec.workspaces.model_copy(update={"targets": one_vertex}),
     })
@@ -288,7 +284,7 @@ def test_with_no_target_in_the_look_at_workspace_the_camera_looks_at_the_seabed(
     update = {"camera": spec.camera.model_copy(update={"look_at_jitter_m": 0.0})}
     workspaces = {"look_at": look_at_box}
     if case == "no-targets":
-        update["targets"] = spec.targets.model_copy(update={"count": (0, 0)})
+        update["targets"] = [spec.targets[0].model_copy(update={"count": (0, 0)})]
     else:
         workspaces["targets"] = Box(min=(2.0, 2.0, -2.0), max=(3.0, 3.0, 2.0))
     update["workspaces"] = spec.workspaces.model_copy(update=workspaces)

@@ -30,6 +30,7 @@ def test_contract_keys_and_defaults():
         "meta": True,
         "depth": False,
         "instance": False,
+        "semantic": False,
         "clean": False,
         "range": False,
         "coco": False,
@@ -45,7 +46,8 @@ def test_contract_keys_and_defaults():
         "frames": 7,
         "shard_size": 3,
         "camera": {"width": 96, "height": 64},
-        "outputs": {"labels": False, "meta": False, "depth": True, "instance": True, "clean": True, "range": True,
+        "outputs": {"labels": False, "meta": False, "depth": True, "instance": True, "semantic": False, "clean": True,
+                    "range": True,
                     "coco": False, "yolo": False, "mcap": False, "split": (0.5, 0.25, 0.25),
                     "image_format": "jpeg", "jpeg_quality": 80},
     }
@@ -68,7 +70,7 @@ def test_example_is_procedural_with_water_and_fov_camera():
     spec = load_spec(EXAMPLE)
     assert spec.file_refs() == []
     assert all(a.procedural is not None and a.path is None and a.asset_id is None for a in spec.asset_refs())
-    assert [a.procedural for a in spec.targets.assets] == ["urchin"]
+    assert [a.procedural for a in spec.targets[0].assets] == ["urchin"]
     assert {a.procedural for a in spec.distractors.assets} == {"rock", "coral", "seaweed", "clam"}
     assert spec.terrain.mesh is None and spec.terrain.texture is None
     assert spec.water.enabled is True

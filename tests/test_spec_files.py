@@ -152,7 +152,7 @@ def test_relative_asset_paths_resolve_against_the_spec_files_folder(tmp_path):
         ("terrain.mesh", str((folder / "t.glb").resolve())),
         ("terrain.texture", absolute),
     ]
-    assert spec.targets.assets[1].asset_id == asset_id
+    assert spec.targets[0].assets[1].asset_id == asset_id
 
 
 def test_resolve_paths_returns_a_copy():

@@ -138,7 +138,7 @@ def test_class_names_the_kitti_writer_would_split_or_garble_are_refused_naming_t
         assert f"holds U+{ord(c):04X}, a whitespace or control character" in line
     # Names of other scripts and punctuation stay valid, and are one label field.
     for name in ("Seeigel_\u00e4", "\u30a6\u30cb", "sea-urchin/2", "a,b"):
-        assert parse_spec({"targets": {"class_name": name}}).targets.class_name == name
+        assert parse_spec({"targets": {"class_name": name}}).targets[0].class_name == name
         line = format_label_line(KittiObject(type=name, truncated=0.0, occluded=0, alpha=0.0, box2d=(0, 0, 1, 1),
                                              dims=(1, 1, 1), location=(0, 0, 1), rotation_y=0.0))
         assert [lab["type"] for lab in parse_label_file(line + "\n")] == [name]
@@ -163,7 +163,7 @@ def test_limits_themselves_are_valid():
     spec = parse_spec({"frames": MAX_FRAMES, "shard_size": 1, "camera": {"width": MAX_SIDE, "height": MAX_SIDE}})
     assert (spec.frames, spec.camera.width, spec.camera.height) == (MAX_FRAMES, MAX_SIDE, MAX_SIDE)
     counts = parse_spec({"targets": {"count": [0, MAX_OBJECTS]}, "distractors": {"count": [0, 0]}})
-    assert (counts.targets.count, counts.distractors.count) == ((0, MAX_OBJECTS), (0, 0))
+    assert (counts.targets[0].count, counts.distractors.count) == ((0, MAX_OBJECTS), (0, 0))
 
 
 # Integer fields take integers only, boolean fields booleans only: a lax parse would read these as 1, 7, 2, True.
@@ -227,7 +227,8 @@ def test_strict_fields_still_take_yaml_and_json_natives(tmp_path):
 def test_lists_are_limited_naming_field_and_limit(dotted, item, limit):
     at_limit = parse_spec(apply_overrides({}, {dotted: [item] * limit}))
     section, field = dotted.split(".")
-    assert len(getattr(getattr(at_limit, section), field)) == limit
+    group = getattr(at_limit, section)
+    assert len(getattr(group[0] if section == "targets" else group, field)) == limit
     (line,) = refusal(apply_overrides({}, {dotted: [item] * (limit + 1)}))
     assert line == f"{dotted}: List should have at most {limit} items after validation, not {limit + 1}"
 

@@ -79,7 +79,7 @@ def get_frame(
     index: FrameIndex,
     services: ServicesDep,
     part: Annotated[
-        Literal["image", "label", "calib", "meta", "depth", "instance", "clean", "range", "fls", "fls_fan",
+        Literal["image", "label", "calib", "meta", "depth", "instance", "semantic", "clean", "range", "fls", "fls_fan",
                 "fls_label", "sss", "sss_label", "nav"],
         Query(description="Which of the frame's files: the image by default (PNG, or JPEG where the spec's "
                           "outputs.image_format is jpeg)"),

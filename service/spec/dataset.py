@@ -5,9 +5,9 @@ from __future__ import annotations
 import copy
 import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args, get_origin
 
-from pydantic import Field, StrictInt, ValidationError, model_validator
+from pydantic import Field, StrictInt, ValidationError, model_serializer, model_validator
 
 from seasynth.service.errors import SpecError
 from seasynth.service.spec.light import Lighting, Water
@@ -19,12 +19,12 @@ from seasynth.service.spec.scene import (
     FileRef,
     Materials,
     Noise,
-    Targets,
     Terrain,
     TextureRandomisation,
     Workspaces,
 )
 from seasynth.service.spec.sensors import Sensors, Trajectory
+from seasynth.service.spec.targets import Labels, TargetClasses, Targets, legacy_form
 from seasynth.service.spec.types import SpecModel
 
 # Documented limits (the scene's are in seasynth.service.spec.scene). They keep one shard inside the task time limit, and
@@ -46,7 +46,8 @@ class DatasetSpec(SpecModel):
     quality: Quality = "default"
     camera: Camera = Camera()
     workspaces: Workspaces = Workspaces()
-    targets: Targets = Targets()
+    # The classes of target, in the order that numbers them in every output (one mapping: a list of that class).
+    targets: TargetClasses = Field(default_factory=lambda: [Targets()])
     distractors: Distractors = Distractors()
     terrain: Terrain = Terrain()
     lighting: Lighting = Lighting()
@@ -54,6 +55,7 @@ class DatasetSpec(SpecModel):
     texture: TextureRandomisation = TextureRandomisation()
     materials: Materials = Materials()
     noise: Noise = Noise()
+    labels: Labels = Labels()
     outputs: Outputs = Outputs()
     sensors: Sensors = Sensors()
     trajectory: Trajectory = Trajectory()
@@ -117,14 +119,37 @@ class DatasetSpec(SpecModel):
             )
         return self
 
+    @model_serializer(mode="wrap")
+    def _targets_form(self, handler, info) -> dict[str, Any]:
+        """Dumps write one seabed class as the mapping of specs before classes (seasynth.service.spec.targets
+        .legacy_form), and leave it out with exclude_defaults when it is the default class."""
+        out = handler(self)
+        if "targets" in out:
+            if info.exclude_defaults and self.targets == [Targets()]:
+                del out["targets"]
+            else:
+                out["targets"] = legacy_form(out["targets"], self.targets)
+        return out
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        """The target classes' names in spec order (class i: COCO category i + 1, YOLO class i, semantic id i + 1)."""
+        return tuple(c.class_name for c in self.targets)
+
+    def most_targets(self) -> int:
+        """The most targets a frame may place: every class's count maximum (times its school size maximum)."""
+        return sum(c.most_objects() for c in self.targets)
+
     def asset_refs(self) -> list[AssetRef]:
-        return [*self.targets.assets, *self.distractors.assets]
+        return [*(a for c in self.targets for a in c.assets), *self.distractors.assets]
 
     def file_refs(self) -> list[tuple[str, FileRef]]:
         """Every user file the spec names, with the dotted field that names it."""
         out: list[tuple[str, FileRef]] = []
-        for role in ("targets", "distractors"):
-            for i, a in enumerate(getattr(self, role).assets):
+        groups = [(f"targets.{k}", c) for k, c in enumerate(self.targets)] if len(self.targets) > 1 else \
+            [("targets", self.targets[0])]
+        for role, group in (*groups, ("distractors", self.distractors)):
+            for i, a in enumerate(group.assets):
                 if a.procedural is None:
                     out.append((f"{role}.assets.{i}", a))
         for key in TERRAIN_FILES:
@@ -134,11 +159,20 @@ class DatasetSpec(SpecModel):
         return out
 
 
-def format_validation_error(err: ValidationError) -> str:
-    """One line per problem, each naming the field by its dotted path."""
+def field_path(loc: tuple | list, data: Any) -> str:
+    """A validation error's location in spec `data` as a dotted path, naming fields as written: where targets is
+    one mapping, its fields are targets.count, not targets.0.count (the list of one it stands for)."""
+    parts = list(loc)
+    if parts[:2] == ["targets", 0] and isinstance(data, dict) and isinstance(data.get("targets"), dict):
+        del parts[1]
+    return ".".join(str(p) for p in parts)
+
+
+def format_validation_error(err: ValidationError, data: Any = None) -> str:
+    """One line per problem, each naming the field by its dotted path in `data`, the mapping validated."""
     lines = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(spec)"
+        loc = field_path(e["loc"], data) or "(spec)"
         msg = e["msg"].removeprefix("Value error, ")
         lines.append(f"{loc}: {msg}")
     return "\n".join(lines)
@@ -151,7 +185,7 @@ def parse_spec(data: Any, *, source: str = "spec") -> DatasetSpec:
     try:
         return DatasetSpec.model_validate(data)
     except ValidationError as err:
-        raise SpecError(f"{source}: invalid spec\n{format_validation_error(err)}") from None
+        raise SpecError(f"{source}: invalid spec\n{format_validation_error(err, data)}") from None
 
 
 def read_spec_file(path: str | Path) -> dict[str, Any]:
@@ -186,12 +220,17 @@ def _empty_sections(data: dict[str, Any], model: type[SpecModel]) -> dict[str, A
     for key, value in data.items():
         field = model.model_fields.get(key) if isinstance(key, str) else None
         section = field.annotation if field is not None else None
+        listed = get_origin(section) is list  # a list of sections (targets), which one mapping may stand for
+        if listed:
+            section = get_args(section)[0]
         if not (isinstance(section, type) and issubclass(section, SpecModel)):
             continue
         if value is None:
             out[key] = {}
         elif isinstance(value, dict):
             out[key] = _empty_sections(value, section)
+        elif listed and isinstance(value, list):
+            out[key] = [_empty_sections(v, section) if isinstance(v, dict) else v for v in value]
     return out
 
 
@@ -204,8 +243,8 @@ def resolve_paths(data: dict[str, Any], base: Path) -> dict[str, Any]:
     # Ill-typed parts are left as they are for validation to name; YAML may hold non-JSON values (dates).
     out = copy.deepcopy(data)
     refs = []
-    for role in ("targets", "distractors"):
-        section = out.get(role)
+    targets = out.get("targets")
+    for section in [*(targets if isinstance(targets, list) else [targets]), out.get("distractors")]:
         assets = section.get("assets") if isinstance(section, dict) else None
         refs += assets if isinstance(assets, list) else []
     terrain = out.get("terrain")

@@ -40,6 +40,9 @@ class Outputs(SpecModel):
     meta: StrictBool = True
     depth: StrictBool = False
     instance: StrictBool = False
+    # semantic/NNNNNN.png: uint8 class ids per pixel, 0 = terrain, water and distractors, i = the i-th class of
+    # targets (1-based, the spec's order) on every pixel of its objects, whatever the label filters decide.
+    semantic: StrictBool = False
     clean: StrictBool = False
     range: StrictBool = False
     coco: StrictBool = False

@@ -46,7 +46,8 @@ VALUE_CHECKS: dict[str, str] = {
     "nonneg": "min >= 0",
     "positive": "min > 0",
     "_count_range": f"0 <= min <= max <= {MAX_OBJECTS}",
-    "_kitti_token": "no whitespace or control character (one KITTI label field)",
+    "_kitti_token": "no whitespace or control character (one KITTI label field); not `DontCare`",
+    "_classes_fit": f"class names unique; the classes' count maxima (times school sizes) total <= {MAX_OBJECTS}",
     "_fls_range": f"0 < min < max <= {MAX_FLS_RANGE_M:g}",
 }
 
@@ -167,6 +168,7 @@ class _Type:
             if isinstance(m, FieldInfo):
                 metadata += m.metadata
         funcs = [m.func for m in metadata if type(m).__name__ == "AfterValidator"]
+        before = {m.func.__name__ for m in metadata if type(m).__name__ == "BeforeValidator"}
         names = {f.__name__ for f in funcs}
         self.checks += [each + c for c in _bounds(metadata)]
         self.checks += [each + c for c in map(_value_check, funcs) if c]
@@ -179,7 +181,8 @@ class _Type:
             self.checks.append(each + "one of " + ", ".join(f"`{a}`" for a in args))
             return "string"
         if origin is list:
-            return "list of " + self._read(args[0], [], "each ")
+            inner = self._read(args[0], [], "each ")
+            return f"{inner} or list of {inner}" if "_one_class_as_list" in before else "list of " + inner
         if origin is tuple:
             inner = {self._read(a, [], "each ") for a in args}
             kind = "interval" if "ordered" in names else "vector" if "bounded" in names else "list"
@@ -201,6 +204,9 @@ def _default(field: FieldInfo) -> str:
         except ValueError:  # a model with required fields
             pass
         value = value.model_dump(mode="json")
+    elif isinstance(value, list) and len(value) == 1 and isinstance(value[0], BaseModel) and \
+            not value[0].model_dump(exclude_defaults=True):
+        return "one at its defaults"
     elif isinstance(value, (list, tuple)):
         value = [v.model_dump(mode="json", exclude_defaults=True) if isinstance(v, BaseModel) else v for v in value]
     return f"`{json.dumps(value)}`"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import unicodedata
 from typing import Annotated, Literal
 
 from pydantic import (
@@ -168,25 +167,6 @@ class AssetRef(FileRef):
         if len(self._sources()) != 1:
             raise ValueError(f"give exactly one of procedural, path, asset_id (got {self._sources() or 'none'})")
         return self
-
-
-def _kitti_token(name: str) -> str:
-    """A class name is written as one KITTI label field, and label files are read back with str.split(): refuse any
-    character str.isspace() calls whitespace (the pattern's \\S misses U+001C..U+001F) and control characters."""
-    bad = next((c for c in name if c.isspace() or unicodedata.category(c) == "Cc"), None)
-    if bad is not None:
-        raise ValueError(f"{name!r} holds U+{ord(bad):04X}, a whitespace or control character; a class name must be "
-                         "one KITTI label field")
-    return name
-
-
-class Targets(SpecModel):
-    class_name: Annotated[str, AfterValidator(_kitti_token)] = Field("Urchin", pattern=r"^\S+$", max_length=64)
-    assets: list[AssetRef] = Field(
-        default_factory=lambda: [AssetRef(procedural="urchin")], min_length=1, max_length=MAX_ASSETS
-    )
-    count: CountInterval = (3, 8)
-    scale: ScaleInterval = (0.8, 1.25)
 
 
 class Distractors(SpecModel):

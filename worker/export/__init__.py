@@ -20,9 +20,7 @@ from seasynth.service.errors import ExportError
 from seasynth.service.spec.outputs import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS
 from seasynth.worker.export.base import STREAM_SPLIT, Exporter, ExportInfo, parse_split, split_of
 from seasynth.worker.export.dataset import (
-    DISTRACTOR,
     DISTRACTOR_NAME,
-    TARGET,
     Frame,
     FrameObject,
     FrameReader,
@@ -34,7 +32,7 @@ from seasynth.worker.export.dataset import (
 from seasynth.worker.export.files import EXPORT_RECORD, json_bytes, open_export_folder, write_atomic
 
 __all__ = [
-    "DISTRACTOR", "FORMATS", "GENERATED_EXPORTS", "SPLITS", "SPLIT_SUM_TOLERANCE", "STREAM_SPLIT", "TARGET",
+    "DISTRACTOR_NAME", "FORMATS", "GENERATED_EXPORTS", "SPLITS", "SPLIT_SUM_TOLERANCE", "STREAM_SPLIT",
     "ExportInfo", "ExportPlan", "ExportReport", "Exporter", "Frame", "FrameObject", "FrameReader", "LocalDataset",
     "export_generated", "exporter_class", "exporter_for", "open_local_dataset", "parse_split", "plan_export",
     "run_export", "split_of",
@@ -84,8 +82,8 @@ class ExportPlan:
 
     @property
     def categories(self) -> tuple[str, ...]:
-        names = [self.dataset.spec.targets.class_name]
-        return (*names, DISTRACTOR_NAME) if self.distractors else tuple(names)
+        names = self.dataset.spec.class_names
+        return (*names, DISTRACTOR_NAME) if self.distractors else names
 
 
 @dataclass(frozen=True)
@@ -106,9 +104,9 @@ def plan_export(root: Path, fmt: str, fractions: tuple[float, float, float] | No
     ds = open_local_dataset(Path(root))
     if fractions is None:
         fractions = ds.spec.outputs.split
-    if distractors and ds.spec.targets.class_name == DISTRACTOR_NAME:
-        raise ExportError(f"{ds.root}: targets.class_name is {DISTRACTOR_NAME!r}, the name distractors get with "
-                          "--distractors; export without --distractors")
+    if distractors and DISTRACTOR_NAME in ds.spec.class_names:
+        raise ExportError(f"{ds.root}: a class of targets is named {DISTRACTOR_NAME!r}, the name distractors get "
+                          "with --distractors; export without --distractors")
     scan = scan_frames(ds)
     why = incompleteness(ds, scan)
     if why is not None and not partial:
@@ -135,7 +133,7 @@ def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] 
     exporter = exporter_for(plan.format)
     ds = plan.dataset
     open_export_folder(out, plan.format)
-    info = ExportInfo(out=out, categories=plan.categories, width=ds.spec.camera.width,
+    info = ExportInfo(out=out, categories=plan.categories, distractors=plan.distractors, width=ds.spec.camera.width,
                       height=ds.spec.camera.height, dataset_seed=ds.spec.seed, spec_sha256=ds.spec_sha256,
                       code_version=ds.code_version, fractions=plan.fractions, sensors=ds.spec.sensors,
                       image_format=ds.spec.outputs.image_format, trajectory=ds.spec.trajectory)

@@ -63,7 +63,7 @@ class ExportInfo:
     """What every exporter is told before the first frame."""
 
     out: Path  # absolute
-    categories: tuple[str, ...]  # category index -> name: the spec's target class, then "distractor" if asked
+    categories: tuple[str, ...]  # category index -> name: the spec's target classes, then "distractor" if asked
     width: int  # px, every frame's
     height: int  # px
     dataset_seed: int
@@ -73,6 +73,7 @@ class ExportInfo:
     sensors: Sensors = Sensors()  # the spec's sonar and navigation sensors (their files are in Frame.sensor_files)
     image_format: str = "png"  # the frames' image_2 files (the spec's outputs.image_format: png or jpeg)
     trajectory: Trajectory = Trajectory()  # the spec's: when each frame was taken (MCAP's stamps)
+    distractors: bool = False  # the last category is "distractor" (export --distractors)
 
     @property
     def image_suffix(self) -> str:

@@ -6,10 +6,11 @@ stays flat in the number of frames.
 
 - image: `id` = frame index, `file_name` = "000123.png" (or .jpg; under images/{split}/), `width`, `height` (px).
 - annotation: `id` = frame index * 65536 + instance id (unique, >= 1, the same whatever the split), `image_id`,
-  `category_id` (1 = the spec's target class, 2 = "distractor" with --distractors), `bbox` (coco_bbox), `area`
-  = the instance's pixel count, `iscrowd` = 0, `segmentation` = compressed COCO RLE of the instance id's pixels
-  in instance/ (or re-rendered ones), and KITTI's `truncated`, `occluded` and 0-based `kitti_line` (null for
-  distractors, which have no label line), and the `instance_id`.
+  `category_id` (i + 1 for the spec's i-th target class, then "distractor" with --distractors), `bbox`
+  (coco_bbox), `area` = the instance's pixel count, `iscrowd` = 0, or 1 for a region to ignore (a DontCare line:
+  a target below the spec's label filters), `segmentation` = compressed COCO RLE of the instance id's pixels in
+  instance/ (or re-rendered ones), and KITTI's `truncated`, `occluded` (null for distractors and regions to
+  ignore) and 0-based `kitti_line` (null for distractors, which have no label line), and the `instance_id`.
 """
 
 from __future__ import annotations
@@ -97,8 +98,9 @@ def coco_head(info: ExportInfo, split: str) -> dict:
                  "dataset_seed": info.dataset_seed, "spec_sha256": info.spec_sha256,
                  "split": split, "split_fractions": dict(zip(SPLITS, info.fractions))},
         "licenses": [],
-        "categories": [{"id": k + 1, "name": name, "supercategory": "target" if k == 0 else "distractor"}
-                       for k, name in enumerate(info.categories)],
+        "categories": [{"id": k + 1, "name": name,
+                        "supercategory": "distractor" if info.distractors and k == len(info.categories) - 1
+                        else "target"} for k, name in enumerate(info.categories)],
     }
 
 
@@ -164,7 +166,7 @@ class CocoExporter:
                 "category_id": obj.category + 1,
                 "bbox": coco_bbox(obj.box),
                 "area": obj.pixels,
-                "iscrowd": 0,
+                "iscrowd": int(obj.ignore),
                 "segmentation": {"size": [frame.height, frame.width], "counts": rle_string(counts)},
                 "instance_id": obj.instance_id,
                 "truncated": obj.truncated,

@@ -14,16 +14,16 @@ from seasynth import service
 from seasynth.service.errors import AssetError, ExportError, SpecError
 from seasynth.service.shards import FRAME_PARTS, SENSOR_PARTS, frame_file, frame_name, frame_parts
 from seasynth.service.spec.dataset import DatasetSpec, parse_spec, spec_digest
+from seasynth.worker.export.objects import FrameObject, label_objects, with_masks
 from seasynth.worker.frame.function import DEPTH_SCALE, RenderSession, frame_paths
-from seasynth.worker.frame.kitti import parse_calib, parse_label_file
-from seasynth.worker.frame.labels import tight_box_arrays
+from seasynth.worker.frame.kitti import parse_calib
 from seasynth.worker.scene.assets.user import check_assets
 
 LOCAL_RECORD = "seasynth.json"  # written by `seasynth generate` (seasynth.worker.local.folder.RECORD)
 FETCHED_RECORD = "manifest.json"  # written by `seasynth fetch`
 MISSING_NAMED = 10  # missing files named in an error; the rest are counted
 
-TARGET, DISTRACTOR = 0, 1  # category indices: the spec's target class, then (with distractors) "distractor"
+# Category indices: the spec's target classes in their order (0 .. n - 1), then (with distractors) "distractor" (n).
 DISTRACTOR_NAME = "distractor"
 
 
@@ -122,20 +122,6 @@ def incompleteness(ds: LocalDataset, scan: FrameScan) -> str | None:
     files = ", ".join(scan.missing_named) + (f" and {more} more" if more else "")
     return (f"{ds.root}: {said + '; ' if said else ''}{absent} of {ds.spec.frames} frames lack files "
             f"({scan.missing_files} missing: {files})")
-
-
-@dataclass(frozen=True)
-class FrameObject:
-    """One exported object. box: (left, top, right, bottom), inclusive 0-based pixel indices (KITTI's label_2
-    box, whose pixel i covers [i - 0.5, i + 0.5] in KITTI's centre convention)."""
-
-    category: int  # TARGET or DISTRACTOR
-    box: tuple[int, int, int, int]
-    instance_id: int | None  # the id in the instance image; None when masks were not read
-    pixels: int | None  # visible pixels (the instance id's pixel count); None when masks were not read
-    truncated: float | None  # KITTI's, from the label line; None for distractors (no label line)
-    occluded: int | None  # KITTI's 0..2; None for distractors
-    label_line: int | None  # 0-based line in label_2; None for distractors
 
 
 @dataclass(frozen=True)
@@ -257,14 +243,14 @@ def frame_of(spec: DatasetSpec, root: Path, index: int, label_bytes: bytes,
         label_text = label_bytes.decode("utf-8")
     except UnicodeDecodeError as err:
         raise ExportError(f"{label_path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
-    objects = _label_objects(label_path, label_text, spec.targets.class_name)
+    objects = label_objects(label_path, label_text, spec.class_names)
     instance = None
     if masks is not None:
         instance, meta, where = masks
         if instance.shape != (spec.camera.height, spec.camera.width):
             raise ExportError(f"{where}: shape {instance.shape}, the spec says "
                               f"{spec.camera.height}x{spec.camera.width} (height x width)")
-        objects = _with_masks(objects, instance, meta, where, label_path, distractors)
+        objects = with_masks(objects, instance, meta, where, label_path, distractors, spec.class_names)
     o = spec.outputs
     return Frame(index=index, name=frame_name(index), image=path("image"), width=spec.camera.width,
                  height=spec.camera.height, objects=tuple(objects), instance=instance,
@@ -343,57 +329,3 @@ def decode_instance(data: bytes, where: str) -> np.ndarray:
     except (OSError, UnidentifiedImageError) as err:
         raise ExportError(f"{where}: cannot decode ({err})") from None
     return ids.astype(np.uint16, copy=False)
-
-
-def _label_objects(path: Path, text: str, class_name: str) -> list[FrameObject]:
-    """The label_2 lines as objects (no masks yet); boxes must be whole pixel indices of the target class."""
-
-    try:
-        parsed = parse_label_file(text)
-    except ValueError as err:
-        raise ExportError(f"{path}: {err}") from None
-    objects = []
-    for k, lab in enumerate(parsed):
-        if lab["type"] != class_name:
-            raise ExportError(f"{path}: line {k + 1} has type {lab['type']!r}, the spec's targets.class_name is "
-                              f"{class_name!r}")
-        box = tuple(int(round(v)) for v in lab["bbox"])
-        if any(b != v for b, v in zip(box, lab["bbox"])) or not (box[0] <= box[2] and box[1] <= box[3]):
-            raise ExportError(f"{path}: line {k + 1} box {lab['bbox']} is not an inclusive box of whole pixels")
-        objects.append(FrameObject(category=TARGET, box=box, instance_id=None, pixels=None,
-                                   truncated=lab["truncated"], occluded=lab["occluded"], label_line=k))
-    return objects
-
-
-def _with_masks(objects: list[FrameObject], instance: np.ndarray, meta: dict, where: str, label_path: Path,
-                distractors: bool) -> list[FrameObject]:
-    """Give each label line its instance id (meta's objects[].label_line) and pixel count, checking that the
-    tight box of that id's pixels is the line's box; then add the visible distractors when asked."""
-
-    ids, boxes, counts = tight_box_arrays(instance)
-    present = {int(i): (tuple(int(v) for v in b), int(c)) for i, b, c in zip(ids, boxes, counts)}
-    try:
-        records = [(int(o["instance_id"]), o["role"], o["label_line"]) for o in meta["objects"]]
-    except (KeyError, TypeError, ValueError) as err:
-        raise ExportError(f"meta/{label_path.stem}.json of {where}: objects lack instance_id, role or "
-                          f"label_line ({err})") from None
-    id_of_line = {line: iid for iid, _, line in records if line is not None}
-    if sorted(id_of_line) != list(range(len(objects))):
-        raise ExportError(f"{label_path}: {len(objects)} lines, but meta's objects name label lines "
-                          f"{sorted(id_of_line)}")
-    out = []
-    for obj in objects:
-        iid = id_of_line[obj.label_line]
-        box, pixels = present.get(iid, (None, 0))
-        if box != obj.box:
-            raise ExportError(f"{label_path}: line {obj.label_line + 1} box {obj.box} is not the tight box "
-                              f"{box} of instance id {iid} in {where}")
-        out.append(FrameObject(category=obj.category, box=obj.box, instance_id=iid, pixels=pixels,
-                               truncated=obj.truncated, occluded=obj.occluded, label_line=obj.label_line))
-    if distractors:
-        for iid, role, _ in sorted(records):
-            if role == "distractor" and iid in present:
-                box, pixels = present[iid]
-                out.append(FrameObject(category=DISTRACTOR, box=box, instance_id=iid, pixels=pixels,
-                                       truncated=None, occluded=None, label_line=None))
-    return out

@@ -17,7 +17,8 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (seasynth.worker.scene.trajectory
                                                              id "k", its 0-based place in the array: a target's
                                                              label_2 line, then the distractors (--distractors)
                                                              in ascending instance id, so a target's id is the
-                                                             same with or without --distractors
+                                                             same with or without --distractors; DontCare
+                                                             lines (spec labels filters) are left out
   /tf_static                tf2_msgs/msg/TFMessage           camera -> each enabled sensor's frame (fls, sss,
                                                              dvl, pressure, imu): its sensors.*.pose
                                                              (seasynth.worker.export.mcap_tf); once a bag, before its
@@ -267,6 +268,8 @@ class McapExporter:
 
         detections = []
         for k, obj in enumerate(frame.objects):  # label lines, then distractors in instance id order
+            if obj.ignore:  # a DontCare region is no detection; the others keep their ids
+                continue
             cx, cy, sx, sy = detection_box(obj.box)
             detections.append({
                 "header": _header(ns),

@@ -46,7 +46,7 @@ def kitti_names(spec: DatasetSpec, render: DatasetSpec, index: int, names: list[
 
 def part_info(spec: DatasetSpec, out: Path, code_version: str | None) -> ExportInfo:
     """The ExportInfo `seasynth export` uses for a dataset of `spec` (no --distractors, outputs.split)."""
-    return ExportInfo(out=Path(out).absolute(), categories=(spec.targets.class_name,), width=spec.camera.width,
+    return ExportInfo(out=Path(out).absolute(), categories=spec.class_names, width=spec.camera.width,
                       height=spec.camera.height, dataset_seed=spec.seed, spec_sha256=spec_digest(spec),
                       code_version=code_version, fractions=spec.outputs.split, sensors=spec.sensors,
                       image_format=spec.outputs.image_format, trajectory=spec.trajectory)

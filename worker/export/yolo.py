@@ -1,7 +1,8 @@
 """YOLO detection export in Ultralytics' layout: images/{split}/*.png (or .jpg), labels/{split}/*.txt, data.yaml.
 
-A label file has one line per object, `class cx cy w h`: the 0-based class (0 = the spec's target class,
-1 = "distractor" with --distractors) and the box's centre and size normalised by the image's width and height,
+A label file has one line per object, `class cx cy w h`: the 0-based class (i = the spec's i-th target class,
+then "distractor" with --distractors; a DontCare region, a target below the spec's label filters, has no line:
+YOLO has no regions to ignore) and the box's centre and size normalised by the image's width and height,
 each in [0, 1], with 10 decimals (the pixel edges come back to within 1e-6 px at 4096 px); a frame with no object
 gets an empty file. data.yaml gives `path` (the export folder, absolute), `train`, `val`, `test` (image folders
 relative to it; Ultralytics finds the labels by replacing images/ with labels/) and `names`.
@@ -70,7 +71,8 @@ class YoloExporter:
     def add(self, frame: Frame, split: str) -> None:
         image, labels = self.frame_outputs(split, frame.name)
         place_file(frame.image, self._info.out / image)
-        text = "".join(yolo_line(o.category, o.box, frame.width, frame.height) + "\n" for o in frame.objects)
+        text = "".join(yolo_line(o.category, o.box, frame.width, frame.height) + "\n" for o in frame.objects
+                       if not o.ignore)  # a DontCare region has no YOLO form: left out
         write_atomic(self._info.out / labels, text.encode())
 
     def finish(self) -> None:

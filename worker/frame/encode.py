@@ -32,10 +32,11 @@ def encode_image(rgb8: np.ndarray, outputs: Outputs) -> bytes:
 
 
 def png_bytes(array: np.ndarray) -> bytes:
-    """PNG of an (h, w, 3) uint8 RGB or (h, w) uint16 image."""
+    """PNG of an (h, w, 3) uint8 RGB, (h, w) uint8 or (h, w) uint16 image."""
     import imagecodecs
 
     if not ((array.dtype == np.uint8 and array.ndim == 3 and array.shape[2] == 3) or
-            (array.dtype == np.uint16 and array.ndim == 2)):
-        raise ValueError(f"png_bytes takes (h, w, 3) uint8 or (h, w) uint16, got {array.shape} {array.dtype}")
+            (array.dtype in (np.uint8, np.uint16) and array.ndim == 2)):
+        raise ValueError(f"png_bytes takes (h, w, 3) uint8, (h, w) uint8 or (h, w) uint16, got {array.shape} "
+                         f"{array.dtype}")
     return bytes(imagecodecs.png_encode(np.ascontiguousarray(array), **PNG_SETTINGS))

@@ -13,6 +13,7 @@ from seasynth.service.seeds import STREAM_NOISE, frame_rng
 from seasynth.service.shards import frame_file, frame_parts
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.spec.scene import AssetRef, FileRef
+from seasynth.service.spec.targets import Labels
 from seasynth.worker.frame import kitti, labels
 from seasynth.worker.frame.encode import encode_image, png_bytes
 from seasynth.worker.frame.meta import frame_meta
@@ -279,7 +280,8 @@ class RenderSession:
         o = spec.outputs
         noisy = spec.noise.gaussian_sigma > 0
         # Without sensor noise the image needs nothing more in float: its 8-bit codes come from the GPU.
-        passes = Passes(clean=o.clean, ids=o.labels or o.instance, range=o.range or o.depth, srgb8=not noisy)
+        passes = Passes(clean=o.clean, ids=o.labels or o.instance or o.semantic, range=o.range or o.depth,
+                        srgb8=not noisy)
         result = self.renderer.render(
             view, items, scene_light(scene), scene.water, PRESETS[spec.quality], passes, mark=timer
         )
@@ -289,7 +291,7 @@ class RenderSession:
             noise_rng = frame_rng(spec.seed, index, STREAM_NOISE)
             image = image + noise_rng.normal(0.0, spec.noise.gaussian_sigma, image.shape).astype(np.float32)
             noise = {"gaussian_sigma_linear": spec.noise.gaussian_sigma}
-        frame_labels = self.labels(view, scene, items, result) if o.labels else None
+        frame_labels = self.labels(view, scene, items, result, spec.labels) if o.labels else None
         mark("labels")
         # Sonar and navigation sensors, each from its own seed stream: switching one on changes no camera byte.
         sensors = None
@@ -311,6 +313,8 @@ class RenderSession:
             files[path("depth")] = png_bytes(depth_png16(result.range_m, self._ray_norms(view)))
         if o.instance:
             files[path("instance")] = png_bytes(result.instance.astype(np.uint16))
+        if o.semantic:
+            files[path("semantic")] = png_bytes(semantic_ids(result.instance, scene, spec.class_names))
         if o.clean:
             files[path("clean")] = png_bytes(encode_srgb8(result.clean))
         if o.range:
@@ -321,8 +325,11 @@ class RenderSession:
         mark("encode")
         return files
 
-    def labels(self, view: View, scene: Scene, items: list[DrawItem], result: RenderResult) -> labels.FrameLabels:
-        """KITTI objects of the targets with at least one visible pixel, in instance-id order."""
+    def labels(self, view: View, scene: Scene, items: list[DrawItem], result: RenderResult,
+               filters: Labels | None = None) -> labels.FrameLabels:
+        """KITTI objects of the targets with at least one visible pixel, in instance-id order: a target below the
+        filters (spec labels; None: the defaults, which keep every one) is a DontCare line with its 2D box."""
+        filters = Labels() if filters is None else filters
         boxes = labels.tight_boxes(result.instance)
         objects, line_of, visible, alone = [], {}, {}, {}
         by_id = {it.instance_id: it for it in items}
@@ -338,7 +345,10 @@ class RenderSession:
             line_of[p.instance_id] = len(objects)
             visible[p.instance_id] = box.pixels
             alone[p.instance_id] = alone_px
-            objects.append(labels.kitti_object(p.class_name, box, labels.box3d(pts), truncated, occluded))
+            if labels.labelled(box.pixels, alone_px, filters.min_visible_px, filters.min_visible_fraction):
+                objects.append(labels.kitti_object(p.class_name, box, labels.box3d(pts), truncated, occluded))
+            else:
+                objects.append(labels.dont_care(box))
         return labels.FrameLabels(objects=objects, line_of=line_of, visible=visible, alone=alone)
 
     def meta(self, spec, index, scene: Scene, view: View, fl: labels.FrameLabels | None, noise,
@@ -346,6 +356,17 @@ class RenderSession:
         """The frame's audit record (seasynth.worker.frame.meta.frame_meta) as JSON text."""
         return frame_meta(spec, index, scene, view, PRESETS[spec.quality], fl, noise, sensors, self.renderer_name,
                           self.versions)
+
+
+def semantic_ids(instance: np.ndarray, scene: Scene, class_names: tuple[str, ...]) -> np.ndarray:
+    """(h, w) uint8 class ids of an (h, w) instance id image: i + 1 on the pixels of targets of the i-th class,
+    0 elsewhere (terrain, water, distractors)."""
+    lut = np.zeros(max([0, *(p.instance_id for p in scene.objects)]) + 1, dtype=np.uint8)
+    index = {name: k + 1 for k, name in enumerate(class_names)}
+    for p in scene.objects:
+        if p.role == "target":
+            lut[p.instance_id] = index[p.class_name]
+    return lut[instance]
 
 
 def _points_cam(view: View, p: Placed) -> np.ndarray:

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from seasynth.service.spec.targets import DONT_CARE
+
 # Camera frame throughout (KITTI/OpenCV): x right, y down, z forward, metres.
 # Pixels: (u, v) = (column, row); pixel centres at integer coordinates, so pixel i covers [i - 0.5, i + 0.5].
 
@@ -61,8 +63,9 @@ class KittiObject:
     def __post_init__(self) -> None:
         if not isinstance(self.type, str) or not self.type or any(c.isspace() for c in self.type):
             raise ValueError(f"class name {self.type!r} must be a non-empty string without whitespace")
-        if isinstance(self.occluded, bool) or int(self.occluded) != self.occluded or self.occluded not in (0, 1, 2, 3):
-            raise ValueError(f"occluded must be an integer 0..3, got {self.occluded!r}")
+        levels = (-1,) if self.type == DONT_CARE else (0, 1, 2, 3)
+        if isinstance(self.occluded, bool) or int(self.occluded) != self.occluded or self.occluded not in levels:
+            raise ValueError(f"occluded of {self.type!r} must be an integer in {levels}, got {self.occluded!r}")
         object.__setattr__(self, "occluded", int(self.occluded))
         for name, size in (("box2d", 4), ("dims", 3), ("location", 3)):
             values = tuple(float(v) for v in getattr(self, name))
@@ -286,6 +289,20 @@ def kitti_object(name: str, box2d: Box2D, box: Box3D, truncated: float, occluded
         location=(box.x, box.y, box.z),
         rotation_y=box.rotation_y,
     )
+
+
+def dont_care(box2d: Box2D) -> KittiObject:
+    """KITTI's line for a region to ignore: type DontCare, its 2D box, and the devkit's -1 / -10 / -1000 for
+    every other field (truncated -1, occluded -1, alpha -10, dims -1, location -1000, rotation_y -10)."""
+    return KittiObject(type=DONT_CARE, truncated=-1.0, occluded=-1, alpha=-10.0,
+                       box2d=(box2d.left, box2d.top, box2d.right, box2d.bottom), dims=(-1.0, -1.0, -1.0),
+                       location=(-1000.0, -1000.0, -1000.0), rotation_y=-10.0)
+
+
+def labelled(visible_px: int, alone_px: int, min_visible_px: int, min_visible_fraction: float) -> bool:
+    """Whether a target with visible_px >= 1 visible pixels of alone_px (>= visible_px) passes the label filters
+    (spec labels.min_visible_px, min_visible_fraction); one that does not is a DontCare region."""
+    return visible_px >= min_visible_px and visible_px >= min_visible_fraction * alone_px
 
 
 @dataclass(frozen=True)

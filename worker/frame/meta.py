@@ -51,6 +51,8 @@ def frame_meta(spec: DatasetSpec, index: int, scene: Scene, view: View, sampling
         **_material_record(scene.terrain.material, scene.terrain.tile_m, "terrain_material"),
         "objects": [_object_record(p, fl) for p in scene.objects],
         "objects_left_out": scene.dropped,
+        # Each target class's objects drawn for this frame and left out of them (no free spot), in spec order.
+        "targets": [{"class": name, "drawn": drawn, "left_out": left} for name, drawn, left in scene.class_counts],
         "noise": noise,
     }
     if sensors is not None:  # absent with every sensor off, so such frames' meta is unchanged
@@ -94,6 +96,7 @@ def _object_record(p: Placed, fl: FrameLabels | None) -> dict:
         "instance_id": p.instance_id,
         "class": p.class_name,
         "role": p.role,
+        "placement": p.placement,
         "label_line": None if fl is None else fl.line_of.get(p.instance_id),
         "visible_pixels": None if fl is None else fl.visible.get(p.instance_id, 0),
         "pixels_alone": None if fl is None else fl.alone.get(p.instance_id),

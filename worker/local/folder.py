@@ -17,7 +17,7 @@ from seasynth.worker.export import GENERATED_EXPORTS
 from seasynth.worker.frame.function import frame_paths
 
 RECORD = "seasynth.json"  # the dataset record: spec, code version, and whether every frame is written
-OUTPUT_DIRS = ("image_2", "label_2", "calib", "meta", "depth", "instance", "clean", "range",
+OUTPUT_DIRS = ("image_2", "label_2", "calib", "meta", "depth", "instance", "semantic", "clean", "range",
                "fls", "fls_fan", "fls_label", "sss", "sss_label", "nav")  # from fls: seasynth.worker.sensors.outputs
 
 

@@ -28,7 +28,8 @@ from seasynth.service.sheet import (
     markdown,
     tile_size,
 )
-from seasynth.worker.export.dataset import TARGET, FrameReader, open_local_dataset, scan_frames
+from seasynth.service.spec.targets import DONT_CARE
+from seasynth.worker.export.dataset import FrameReader, open_local_dataset, scan_frames
 
 
 @dataclass(frozen=True)
@@ -99,8 +100,7 @@ def make_preview(dataset: Path, out: Path, frames: int = 12,
     with FrameReader(ds, masks=False, distractors=False) as reader:
         for index in indices:
             frame = reader.read(int(index))
-            named = [(ds.spec.targets.class_name if ob.category == TARGET else "distractor", ob)
-                     for ob in frame.objects]
+            named = [(DONT_CARE if ob.ignore else ds.spec.class_names[ob.category], ob) for ob in frame.objects]
             counter.add(((name, ob.box, ob.truncated, ob.occluded) for name, ob in named), _jerlov(frame.meta))
             boxes = tuple((name, ob.box, class_colour(colours, name)) for name, ob in named)
             if len(tiles) < frames:

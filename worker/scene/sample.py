@@ -10,7 +10,8 @@ import numpy as np
 
 from seasynth.service.errors import AssetError, SeasynthError, SpecError
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.service.spec.scene import AssetRef, Box
+from seasynth.service.spec.scene import AssetRef, Distractors
+from seasynth.service.spec.targets import InWater, Seabed, Targets
 from seasynth.service.water import jerlov_beta, jerlov_veiling_light
 from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.build import sample_physical
@@ -19,11 +20,11 @@ from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.terrain import Terrain
 from seasynth.worker.scene.far_field import FarField, far_field
 from seasynth.worker.scene.materials import asset_material, user_surface
-from seasynth.worker.scene.poses import look_at_pose, rigid_inverse, rotation_between
+from seasynth.worker.scene.placement import Pose, in_box, neighbours, place, place_school
+from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 from seasynth.worker.scene.trajectory import vehicle_state
 from seasynth.worker.sensors import world_from_sensor
 
-PLACEMENT_TRIES = 24  # per object, before it is left out
 CAMERA_TRIES = 64  # per frame, before the frame is refused
 CAMERA_CLEARANCE_M = 0.05  # the camera, and each enabled sensor, keeps at least this far above the terrain and
 # outside objects
@@ -39,7 +40,7 @@ INPUT_ERRORS = (SpecError, AssetError, SceneError)
 
 @dataclass(frozen=True)
 class Placed:
-    """One object resting on the terrain."""
+    """One object on, in or above the terrain (seasynth.worker.scene.placement)."""
 
     instance_id: int  # 1.. in placement order (targets first); 0 is reserved for terrain and open water
     role: str  # "target" or "distractor"
@@ -53,6 +54,8 @@ class Placed:
     footprint_m: float  # metres: radius of the disc about the anchor holding the object's horizontal projection
     material: Material | None = None  # per-pixel textures of a procedural asset (seasynth.worker.scene.materials)
     surface: UserSurface | None = None  # a user mesh's own textures, filtered as the spec says (materials.user_surface)
+    z_span: tuple[float, float] = (-math.inf, math.inf)  # world metres, lowest and highest (placement's rule)
+    placement: dict | None = None  # for meta: {"kind": ..., and what the placement drew}; None: not recorded
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,8 @@ class Scene:
     dropped: int  # objects left out because no free spot was found
     light: PhysicalLight | None = None  # the physical model (then water is None)
     far_field: FarField | None = None  # the seabed beyond the terrain, if spec.terrain.far_field
+    # Per target class in spec order: (class name, objects drawn, objects left out for want of a free spot)
+    class_counts: tuple[tuple[str, int, int], ...] = ()
 
     @property
     def cam_from_world(self) -> np.ndarray:
@@ -80,98 +85,8 @@ class Scene:
 AssetSource = Callable[[AssetRef, int], Asset]
 
 
-def in_box(points: np.ndarray, box: Box) -> np.ndarray:
-    """(n,) bool: which of (n, 3) points lie in the box (bounds included)."""
-    return np.all((points >= np.asarray(box.min)) & (points <= np.asarray(box.max)), axis=1)
-
-
-_CANDIDATES: dict[tuple[str, Box], np.ndarray] = {}
-
-
-def _candidates(terrain: Terrain, box: Box) -> np.ndarray:
-    """Indices of terrain vertices inside a workspace box (cached per process: terrains and boxes repeat)."""
-    key = (terrain.key, box)
-    got = _CANDIDATES.get(key)
-    if got is None:
-        if len(_CANDIDATES) >= 256:
-            _CANDIDATES.clear()
-        got = _CANDIDATES[key] = np.flatnonzero(in_box(np.asarray(terrain.mesh.vertices), box))
-    return got
-
-
-_EXTREMES: dict[str, np.ndarray] = {}
-
-
-def _extreme_points(asset: Asset) -> np.ndarray:
-    """(k, 3) float64: the asset's convex hull vertices, or all its vertices where it has no 3D hull (flat).
-
-    A footprint's radius is the largest norm of a linear image of the vertices, a convex function, so it is
-    reached at a hull vertex: measuring only those is exact, and cheap for large user meshes. Cached per process.
-    """
-    got = _EXTREMES.get(asset.key)
-    if got is None:
-        from scipy.spatial import ConvexHull, QhullError
-
-        verts = np.asarray(asset.mesh.vertices, dtype=np.float64)
-        try:
-            got = verts[ConvexHull(verts).vertices]
-        except (QhullError, ValueError):  # coplanar, collinear or too few points: measure them all
-            got = verts
-        if len(_EXTREMES) >= 1024:
-            _EXTREMES.clear()
-        _EXTREMES[asset.key] = got
-    return got
-
-
-def footprint_radius(vertices: np.ndarray, linear: np.ndarray) -> float:
-    """Radius (metres) of the disc about the anchor that holds the object's horizontal projection as placed.
-
-    vertices: (n, 3) float64, object metres; linear: (3, 3) world_from_obj's rotation times scale. Two objects
-    whose discs do not overlap cannot interpenetrate: each lies in the vertical cylinder over its disc.
-    """
-    xy = vertices @ linear[:2].T
-    return float(np.sqrt(np.einsum("ij,ij->i", xy, xy).max()))
-
-
 def uniform3(rng: np.random.Generator, lo, hi) -> np.ndarray:
     return rng.uniform(np.asarray(lo, np.float64), np.asarray(hi, np.float64))
-
-
-def _place(
-    rng: np.random.Generator,
-    terrain: Terrain,
-    box: Box,
-    asset: Asset,
-    scale: float,
-    placed: list[Placed],
-) -> tuple[np.ndarray, float] | None:
-    """A pose for `asset` resting on a terrain vertex in `box` whose footprint (after tilt, yaw and scale)
-    overlaps no placed footprint, and that footprint's radius; or None."""
-    cands = _candidates(terrain, box)
-    if cands.size == 0:
-        return None
-    verts = np.asarray(terrain.mesh.vertices)
-    normals = np.asarray(terrain.mesh.vertex_normals)
-    obj_verts = _extreme_points(asset)
-    others = np.array([p.world_from_obj[:2, 3] for p in placed]).reshape(-1, 2)
-    other_r = np.array([p.footprint_m for p in placed])
-    for _ in range(PLACEMENT_TRIES):
-        idx = cands[rng.integers(cands.size)]
-        yaw = rng.uniform(0.0, 2 * math.pi)
-        pos = verts[idx]
-        n = normals[idx] / max(np.linalg.norm(normals[idx]), 1e-12)
-        c, s = math.cos(yaw), math.sin(yaw)
-        Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        linear = rotation_between(np.array([0, 0, 1.0]), n) @ Rz * scale
-        # Measured as placed: on a slope a tall object leans out past its upright footprint (2.5x seen).
-        radius = footprint_radius(obj_verts, linear)
-        if others.size and np.any(np.linalg.norm(others - pos[:2], axis=1) < other_r + radius):
-            continue
-        T = np.eye(4)
-        T[:3, :3] = linear
-        T[:3, 3] = pos
-        return T, radius
-    return None
 
 
 def _sample_water(spec: DatasetSpec, rng: np.random.Generator) -> tuple[WaterParams | None, str | None]:
@@ -206,41 +121,13 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
     t_bias = rng.uniform(*tex.bias, size=3).astype(np.float32)
 
     placed: list[Placed] = []
-    dropped = 0
-    roles = (
-        ("target", spec.targets, spec.workspaces.targets, spec.targets.class_name),
-        ("distractor", spec.distractors, spec.workspaces.distractors, None),
-    )
-    for role, group, box, class_name in roles:
-        n = int(rng.integers(group.count[0], group.count[1] + 1))
-        for _ in range(n):
-            ref = group.assets[rng.integers(len(group.assets))]
-            variant = int(rng.integers(ref.variants)) if ref.procedural is not None else None
-            asset = asset_for(ref, variant)
-            scale = float(rng.uniform(*group.scale))
-            a_scale = rng.uniform(*tex.scale, size=3).astype(np.float32)
-            a_bias = rng.uniform(*tex.bias, size=3).astype(np.float32)
-            pose = _place(rng, terrain, box, asset, scale, placed)
-            if pose is None:
-                dropped += 1
-                continue
-            T, radius = pose
-            placed.append(
-                Placed(
-                    instance_id=len(placed) + 1,
-                    role=role,
-                    class_name=class_name,
-                    asset=asset,
-                    variant=variant,
-                    scale=scale,
-                    world_from_obj=T,
-                    albedo_scale=a_scale,
-                    albedo_bias=a_bias,
-                    footprint_m=radius,
-                    material=asset_material(asset, variant, spec),
-                    surface=user_surface(asset, spec),
-                )
-            )
+    counts, dropped = [], 0
+    for group, role in [*((cls, "target") for cls in spec.targets), (spec.distractors, "distractor")]:
+        new, drawn = _place_group(spec, rng, terrain, asset_for, group, role, placed)
+        placed += new
+        dropped += drawn - len(new)
+        if role == "target":
+            counts.append((group.class_name, drawn, drawn - len(new)))
 
     spheres = [_bounding_sphere(p) for p in placed]
     if spec.trajectory.kind == "random":
@@ -277,7 +164,67 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
         water_type=water_type,
         light=light,
         dropped=dropped,
+        class_counts=tuple(counts),
         far_field=far_field(terrain, float(spec.camera.clip[1])) if spec.terrain.far_field else None,
+    )
+
+
+def _place_group(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, asset_for: AssetSource,
+                 group: Targets | Distractors, role: str, before: list[Placed]) -> tuple[list[Placed], int]:
+    """(the objects placed, how many were drawn) of a target class or the distractors, clear of the objects
+    placed `before` and of each other, numbered after them. Per object: asset, variant, scale, albedo, then its
+    pose, in that order (schools: the school's size and spacing first, then its members' draws, then their
+    poses)."""
+    box = spec.workspaces.targets if role == "target" else spec.workspaces.distractors
+    placement = getattr(group, "placement", Seabed(kind="seabed"))
+    school = placement.school if isinstance(placement, InWater) else None
+    n = int(rng.integers(group.count[0], group.count[1] + 1))
+    drawn, new = 0, []
+    for _ in range(n):
+        size = 1 if school is None else int(rng.integers(school.size[0], school.size[1] + 1))
+        members = [_draw_object(spec, rng, asset_for, group) for _ in range(size)]
+        drawn += size
+        others = neighbours([*before, *new])
+        if school is None:
+            poses = [place(rng, terrain, box, members[0][1], members[0][2], placement, others)]
+        else:
+            poses = place_school(rng, terrain, box, [(m[1], m[2]) for m in members], placement, others)
+        for (ref, asset, scale, variant, a_scale, a_bias), pose in zip(members, poses):
+            if pose is not None:
+                new.append(_placed(spec, len(before) + len(new) + 1, role, group, placement, asset, variant, scale,
+                                   a_scale, a_bias, pose))
+    return new, drawn
+
+
+def _draw_object(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSource, group):
+    """(asset ref, asset, scale, variant, albedo scale (3,), albedo bias (3,)) of one object, drawn in that order."""
+    tex = spec.texture
+    ref = group.assets[rng.integers(len(group.assets))]
+    variant = int(rng.integers(ref.variants)) if ref.procedural is not None else None
+    asset = asset_for(ref, variant)
+    scale = float(rng.uniform(*group.scale))
+    a_scale = rng.uniform(*tex.scale, size=3).astype(np.float32)
+    a_bias = rng.uniform(*tex.bias, size=3).astype(np.float32)
+    return ref, asset, scale, variant, a_scale, a_bias
+
+
+def _placed(spec: DatasetSpec, instance_id: int, role: str, group, placement, asset: Asset, variant: int | None,
+            scale: float, a_scale: np.ndarray, a_bias: np.ndarray, pose: Pose) -> Placed:
+    return Placed(
+        instance_id=instance_id,
+        role=role,
+        class_name=group.class_name if role == "target" else None,
+        asset=asset,
+        variant=variant,
+        scale=scale,
+        world_from_obj=pose.world_from_obj,
+        albedo_scale=a_scale,
+        albedo_bias=a_bias,
+        footprint_m=pose.footprint_m,
+        material=asset_material(asset, variant, spec),
+        surface=user_surface(asset, spec),
+        z_span=pose.z_span,
+        placement={"kind": placement.kind, **pose.drawn},
     )
 
 
