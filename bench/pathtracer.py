@@ -290,13 +290,13 @@ def render(scene: PTScene, spp: int, seed: int = 0, max_depth: int = 64, rr_dept
     return (total / spp).astype(np.float32)
 
 
-def render_ids(scene: PTScene) -> np.ndarray:
+def render_ids(scene: PTScene, variant: str = VARIANT) -> np.ndarray:
     """(h, w) uint32 instance ids at pixel centres (0 where the centre ray hits terrain or nothing).
 
     Rays come from the Mitsuba sensor itself at film positions ((u + 0.5) / w, (v + 0.5) / h), so this checks the
     camera export as well as the geometry."""
-    mi = load_mitsuba()
-    ms = mitsuba_scene(scene)
+    mi = load_mitsuba(variant)
+    ms = mitsuba_scene(scene, variant=variant)
     w, h = int(scene.width), int(scene.height)
     v, u = np.mgrid[0:h, 0:w]
     film = mi.Point2f(mi.Float(((u.ravel() + 0.5) / w).astype(np.float32)),
