@@ -43,8 +43,10 @@ def cli(*args: str) -> None:
         raise RuntimeError(f"seasynth {' '.join(args)} exited {done.returncode}:\n{done.stdout}\n{done.stderr}")
 
 
-def make_export(recipe: Recipe, row, replicate: int, work: Path, platform: str, workers: str) -> Path:
-    """The COCO export (every frame in train) of replicate `replicate` of `row`, generated unless present."""
+def make_export(recipe: Recipe, row, replicate: int, work: Path, platform: str, workers: str,
+                gpus: str | None) -> Path:
+    """The COCO export (every frame in train) of replicate `replicate` of `row`, generated unless present (render
+    processes spread over `gpus` as `seasynth generate --gpus` takes it; None: the default device)."""
     name = f"{row.name}-{replicate}"
     coco = work / "coco" / name
     if (coco / "annotations" / "instances_train.json").exists():
@@ -53,7 +55,8 @@ def make_export(recipe: Recipe, row, replicate: int, work: Path, platform: str, 
     spec_path.parent.mkdir(parents=True, exist_ok=True)
     spec_path.write_text(row_spec(recipe, row, replicate).model_dump_json(indent=1) + "\n")
     data = work / "data" / name
-    cli("generate", str(spec_path), "--out", str(data), "--workers", workers, "--gl", platform, "--overwrite")
+    cli("generate", str(spec_path), "--out", str(data), "--workers", workers, "--gl", platform, "--overwrite",
+        *(() if gpus is None else ("--gpus", gpus)))
     if coco.exists():
         shutil.rmtree(coco)  # an unfinished export of an earlier run
     cli("export", str(data), "--format", "coco", "--out", str(coco), "--split", "1,0,0", "--gl", platform)
@@ -110,6 +113,7 @@ def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", varia
     (work / "runs").mkdir(parents=True, exist_ok=True)
     replicates = range(len(recipe.training.dataset_seeds))
     todo = [(row, r) for row in chosen for r in replicates if not (work / "runs" / f"{row.name}-{r}.json").exists()]
+    spread = "auto" if device.startswith("cuda") else None  # datasets render over every GPU EGL finds
     args = {"recipe_json": recipe.model_dump_json(), "testset": str(testset_dir), "keep": keep}
     if device.startswith("cuda") and gpus > 1:
         ctx = multiprocessing.get_context("spawn")
@@ -119,14 +123,14 @@ def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", varia
         with ProcessPoolExecutor(gpus, mp_context=ctx, initializer=_pin, initargs=(queue,)) as pool:
             futures = []
             for row, r in todo:  # exports are made here, one after another, while earlier ones train
-                coco = make_export(recipe, row, r, work, platform, workers)
+                coco = make_export(recipe, row, r, work, platform, workers, spread)
                 futures.append(pool.submit(score, coco=str(coco), replicate=r, device=None,
                                            run_path=str(work / "runs" / f"{row.name}-{r}.json"), **args))
             for (row, r), f in zip(todo, futures):
                 log(json.dumps({"row": row.name, "replicate": r} | _short(f.result())))
     else:
         for row, r in todo:
-            coco = make_export(recipe, row, r, work, platform, workers)
+            coco = make_export(recipe, row, r, work, platform, workers, spread)
             s = score(coco=str(coco), replicate=r, device=device,
                       run_path=str(work / "runs" / f"{row.name}-{r}.json"), **args)
             log(json.dumps({"row": row.name, "replicate": r} | _short(s)))

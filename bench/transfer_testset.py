@@ -3,8 +3,8 @@ path traced with Mitsuba 3 and labelled from exact geometry, written as a COCO f
 
 Per image: the scene of group k's spec (seed test.seed_first + k) at frame i, its procedural meshes, terrain and
 texture sets taken from held-out variants; rendered as two independent halves of the group's samples per pixel (test.spp unless it says), the
-image the 8-bit sRGB of their mean, and the halves' PSNR to each other its residual noise (the mean's own noise is
-about 3 dB lower than that says); labels are the tight boxes of each target's pixels in the path tracer's own
+image the 8-bit sRGB of their mean, and the halves' PSNR to each other its residual noise (the mean's own error is
+about 6 dB below it); labels are the tight boxes of each target's pixels in the path tracer's own
 instance ids at pixel centres (pathtracer.render_ids).
 
 Layout of OUT: images/test/{group}-{i:05d}.png, records/{group}-{i:05d}.json (seeds, digests, noise; an image with

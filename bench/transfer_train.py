@@ -3,8 +3,8 @@ initialisation (nothing downloaded), trained on a `seasynth export --format coco
 recipe's fixed schedule and augmentation, and its detections on a COCO folder as COCO results.
 
 Needs torch and torchvision (not seasynth dependencies). Images are read from the export's PNGs as batches are
-drawn (a thread decodes the next batch while the GPU trains on this one), so memory stays flat in the dataset's
-size."""
+drawn (threads decode the next batch while the GPU trains on this one), so memory stays flat in the dataset's
+size; augmentation runs on the training device."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from PIL import Image
 
 from seasynth.bench.transfer_recipe import Training
 
+LOADER_THREADS = 4  # PNG decoding threads (PIL releases the GIL while it inflates)
 MODEL = "torchvision fasterrcnn_mobilenet_v3_large_320_fpn, weights=None, weights_backbone=None"
 
 
@@ -41,18 +42,17 @@ def _load(path: Path) -> np.ndarray:
     return np.asarray(Image.open(path).convert("RGB"))
 
 
-def augment(rgb: np.ndarray, boxes: np.ndarray, rng: np.random.Generator, t: Training) -> tuple[np.ndarray, ...]:
-    """(image (h, w, 3) float32 in [0, 1], boxes (n, 4) float32): a horizontal flip with probability t.hflip
-    (boxes mirrored), brightness and contrast each scaled by a factor in 1 +- t.jitter (contrast about the mean)."""
-    img = rgb.astype(np.float32) / 255.0
+def augment(img, boxes: np.ndarray, rng: np.random.Generator, t: Training):
+    """(image, boxes (n, 4) float32 x1 y1 x2 y2 px): img a (3, h, w) float tensor in [0, 1] (on any device), flipped
+    horizontally with probability t.hflip (boxes mirrored), its brightness and contrast each scaled by a factor in
+    1 +- t.jitter (contrast about the image's mean), clipped to [0, 1]."""
     if rng.random() < t.hflip:
-        w = img.shape[1]
-        img = img[:, ::-1]
+        w = img.shape[2]
+        img = img.flip(2)
         boxes = np.stack([w - boxes[:, 2], boxes[:, 1], w - boxes[:, 0], boxes[:, 3]], axis=1)
-    brightness, contrast = rng.uniform(1 - t.jitter, 1 + t.jitter, size=2)
+    brightness, contrast = (float(x) for x in rng.uniform(1 - t.jitter, 1 + t.jitter, size=2))
     mean = img.mean()
-    img = np.clip((img - mean) * contrast + mean * brightness, 0.0, 1.0)
-    return np.ascontiguousarray(img, dtype=np.float32), boxes.astype(np.float32)
+    return ((img - mean) * contrast + mean * brightness).clamp(0.0, 1.0), boxes.astype(np.float32)
 
 
 def lr_factor(step: int, t: Training) -> float:
@@ -94,21 +94,20 @@ def train(export: Path, t: Training, seed: int, device: str, log=print):
         del order[:t.batch]
         return picked
 
-    def load_batch(picked: list[int]):
-        return [_load(items[i][0]) for i in picked], [items[i][1] for i in picked]
-
     losses = []
     t0 = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(load_batch, next_batch())
+    with ThreadPoolExecutor(max_workers=LOADER_THREADS) as pool:
+        def submit():  # the batch after this one decodes while this one trains
+            return [(pool.submit(_load, items[i][0]), items[i][1]) for i in next_batch()]
+
+        pending = submit()
         for step in range(t.steps):
-            rgbs, boxes = pending.result()
-            if step + 1 < t.steps:
-                pending = pool.submit(load_batch, next_batch())
+            batch, pending = pending, (submit() if step + 1 < t.steps else [])
             images, targets = [], []
-            for rgb, b in zip(rgbs, boxes):
+            for future, b in batch:
+                rgb = torch.from_numpy(future.result()).to(device).permute(2, 0, 1).float() / 255.0
                 img, b = augment(rgb, b, rng, t)
-                images.append(torch.from_numpy(img).permute(2, 0, 1).to(device))
+                images.append(img)
                 targets.append({"boxes": torch.from_numpy(b).to(device),
                                 "labels": torch.ones(len(b), dtype=torch.int64, device=device)})
             loss = sum(model(images, targets).values())
@@ -121,7 +120,7 @@ def train(export: Path, t: Training, seed: int, device: str, log=print):
             if (step + 1) % max(t.steps // 10, 1) == 0:
                 log(json.dumps({"step": step + 1, "loss": round(float(np.mean(losses[-50:])), 4)}))
     window = max(min(50, t.steps // 4), 1)
-    return model, {"train_images": len(items), "seconds": round(time.perf_counter() - t0, 1),
+    return model, {"model": MODEL, "train_images": len(items), "seconds": round(time.perf_counter() - t0, 1),
                    "loss_first": round(float(np.mean(losses[:window])), 4),
                    "loss_last": round(float(np.mean(losses[-window:])), 4)}
 

@@ -189,3 +189,23 @@ def test_a_tiny_transfer_bench_runs_end_to_end_on_the_cpu(tmp_path, mitsuba):
         assert row["replicates"][0]["train_images"] == recipe.training.frames_1x
     assert "NOT real photographs" in (tmp_path / "out" / "transfer.md").read_text()
     assert (tmp_path / "out" / "transfer.png").stat().st_size > 0
+
+
+def test_the_learning_rate_warms_up_linearly_then_falls_along_a_cosine_to_zero():
+    from seasynth.bench.transfer_train import lr_factor
+
+    t = load_recipe(RECIPES / "transfer.json").training
+    assert [lr_factor(s, t) for s in (0, t.warmup_steps - 1)] == [1 / t.warmup_steps, 1.0]
+    assert lr_factor(t.warmup_steps, t) == 1.0 and lr_factor(t.steps, t) == pytest.approx(0.0, abs=1e-12)
+    mid = t.warmup_steps + (t.steps - t.warmup_steps) // 2
+    assert lr_factor(mid, t) == pytest.approx(0.5, abs=1e-3)
+
+
+def test_a_flip_mirrors_the_image_and_its_boxes_exactly():
+    torch = pytest.importorskip("torch", reason="torch is not installed (the detector's training needs it)")
+    from seasynth.bench.transfer_train import augment
+
+    t = load_recipe(TINY).training.model_copy(update={"hflip": 1.0, "jitter": 0.0})
+    img = torch.rand(3, 5, 8)
+    out, boxes = augment(img, np.array([[1.0, 2.0, 3.0, 4.0]], np.float32), np.random.default_rng(0), t)
+    assert torch.allclose(out, img.flip(2), rtol=0.0, atol=1e-6) and boxes.tolist() == [[5.0, 2.0, 7.0, 4.0]]
