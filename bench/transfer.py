@@ -33,7 +33,7 @@ PAPER = {
     "no-distractors": {"YOLOv9": (0.334, 0.274, 0.148, 0.040), "DETR": (0.713, 0.391, 0.404, 0.130)},
     "5x": {"YOLOv9": (0.557, 0.372, 0.284, 0.103), "DETR": (0.519, 0.521, 0.409, 0.168)},
 }
-_device: list[str] = []  # the GPU of a training process (set once by _pin)
+_device: list[str] = []  # the device of a training process (set once by _pin)
 
 
 def cli(*args: str) -> None:
@@ -67,7 +67,7 @@ def make_export(recipe: Recipe, row, replicate: int, work: Path, platform: str, 
 def score(recipe_json: str, coco: str, testset: str, replicate: int, run_path: str, device: str | None,
           keep: bool) -> dict:
     """Train replicate `replicate` on `coco`, detect on the test set, score; writes run_path (detections and
-    scores) and returns the scores. device None: the process's pinned GPU."""
+    scores) and returns the scores. device None: the process's pinned device."""
     import torch
     import torchvision
 
@@ -95,9 +95,10 @@ def _pin(devices) -> None:
 
 
 def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", variant: str = "cuda_ad_rgb",
-        gpus: int = 1, platform: str = "egl", workers: str = "auto", rows: list[str] | None = None,
+        jobs: int = 1, platform: str = "egl", workers: str = "auto", rows: list[str] | None = None,
         keep: bool = False, machine: str | None = None, log=print) -> dict:
-    """The whole bench (see the module's docstring); rows: only these rows' names (all when None)."""
+    """The whole bench (see the module's docstring); jobs: detectors trained at once, each in its own process (with
+    device cuda, process k on GPU cuda:k); rows: only these rows' names (all when None)."""
     from seasynth.bench.accuracy import write_results
     from seasynth.bench.transfer_report import format_table, picture, summarise
     from seasynth.bench.transfer_testset import build
@@ -115,12 +116,12 @@ def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", varia
     todo = [(row, r) for row in chosen for r in replicates if not (work / "runs" / f"{row.name}-{r}.json").exists()]
     spread = "auto" if device.startswith("cuda") else None  # datasets render over every GPU EGL finds
     args = {"recipe_json": recipe.model_dump_json(), "testset": str(testset_dir), "keep": keep}
-    if device.startswith("cuda") and gpus > 1:
+    if jobs > 1:  # a process per detector trained at once; on cuda, process k keeps GPU cuda:k
         ctx = multiprocessing.get_context("spawn")
         queue = ctx.Manager().Queue()
-        for k in range(gpus):
-            queue.put(f"cuda:{k}")
-        with ProcessPoolExecutor(gpus, mp_context=ctx, initializer=_pin, initargs=(queue,)) as pool:
+        for k in range(jobs):
+            queue.put(f"cuda:{k}" if device == "cuda" else device)
+        with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_pin, initargs=(queue,)) as pool:
             futures = []
             for row, r in todo:  # exports are made here, one after another, while earlier ones train
                 coco = make_export(recipe, row, r, work, platform, workers, spread)

@@ -231,8 +231,9 @@ def bench_transfer(
     device: Annotated[str, typer.Option("--device", help="torch device of the detector: cuda or cpu.")] = "cuda",
     path_tracer: Annotated[str, typer.Option("--path-tracer", help="Mitsuba variant of the test set: cuda_ad_rgb "
                                              "(an NVIDIA GPU) or llvm_ad_rgb (the CPU).")] = "cuda_ad_rgb",
-    gpus: Annotated[int, typer.Option("--gpus", min=1, help="Detectors trained at once, one per GPU (cuda:0..N-1); "
-                                      "datasets are generated over every GPU EGL finds.")] = 1,
+    jobs: Annotated[int, typer.Option("--jobs", min=1, help="Detectors trained at once, each in its own process; "
+                                      "with --device cuda, process k on GPU cuda:k (datasets render over every GPU "
+                                      "EGL finds).")] = 1,
     row: Annotated[Optional[list[str]], typer.Option("--row", help="Only this row of the recipe (repeatable).")]
     = None,
     testset_shard: Annotated[Optional[str], typer.Option(
@@ -257,7 +258,7 @@ def bench_transfer(
         return
     if out is None:
         raise typer.BadParameter("give --out (or --testset-shard)", param_hint="--out")
-    run(recipe, out, work, device=device, variant=path_tracer, gpus=gpus, platform=gl, workers="auto",
+    run(recipe, out, work, device=device, variant=path_tracer, jobs=jobs, platform=gl, workers="auto",
         rows=row, keep=keep, machine=machine)
 
 

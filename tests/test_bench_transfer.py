@@ -173,7 +173,7 @@ def test_a_tiny_transfer_bench_runs_end_to_end_on_the_cpu(tmp_path, mitsuba):
         pytest.skip("torch and torchvision are not installed (CPU wheels: pip install torch torchvision "
                     "--index-url https://download.pytorch.org/whl/cpu)")
     args = ["bench", "transfer", "--recipe", TINY, "--work", tmp_path / "work", "--out", tmp_path / "out",
-            "--device", "cpu", "--path-tracer", "llvm_ad_rgb", "--machine", "ci"]
+            "--device", "cpu", "--path-tracer", "llvm_ad_rgb", "--machine", "ci", "--jobs", "2"]
     done = subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
                           check=False, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -209,3 +209,28 @@ def test_a_flip_mirrors_the_image_and_its_boxes_exactly():
     img = torch.rand(3, 5, 8)
     out, boxes = augment(img, np.array([[1.0, 2.0, 3.0, 4.0]], np.float32), np.random.default_rng(0), t)
     assert torch.allclose(out, img.flip(2), rtol=0.0, atol=1e-6) and boxes.tolist() == [[5.0, 2.0, 7.0, 4.0]]
+
+
+def test_a_test_set_rendered_in_shards_is_byte_for_byte_the_one_rendered_at_once(tmp_path, mitsuba):
+    from seasynth.bench.transfer_testset import build
+
+    recipe = load_recipe(TINY)
+    for k in (1, 0):  # shards in any order, then the run that finds every image done and writes the json
+        assert build(recipe, tmp_path / "a", "llvm_ad_rgb", shard=(k, 2), log=lambda line: None) is None
+    assert len(list((tmp_path / "a" / "records").iterdir())) == recipe.test.frames
+    a = build(recipe, tmp_path / "a", "llvm_ad_rgb", log=pytest.fail)  # nothing left to render
+    b = build(recipe, tmp_path / "b", "llvm_ad_rgb", log=lambda line: None)
+    keys = ("file_name", "boxes", "scene_sha256", "png_sha256", "noise_db")
+    assert [{k: r[k] for k in keys} for r in a["records"]] == [{k: r[k] for k in keys} for r in b["records"]]
+    assert a["boxes"] == sum(len(r["boxes"]) for r in b["records"]) > 0
+
+
+def test_a_test_set_shard_is_k_of_n():
+    import typer
+
+    from seasynth.cli.bench import _shard
+
+    assert _shard("0/8") == (0, 8) and _shard("7/8") == (7, 8)
+    for text in ("8/8", "-1/2", "1", "a/b", "1/0"):
+        with pytest.raises(typer.BadParameter, match="0 <= K < N"):
+            _shard(text)
