@@ -33,7 +33,8 @@ def summarise(recipe, digest: str, rows, runs: dict, testset: dict, paper: dict,
     return {
         "machine": machine, "torch": first["torch"], "torchvision": first["torchvision"], "device": first["device"],
         "recipe": recipe.model_dump(), "recipe_sha256": digest,
-        "testset": {"images": testset["images"], "boxes": testset["boxes"], "groups": groups,
+        "testset": {"images": testset["images"], "boxes": testset["boxes"],
+                    "boxes_visible": testset["boxes_visible"], "groups": groups,
                     "noise_db_min": testset["noise_db_min"], "noise_db_median": testset["noise_db_median"],
                     "path_tracer_seconds": testset["seconds"],
                     "images_sha256": [{k: r[k] for k in ("file_name", "scene_sha256", "png_sha256", "noise_db")}
@@ -52,7 +53,8 @@ def format_table(result: dict) -> str:
         "meshes and textures no training spec can draw (bench/transfer_recipe.py).  ",
         f"machine: {result['machine']}; {result['device']}; torch {result['torch']}, torchvision "
         f"{result['torchvision']}  ",
-        f"test set: {ts['images']} images, {ts['boxes']} boxes in groups "
+        f"test set: {ts['images']} images, {ts['boxes']} boxes ({ts['boxes_visible']} standing out from their "
+        f"surroundings by {r['test']['min_contrast']} sRGB codes or more; the rest are ignored regions) in groups "
         + ", ".join(f"{k} {v}" for k, v in ts["groups"].items())
         + f"; {r['test']['spp']} spp x 2 halves; halves' PSNR min {ts['noise_db_min']} dB, median "
         f"{ts['noise_db_median']} dB  ",
@@ -76,8 +78,8 @@ def format_table(result: dict) -> str:
 
 
 def picture(testset: Path, detections: list[dict], row: str, path: Path, count: int = 8) -> None:
-    """`count` test images spread over the set: ground truth green, the row's first replicate's detections with
-    score >= 0.5 red."""
+    """`count` test images spread over the set: ground truth green (ignored regions yellow), the row's first
+    replicate's detections with score >= 0.5 red."""
     from PIL import Image, ImageDraw
 
     coco = json.loads((testset / "annotations" / "instances_test.json").read_text())
@@ -89,7 +91,7 @@ def picture(testset: Path, detections: list[dict], row: str, path: Path, count: 
         for a in coco["annotations"]:
             if a["image_id"] == im["id"]:
                 x, y, w, h = a["bbox"]
-                draw.rectangle([x, y, x + w - 1, y + h - 1], outline=(0, 255, 0))
+                draw.rectangle([x, y, x + w - 1, y + h - 1], outline=(255, 255, 0) if a["iscrowd"] else (0, 255, 0))
         for d in detections:
             if d["image_id"] == im["id"] and d["score"] >= 0.5:
                 x, y, w, h = d["bbox"]

@@ -5,7 +5,10 @@ Per image: the scene of group k's spec (seed test.seed_first + k) at frame i, it
 texture sets taken from held-out variants; rendered as two independent halves of the group's samples per pixel (test.spp unless it says), the
 image the 8-bit sRGB of their mean, and the halves' PSNR to each other its residual noise (the mean's own error is
 about 6 dB below it); labels are the tight boxes of each target's pixels in the path tracer's own
-instance ids at pixel centres (pathtracer.render_ids).
+instance ids at pixel centres (pathtracer.render_ids). A box whose object does not stand out from its surroundings
+in the image (contrast below test.min_contrast: an urchin in the dark beyond the lamps' beams, or lost in the
+veiling light) is kept as an ignored region (COCO iscrowd 1): finding it is not a false positive, missing it is not
+a miss, as an annotator would not have labelled it.
 
 Layout of OUT: images/test/{group}-{i:05d}.png, records/{group}-{i:05d}.json (seeds, digests, noise; an image with
 its record of the same test recipe is complete, so a rerun resumes), annotations/instances_test.json (COCO, as `seasynth export` writes).
@@ -26,6 +29,7 @@ from seasynth.service.seeds import frame_rng
 from seasynth.service.spec.dataset import DatasetSpec
 
 SPLIT = "test"
+RING_PX = 3  # the surroundings an object's contrast is measured against: pixels within this of its box
 
 
 def held_out_scene(session, spec: DatasetSpec, index: int):
@@ -87,9 +91,24 @@ def tight_boxes(ids: np.ndarray, wanted: set[int]) -> dict[int, tuple[int, int, 
     return out
 
 
+def contrast(image: np.ndarray, ids: np.ndarray, instance: int, box: tuple[int, int, int, int],
+             ring_px: int = RING_PX) -> float:
+    """How far an object stands out: the largest per-channel difference, in 8-bit sRGB codes, between the mean of
+    its pixels and the mean of the other pixels within ring_px of its box. image (h, w, 3) uint8; ids (h, w)."""
+    h, w = ids.shape
+    left, top, right, bottom = box
+    window = (slice(max(top - ring_px, 0), min(bottom + ring_px + 1, h)),
+              slice(max(left - ring_px, 0), min(right + ring_px + 1, w)))
+    mine = ids[window] == instance
+    pixels = image[window].astype(np.float64)
+    if mine.all():
+        return 0.0  # nothing around it in view to stand out from
+    return float(np.abs(pixels[mine].mean(axis=0) - pixels[~mine].mean(axis=0)).max())
+
+
 def render_frame(session, spec: DatasetSpec, index: int, recipe: Recipe, spp: int, variant: str) -> dict:
-    """One test image: {'image': (h, w, 3) uint8 sRGB, 'boxes': [(l, t, r, b)], 'noise_db', 'scene_sha256',
-    'seconds', 'variants'}."""
+    """One test image: {'image': (h, w, 3) uint8 sRGB, 'boxes': [(l, t, r, b)], 'contrast': [sRGB codes] (one per
+    box), 'noise_db', 'scene_sha256', 'seconds', 'variants'}."""
     from seasynth.bench import pathtracer
     from seasynth.bench.accuracy import psnr_db
     from seasynth.bench.fidelity_scene import exported_scene
@@ -104,8 +123,10 @@ def render_frame(session, spec: DatasetSpec, index: int, recipe: Recipe, spp: in
     ids = pathtracer.render_ids(pt, variant=variant)
     seconds = time.perf_counter() - t0
     targets = {p.instance_id for p in scene.objects if p.role == "target"}
-    return {"image": encode_srgb8((halves[0] + halves[1]) / 2),
-            "boxes": list(tight_boxes(ids, targets).values()),
+    image = encode_srgb8((halves[0] + halves[1]) / 2)
+    boxes = tight_boxes(ids, targets)
+    return {"image": image, "boxes": list(boxes.values()),
+            "contrast": [round(contrast(image, ids, i, b), 2) for i, b in boxes.items()],
             "noise_db": float(psnr_db(encode_srgb8(halves[0]), encode_srgb8(halves[1]))),
             "scene_sha256": scene_digest(pt), "seconds": seconds,
             "variants": sorted({p.variant for p in scene.objects if p.variant is not None})}
@@ -139,7 +160,7 @@ def build(recipe: Recipe, out: Path, variant: str, platform: str = "egl", shard:
                 png = images_dir / f"{name}.png"
                 Image.fromarray(r["image"]).save(png, optimize=False)
                 record = {"file_name": png.name, "test_sha256": digest, "group": group.name, "dataset_seed": spec.seed, "frame": i,
-                          "boxes": r["boxes"], "noise_db": round(r["noise_db"], 2), "spp_per_half": spp,
+                          "boxes": r["boxes"], "contrast": r["contrast"], "noise_db": round(r["noise_db"], 2), "spp_per_half": spp,
                           "variant": variant, "seconds": round(r["seconds"], 2), "scene_sha256": r["scene_sha256"],
                           "png_sha256": hashlib.sha256(png.read_bytes()).hexdigest(),
                           "held_out_variants": r["variants"]}
@@ -151,19 +172,21 @@ def build(recipe: Recipe, out: Path, variant: str, platform: str = "egl", shard:
         return None
     records = [json.loads((records_dir / f"{g.name}-{i:05d}.json").read_text())
                for g in recipe.test.groups for i in range(g.frames)]
-    write_coco(out, records, class_name, recipe.width, recipe.height)
+    write_coco(out, records, class_name, recipe.width, recipe.height, recipe.test.min_contrast)
     noise = sorted(r["noise_db"] for r in records)
     return {"images": len(records), "boxes": sum(len(r["boxes"]) for r in records),
+            "boxes_visible": sum(c >= recipe.test.min_contrast for r in records for c in r["contrast"]),
             "noise_db_min": noise[0], "noise_db_median": noise[len(noise) // 2],
             "seconds": round(sum(r["seconds"] for r in records), 1), "records": records}
 
 
 def testset_digest(recipe: Recipe) -> str:
-    """sha256 of what makes the test set: base spec file, resolution and the recipe's test section."""
+    """sha256 of what makes the test set's images and boxes: base spec file, resolution and the recipe's test
+    section (but min_contrast)."""
     from seasynth.bench.transfer_recipe import REPO
 
-    text = json.dumps([(REPO / recipe.base_spec).read_text(), recipe.width, recipe.height, recipe.test.model_dump()],
-                      sort_keys=True)
+    test = recipe.test.model_dump(exclude={"min_contrast"})  # a threshold on what was rendered: no new render
+    text = json.dumps([(REPO / recipe.base_spec).read_text(), recipe.width, recipe.height, test], sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -171,17 +194,19 @@ def _complete(record: Path, png: Path, digest: str) -> bool:
     return record.exists() and png.exists() and json.loads(record.read_text()).get("test_sha256") == digest
 
 
-def write_coco(out: Path, records: list[dict], class_name: str, width: int, height: int) -> Path:
-    """annotations/instances_test.json of the records: image ids 0.. in record order, boxes as coco_bbox."""
+def write_coco(out: Path, records: list[dict], class_name: str, width: int, height: int,
+               min_contrast: float) -> Path:
+    """annotations/instances_test.json of the records: image ids 0.. in record order, boxes as coco_bbox, those of
+    contrast below min_contrast as ignored regions (iscrowd 1)."""
     from seasynth.worker.export.coco import coco_bbox
 
     images, annotations = [], []
     for image_id, r in enumerate(records):
         images.append({"id": image_id, "file_name": r["file_name"], "width": width, "height": height})
-        for box in r["boxes"]:
+        for box, c in zip(r["boxes"], r["contrast"]):
             bbox = coco_bbox(tuple(box))
             annotations.append({"id": len(annotations) + 1, "image_id": image_id, "category_id": 1, "bbox": bbox,
-                                "area": bbox[2] * bbox[3], "iscrowd": 0})
+                                "area": bbox[2] * bbox[3], "iscrowd": int(c < min_contrast), "contrast": c})
     path = out / "annotations" / f"instances_{SPLIT}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"images": images, "annotations": annotations,

@@ -24,7 +24,7 @@ from seasynth.bench.transfer_recipe import (
     row_spec,
     training_variants,
 )
-from seasynth.bench.transfer_testset import tight_boxes
+from seasynth.bench.transfer_testset import contrast, tight_boxes
 from seasynth.service.spec.scene import MAX_VARIANTS
 
 RECIPE_FILES = sorted(RECIPES.glob("transfer*.json"))
@@ -101,6 +101,16 @@ def test_each_box_is_the_tight_box_of_its_instance_s_pixels(seed, n):
     assert set(boxes) <= wanted
 
 
+def test_contrast_is_the_largest_channel_difference_between_an_object_and_its_surroundings():
+    ids = np.zeros((20, 30), np.uint32)
+    ids[5:9, 10:16] = 4
+    image = np.full((20, 30, 3), (40, 50, 60), np.uint8)
+    image[ids == 4] = (100, 70, 60)
+    image[0, 0] = 255  # beyond the ring of 3 pixels round the box: not its surroundings
+    assert contrast(image, ids, 4, (10, 5, 15, 8)) == 60.0
+    assert contrast(np.zeros_like(image), ids, 4, (10, 5, 15, 8)) == 0.0  # in the dark: nothing stands out
+
+
 def gt(boxes_per_image: list[list[list[float]]]) -> dict:
     images = [{"id": i, "file_name": f"{i}.png", "width": 64, "height": 48} for i in range(len(boxes_per_image))]
     anns = [{"id": k + 1, "image_id": i, "category_id": 1, "bbox": b, "area": b[2] * b[3], "iscrowd": 0}
@@ -115,6 +125,16 @@ def test_perfect_detections_score_one_and_none_score_zero():
     assert evaluate(truth, dets) == {"map50": 1.0, "map50_95": 1.0, "precision": 1.0, "recall": 1.0, "f1": 1.0,
                                      "score_threshold": 0.9}
     assert evaluate(truth, [])["map50"] == 0.0
+
+
+def test_an_ignored_box_is_neither_a_miss_when_missed_nor_a_false_positive_when_found():
+    truth = gt([[[2, 3, 10, 8], [30, 20, 12, 12]]])
+    truth["annotations"][1]["iscrowd"] = 1
+    found = {"image_id": 0, "category_id": 1, "bbox": [2, 3, 10, 8], "score": 0.9}
+    on_ignored = {"image_id": 0, "category_id": 1, "bbox": [30, 20, 12, 12], "score": 0.8}
+    for dets in ([found], [found, on_ignored]):
+        r = evaluate(truth, dets)
+        assert (r["precision"], r["recall"]) == (1.0, 1.0) and r["map50"] == pytest.approx(1.0, abs=1e-12)
 
 
 def test_precision_and_recall_are_taken_where_f1_is_best():
