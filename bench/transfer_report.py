@@ -58,7 +58,8 @@ def format_table(result: dict) -> str:
         + ", ".join(f"{k} {v}" for k, v in ts["groups"].items())
         + f"; {r['test']['spp']} spp x 2 halves; halves' PSNR min {ts['noise_db_min']} dB, median "
         f"{ts['noise_db_median']} dB  ",
-        f"detector: Faster R-CNN MobileNetV3-Large FPN 320 from random init; {t['steps']} steps of {t['batch']}, SGD "
+        f"detector: Faster R-CNN MobileNetV3-Large FPN 320 from random init, images resized to a short side of "
+        f"{t['min_size']} (long side at most {t['max_size']}); {t['steps']} steps of {t['batch']}, SGD "
         f"lr {t['lr']} (warm-up {t['warmup_steps']}, cosine), flip {t['hflip']}, jitter {t['jitter']}; {n} "
         "replicates per row (dataset seed and detector seed), mean +- sample std  ",
         "P and R at the score threshold maximising F1 (IoU 0.5); mAP from pycocotools  ",

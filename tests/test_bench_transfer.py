@@ -38,6 +38,9 @@ def test_every_test_seed_variant_and_texture_is_one_no_training_spec_of_the_reci
                    for r in range(len(recipe.training.dataset_seeds))}
     test = held_out_specs(recipe)
     assert {s.seed for _, s in test}.isdisjoint(train_seeds)
+    for _, spec in test:  # the path tracer renders the physical light; textures on, as the product's default
+        assert spec.water.enabled and spec.water.resolved_model == "physical" and spec.materials.procedural
+        assert (spec.camera.width, spec.camera.height) == (recipe.width, recipe.height)
     for row in recipe.rows:
         shapes, textures = training_variants(row_spec(recipe, row, 0))
         assert max(shapes) < HELD_OUT_FIRST_VARIANT and max(textures) < HELD_OUT_FIRST_VARIANT
