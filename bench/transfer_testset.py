@@ -118,8 +118,8 @@ def render_frame(session, spec: DatasetSpec, index: int, recipe: Recipe, spp: in
     scene = held_out_scene(session, spec, index)
     pt = exported_scene(session, spec, scene)
     t0 = time.perf_counter()
-    halves = [pathtracer.render(pt, spp, seed=k, max_depth=recipe.test.max_depth, variant=variant,
-                                lamp_housing_m=recipe.test.lamp_housing_m) for k in (0, 1)]
+    halves = pathtracer.render_seeds(pt, spp, (0, 1), max_depth=recipe.test.max_depth, variant=variant,
+                                     lamp_housing_m=recipe.test.lamp_housing_m)
     ids = pathtracer.render_ids(pt, variant=variant)
     seconds = time.perf_counter() - t0
     targets = {p.instance_id for p in scene.objects if p.role == "target"}
