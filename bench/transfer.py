@@ -77,7 +77,9 @@ def score(recipe_json: str, coco: str, testset: str, replicate: int, run_path: s
     recipe = Recipe.model_validate_json(recipe_json)
     t = recipe.training
     device = device or _device[0]
-    model, info = train(Path(coco), t, t.detector_seeds[replicate], device, log=lambda line: None)
+    name = Path(run_path).stem
+    model, info = train(Path(coco), t, t.detector_seeds[replicate], device,
+                        log=lambda line: print(f"{name} {line}", flush=True))
     detections = detect(model, Path(testset), "test", device)
     gt = json.loads((Path(testset) / "annotations" / "instances_test.json").read_text())
     result = {**evaluate(gt, detections), **info, "replicate": replicate,

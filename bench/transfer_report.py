@@ -8,6 +8,7 @@ import statistics
 from pathlib import Path
 
 METRICS = ("precision", "recall", "map50", "map50_95")
+TILE_WIDTH = 400  # pixels a test image takes in the picture, at most
 NAMES = {"precision": "P", "recall": "R", "map50": "mAP50", "map50_95": "mAP50-95"}
 
 
@@ -88,15 +89,20 @@ def picture(testset: Path, detections: list[dict], row: str, path: Path, count: 
     tiles = []
     for im in chosen:
         tile = Image.open(testset / "images" / "test" / im["file_name"]).convert("RGB")
+        f = min(1.0, TILE_WIDTH / tile.width)  # the committed picture stays small; boxes drawn after scaling
+        tile = tile.resize((round(tile.width * f), round(tile.height * f)), Image.BILINEAR)
         draw = ImageDraw.Draw(tile)
+
+        def box(bbox, colour, draw=draw, f=f):
+            x, y, w, h = (v * f for v in bbox)
+            draw.rectangle([x, y, x + w, y + h], outline=colour)
+
         for a in coco["annotations"]:
             if a["image_id"] == im["id"]:
-                x, y, w, h = a["bbox"]
-                draw.rectangle([x, y, x + w - 1, y + h - 1], outline=(255, 255, 0) if a["iscrowd"] else (0, 255, 0))
+                box(a["bbox"], (255, 255, 0) if a["iscrowd"] else (0, 255, 0))
         for d in detections:
             if d["image_id"] == im["id"] and d["score"] >= 0.5:
-                x, y, w, h = d["bbox"]
-                draw.rectangle([x, y, x + w, y + h], outline=(255, 0, 0))
+                box(d["bbox"], (255, 0, 0))
         draw.text((2, 2), f"{im['file_name']} ({row})", fill=(255, 255, 255))
         tiles.append(tile)
     w, h = tiles[0].size

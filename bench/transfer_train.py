@@ -39,7 +39,7 @@ def read_coco(folder: Path, split: str) -> tuple[dict, list[tuple[Path, np.ndarr
 
 def _load(path: Path) -> np.ndarray:
     """(h, w, 3) uint8 RGB."""
-    return np.asarray(Image.open(path).convert("RGB"))
+    return np.array(Image.open(path).convert("RGB"))  # writable: torch refuses to alias a read-only array
 
 
 def augment(img, boxes: np.ndarray, rng: np.random.Generator, t: Training):
@@ -72,8 +72,9 @@ def build_model(t: Training):
 
 
 def train(export: Path, t: Training, seed: int, device: str, log=print):
-    """(the trained model, {'train_images', 'seconds', 'loss_first', 'loss_last'}) after t.steps steps of
-    t.batch images from the export's train split; batches are epochs of a permutation drawn from `seed`."""
+    """(the trained model, {'model', 'train_images', 'seconds', 'loss_first', 'loss_last', 'loss_per_twentieth'
+    (the mean loss of each twentieth of the steps)}) after t.steps steps of t.batch images from the export's train
+    split; batches are epochs of a permutation drawn from `seed`."""
     import torch
 
     _, items = read_coco(export, "train")
@@ -120,9 +121,10 @@ def train(export: Path, t: Training, seed: int, device: str, log=print):
             if (step + 1) % max(t.steps // 10, 1) == 0:
                 log(json.dumps({"step": step + 1, "loss": round(float(np.mean(losses[-50:])), 4)}))
     window = max(min(50, t.steps // 4), 1)
+    curve = [round(float(np.mean(part)), 4) for part in np.array_split(np.asarray(losses), min(20, len(losses)))]
     return model, {"model": MODEL, "train_images": len(items), "seconds": round(time.perf_counter() - t0, 1),
                    "loss_first": round(float(np.mean(losses[:window])), 4),
-                   "loss_last": round(float(np.mean(losses[-window:])), 4)}
+                   "loss_last": round(float(np.mean(losses[-window:])), 4), "loss_per_twentieth": curve}
 
 
 def detect(model, folder: Path, split: str, device: str, batch: int = 16) -> list[dict]:
