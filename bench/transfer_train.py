@@ -39,7 +39,7 @@ def read_coco(folder: Path, split: str) -> tuple[dict, list[tuple[Path, np.ndarr
 
 def _load(path: Path) -> np.ndarray:
     """(h, w, 3) uint8 RGB."""
-    return np.array(Image.open(path).convert("RGB"))  # writable: torch refuses to alias a read-only array
+    return np.array(Image.open(path).convert("RGB"))  # writable: torch warns on a read-only array
 
 
 def augment(img, boxes: np.ndarray, rng: np.random.Generator, t: Training):
