@@ -16,11 +16,17 @@ SEED, FRAME = 7, 3  # every configuration's scene: the example's frame FRAME und
 def path_traced_scene(session, spec: DatasetSpec):
     """The frame's scene for the path tracer, in its units (radiance: our J = albedo x irradiance is pi times less
     than a Lambertian surface's radiance under the same irradiance, so lights are scaled by pi)."""
+    return exported_scene(session, spec, session.scene(spec, FRAME))
+
+
+def exported_scene(session, spec: DatasetSpec, scene):
+    """A sampled scene (water.model physical) of `spec` for the path tracer, in its units (path_traced_scene)."""
     from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
     from seasynth.bench.pathtracer_textures import from_render_material
     from seasynth.worker.light import SNELL_CONE_DEG
 
-    scene = session.scene(spec, FRAME)
+    if scene.light is None:
+        raise ValueError("the path tracer needs the physical light: water.enabled true and water.model physical")
     view = session.view(spec, scene)
     light = scene.light
     meshes = []

@@ -280,27 +280,35 @@ def render(scene: PTScene, spp: int, seed: int = 0, max_depth: int = 64, rr_dept
 
     Runs in calls of at most MAX_SAMPLES_PER_CALL samples in all (bounding memory), each seeded from (seed, call
     index) through np.random.SeedSequence, so different seeds give independent noise."""
+    return render_seeds(scene, spp, (seed,), max_depth, rr_depth, variant, lamp_housing_m)[0]
+
+
+def render_seeds(scene: PTScene, spp: int, seeds: tuple[int, ...], max_depth: int = 64, rr_depth: int = 5,
+                 variant: str = VARIANT, lamp_housing_m: float = 0.0) -> list[np.ndarray]:
+    """`render` once per seed, the scene loaded into Mitsuba once: each image is render(scene, spp, seed)'s."""
     if spp < 1:
         raise ValueError(f"render: spp must be >= 1, got {spp}")
     ms = mitsuba_scene(scene, max_depth=max_depth, rr_depth=rr_depth, variant=variant, lamp_housing_m=lamp_housing_m)
     mi = load_mitsuba(variant)
     per_call = max(1, MAX_SAMPLES_PER_CALL[variant] // (scene.width * scene.height))
     counts = [min(per_call, spp - start) for start in range(0, spp, per_call)]
-    seeds = np.random.SeedSequence(seed).spawn(len(counts))
-    total = np.zeros((scene.height, scene.width, 3), dtype=np.float64)
-    for n, ss in zip(counts, seeds):
-        image = mi.render(ms, spp=n, seed=int(ss.generate_state(1)[0]))
-        total += n * np.asarray(image, dtype=np.float64)[..., :3]
-    return (total / spp).astype(np.float32)
+    out = []
+    for seed in seeds:
+        total = np.zeros((scene.height, scene.width, 3), dtype=np.float64)
+        for n, ss in zip(counts, np.random.SeedSequence(seed).spawn(len(counts))):
+            image = mi.render(ms, spp=n, seed=int(ss.generate_state(1)[0]))
+            total += n * np.asarray(image, dtype=np.float64)[..., :3]
+        out.append((total / spp).astype(np.float32))
+    return out
 
 
-def render_ids(scene: PTScene) -> np.ndarray:
+def render_ids(scene: PTScene, variant: str = VARIANT) -> np.ndarray:
     """(h, w) uint32 instance ids at pixel centres (0 where the centre ray hits terrain or nothing).
 
     Rays come from the Mitsuba sensor itself at film positions ((u + 0.5) / w, (v + 0.5) / h), so this checks the
     camera export as well as the geometry."""
-    mi = load_mitsuba()
-    ms = mitsuba_scene(scene)
+    mi = load_mitsuba(variant)
+    ms = mitsuba_scene(scene, variant=variant)
     w, h = int(scene.width), int(scene.height)
     v, u = np.mgrid[0:h, 0:w]
     film = mi.Point2f(mi.Float(((u.ravel() + 0.5) / w).astype(np.float32)),

@@ -222,3 +222,55 @@ def bench_blender(
                                      param_hint="--engine")
     run(spec, frames=frames, width=width, height=height, out=out, blender_python=blender_python,
         engines=engine or list(ENGINES), platform=gl)
+
+
+@bench_app.command("transfer")
+def bench_transfer(
+    work: Annotated[Path, typer.Option("--work", help="Folder for the test set, datasets, exports and runs "
+                                       "(resumable: what is complete there is kept).")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for transfer.json, .md and .png.")] = None,
+    recipe: Annotated[Path, typer.Option("--recipe", help="The bench's recipe.")] = Path("bench/recipes/transfer.json"),
+    device: Annotated[str, typer.Option("--device", help="torch device of the detector: cuda or cpu.")] = "cuda",
+    path_tracer: Annotated[str, typer.Option("--path-tracer", help="Mitsuba variant of the test set: cuda_ad_rgb "
+                                             "(an NVIDIA GPU) or llvm_ad_rgb (the CPU).")] = "cuda_ad_rgb",
+    jobs: Annotated[int, typer.Option("--jobs", min=1, help="Detectors trained at once, each in its own process; "
+                                      "with --device cuda, process k on GPU cuda:k (datasets render over every GPU "
+                                      "EGL finds).")] = 1,
+    row: Annotated[Optional[list[str]], typer.Option("--row", help="Only this row of the recipe (repeatable).")]
+    = None,
+    testset_shard: Annotated[Optional[str], typer.Option(
+        "--testset-shard", help="K/N: only path trace the test images whose place in the set is K mod N, then stop "
+        "(one process per GPU, each with CUDA_VISIBLE_DEVICES=K); a later run without it finds them done.")] = None,
+    keep: Annotated[bool, typer.Option("--keep", help="Keep each COCO export after training on it.")] = False,
+    machine: Annotated[Optional[str], typer.Option("--machine", help="Machine description to record.")] = None,
+    gl: PlatformOpt = "egl",
+) -> None:
+    """A detector trained only on seasynth, scored on a held-out path-traced test set (not real photographs): one
+    row per ablation of the recipe, mAP50, mAP50-95, P and R at the best F1, mean and spread over replicates."""
+    from seasynth.bench.pathtracer import MAX_SAMPLES_PER_CALL
+    from seasynth.bench.transfer import run
+    from seasynth.bench.transfer_recipe import load_recipe
+    from seasynth.bench.transfer_testset import build
+
+    if path_tracer not in MAX_SAMPLES_PER_CALL:
+        raise typer.BadParameter(f"{path_tracer!r}: give one of {', '.join(MAX_SAMPLES_PER_CALL)}",
+                                 param_hint="'--path-tracer'")
+    if testset_shard is not None:
+        build(load_recipe(recipe), work / "testset", path_tracer, gl, shard=_shard(testset_shard))
+        return
+    if out is None:
+        raise typer.BadParameter("give --out (or --testset-shard)", param_hint="--out")
+    run(recipe, out, work, device=device, variant=path_tracer, jobs=jobs, platform=gl, workers="auto",
+        rows=row, keep=keep, machine=machine)
+
+
+def _shard(text: str) -> tuple[int, int]:
+    """--testset-shard's K/N: 0 <= K < N; a usage error otherwise."""
+    k, _, n = text.partition("/")
+    try:
+        shard = int(k), int(n)
+    except ValueError:
+        shard = (-1, 0)
+    if not 0 <= shard[0] < shard[1]:
+        raise typer.BadParameter(f"{text!r}: give K/N with 0 <= K < N, e.g. 0/8", param_hint="'--testset-shard'")
+    return shard

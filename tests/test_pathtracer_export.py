@@ -165,3 +165,10 @@ def test_a_lamp_housing_keeps_the_light_that_leaves_it_in_absorbing_water():
     lit = falloff[..., 0] == 1.0
     assert lit.sum() >= 20
     assert_mean_ratio_one((image[lit] / expected[lit]), max_se=0.01)
+
+
+def test_rendering_several_seeds_at_once_gives_each_seed_s_own_render():
+    scene = flat_scene(sigma_a=(0.1, 0.1, 0.1), sun=(1.0, 1.0, 1.0), sky=(0.2, 0.2, 0.2))
+    images = pt.render_seeds(scene, 3, (5, 6))
+    assert all(np.array_equal(image, pt.render(scene, 3, seed=s)) for image, s in zip(images, (5, 6)))
+    assert not np.array_equal(*images)
