@@ -152,7 +152,7 @@ def held_out_specs(recipe: Recipe) -> list[tuple[HeldOutGroup, DatasetSpec]]:
 
 def training_variants(spec: DatasetSpec) -> tuple[set[int], set[int]]:
     """(procedural asset and terrain variants, texture variants) a training spec can draw."""
-    counts = [ref.variants for group in (spec.targets, spec.distractors) for ref in group.assets
+    counts = [ref.variants for group in (*spec.targets, spec.distractors) for ref in group.assets
               if ref.procedural is not None] + [spec.terrain.variants]
     shapes = set(range(max(counts)))
     return shapes, {v % spec.materials.variants for v in shapes}
