@@ -214,3 +214,35 @@ def test_each_face_group_is_drawn_with_its_own_material(gl):
     np.testing.assert_allclose(top_right, [0.5, 0.0, 0.0], atol=2e-3)  # red texture times the vertex albedo
     np.testing.assert_allclose(bottom_left, [0.5, 0.5, 0.5], atol=1e-6)  # the vertex albedo alone
     assert (out.instance[H // 2 - 15, W // 2 + 15], out.instance[H // 2 + 15, W // 2 - 15]) == (7, 7)
+
+
+def tiled_quad(key: str, texels: np.ndarray, repeats: float) -> DrawItem:
+    """quad() with the normal map `texels` repeated `repeats` times along u and v."""
+    item = quad(key, 0.8, [0.0, 0.0, 2.0], np.eye(3), Material(normal=Image(key, texels, False, key)))
+    uv = UV * repeats
+    mesh = Mesh(**{**item.mesh.__dict__, "uv": uv, "tangents": tangent_frames(item.mesh.vertices,
+                                                                               item.mesh.normals, uv, FACES)})
+    return DrawItem(mesh, item.world_from_obj, item.albedo_scale, item.albedo_bias, item.instance_id)
+
+
+@pytest.mark.parametrize("tilt", [0.3, 0.6])
+def test_relief_finer_than_a_pixel_shades_as_the_mean_of_its_normals(gl, tilt):
+    """Stripes one texel wide of normals tilted +-tilt about the tangent, many texels to a pixel: a Lambertian
+    surface's mean shading over the pixel is the mean normal's (length cos tilt, along the surface normal) dot the
+    sun, cos tilt times the flat surface's; renormalised, the mipmapped mean would shade as flat."""
+    s, c = np.sin(tilt), np.cos(tilt)
+    stripes = np.stack([(s, 0.0, c), (-s, 0.0, c)])[np.arange(64) % 2]  # along u
+    texels = np.round((np.tile(stripes[None], (64, 1, 1)) + 1.0) / 2.0 * 255.0).astype(np.uint8)
+    flat_texels = np.full((64, 64, 3), [128, 128, 255], np.uint8)
+    # 4096 texels across the quad's ~100 pixels: every lookup averages dozens of stripes
+    relief = lit_centre(gl, tiled_quad(f"test/relief/{tilt}", texels, 64.0))
+    flat = lit_centre(gl, tiled_quad("test/relief/flat", flat_texels, 64.0))
+    decoded = texels[0, :2] / 255.0 * 2.0 - 1.0  # the two texels as the sampler reads them
+    mean_length = float(np.linalg.norm(decoded.mean(axis=0)))  # cos tilt to 8-bit precision
+    # 1e-2: the shader counts lengths from 253/255 (8-bit unit normals are up to ~2/255 short), so a length of ~0.9
+    # reads 0.8% long
+    assert relief / flat == pytest.approx(mean_length, rel=1e-2)
+    d = flat_texels[0, 0] / 255.0 * 2.0 - 1.0  # 128 reads 0.0039: the "flat" map leans a little
+    n = d[0] * np.array([1.0, 0.0, 0.0]) + d[1] * np.array([0.0, -1.0, 0.0]) + d[2] * np.array([0.0, 0.0, -1.0])
+    assert flat == pytest.approx(n @ SUN / np.linalg.norm(n), abs=2e-3)
+    assert mean_length < 0.96  # the relief darkens the surface measurably
