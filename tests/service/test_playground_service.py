@@ -37,7 +37,8 @@ def local_draft_png(spec: dict, frame: int) -> bytes:
 def test_the_page_is_public_and_its_calls_need_the_key(keyed):
     page = httpx.get(f"{keyed}/playground")
     assert page.status_code == 200 and "<title>seasynth playground</title>" in page.text
-    assert httpx.get(f"{keyed}/playground/static/app.js").status_code == 200
+    for public in ("static/app.js", "static/classes.js", "kinds/urchin.png"):  # an <img> sends no key
+        assert httpx.get(f"{keyed}/playground/{public}").status_code == 200, public
     assert httpx.get(f"{keyed}/playground/config").status_code == 401
     r = httpx.post(f"{keyed}/playground/preview", json={"spec": tiny_spec()})
     assert r.status_code == 401
