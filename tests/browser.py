@@ -83,7 +83,8 @@ def shot(driver, name: str) -> None:
         path = Path(folder) / f"{name}.png"
         path.parent.mkdir(parents=True, exist_ok=True)
         driver.save_screenshot(str(path))
-        Image.open(path).convert("RGB").quantize(256, dither=Image.Dither.NONE).save(path, optimize=True)
+        Image.open(path).convert("RGB").quantize(256, method=Image.Quantize.FASTOCTREE, dither=Image.Dither.NONE).save(
+            path, optimize=True)  # (median cut, the default, loses a small box's colour)
 
 
 def status(driver) -> str:

@@ -32,12 +32,12 @@ SPEC = {
     "camera": {"width": 640, "height": 480},
     "terrain": {"cells": 16, "variants": 1},
     "water": {"jerlov": ["II"]},
-    "targets": {"class_name": "Urchin", "count": [2, 3], "assets": [{"procedural": "urchin", "variants": 1}]},
+    "targets": {"class_name": "Urchin", "count": [4, 6], "assets": [{"procedural": "urchin", "variants": 1}]},
     "distractors": {"count": [1, 2], "assets": [{"procedural": "rock", "variants": 1}]},
 }
 LITTER = {"class_name": "Litter", "assets": [{"procedural": "plastic_bottle", "variants": 1},
                                              {"procedural": "can", "variants": 1}],
-          "count": [2, 3], "placement": {"kind": "buried", "sunk_fraction": [0.1, 0.3]}}
+          "count": [3, 5], "placement": {"kind": "buried", "sunk_fraction": [0.1, 0.3]}}
 FISH = {"class_name": "Fish", "assets": [{"procedural": "fish", "variants": 1}], "count": [2, 3],
         "placement": {"kind": "water", "height_m": [0.1, 0.4]}}
 
@@ -89,7 +89,7 @@ def test_three_classes_built_through_the_form_are_the_spec_sent_and_each_has_box
     Select(driver.find_element("id", "f-targets.1.placement.kind")).select_by_value("buried")
     set_value(driver, "f-targets.1.placement.sunk_fraction.0", 0.1)
     set_value(driver, "f-targets.1.placement.sunk_fraction.1", 0.3)
-    for k, n in enumerate((2, 3)):
+    for k, n in enumerate(LITTER["count"]):
         set_value(driver, f"f-targets.1.count.{k}", n)
     # class 2: fish in the water column
     set_value(driver, "f-targets.2.class_name", "Fish")
@@ -98,7 +98,7 @@ def test_three_classes_built_through_the_form_are_the_spec_sent_and_each_has_box
     Select(driver.find_element("id", "f-targets.2.placement.kind")).select_by_value("water")
     for k, v in enumerate((0.1, 0.4)):
         set_value(driver, f"f-targets.2.placement.height_m.{k}", v)
-    for k, n in enumerate((2, 3)):
+    for k, n in enumerate(FISH["count"]):
         set_value(driver, f"f-targets.2.count.{k}", n)
     # a fourth class added, moved up one and removed again; fish moved above litter and back
     click(driver, "add-class")
@@ -112,7 +112,7 @@ def test_three_classes_built_through_the_form_are_the_spec_sent_and_each_has_box
     pick(driver, "distractors.assets", "starfish")
     set_value(driver, "f-distractors.assets-starfish-variants", 1)
 
-    want = {**SPEC, "targets": [{**SPEC["targets"], "count": [2, 3]}, LITTER, FISH],
+    want = {**SPEC, "targets": [SPEC["targets"], LITTER, FISH],
             "distractors": {**SPEC["distractors"], "assets": [{"procedural": "rock", "variants": 1},
                                                               {"procedural": "starfish", "variants": 1}]}}
     wait(lambda: page_spec(driver) == want, 10, "the page's spec to be the three classes")
