@@ -1,7 +1,8 @@
 """The playground's class editor driven as a person would, in a real headless Chromium against `seasynth playground`:
 three classes built through the form (added, named, placed, counted, their assets picked by clicking thumbnails),
-reordered and one removed, the distractors' assets picked the same way; the spec the page sends is exactly that,
-and the preview, at a real 640x480, shows boxes of every class, coloured and named by class in its legend.
+reordered and one removed, the distractors' assets picked the same way; an error shows at the class's field it
+names; the spec the page sends is exactly that, and the preview, at a real 640x480, shows boxes of every class,
+coloured and named by class in its legend.
 
 Set SEASYNTH_SCREENSHOTS=DIR to keep the screenshots (examples/playground/playground.png and
 playground-classes.png come from there)."""
@@ -81,6 +82,10 @@ def test_three_classes_built_through_the_form_are_the_spec_sent_and_each_has_box
     click(driver, "add-class")
     click(driver, "add-class")
     wait(lambda: len(driver.find_elements("css selector", ".class-card")) == 3, 5, "three class cards")
+    # a new class has no assets yet: the server's error shows at its picker
+    error = wait(lambda: driver.find_element("id", "e-targets.1.assets").text, 20, "the error beside class 1's assets")
+    assert "at least 1 item" in error
+    assert "invalid" in driver.find_element("id", "f-targets.1.assets").get_attribute("class")
     # class 1: litter, buried; its assets picked by their thumbnails, each with 1 variant
     set_value(driver, "f-targets.1.class_name", "Litter")
     for kind in ("plastic_bottle", "can"):
@@ -88,6 +93,9 @@ def test_three_classes_built_through_the_form_are_the_spec_sent_and_each_has_box
         set_value(driver, f"f-targets.1.assets-{kind}-variants", 1)
     Select(driver.find_element("id", "f-targets.1.placement.kind")).select_by_value("buried")
     set_value(driver, "f-targets.1.placement.sunk_fraction.0", 0.1)
+    set_value(driver, "f-targets.1.placement.sunk_fraction.1", 2)  # more than the whole height: refused
+    error = wait(lambda: driver.find_element("id", "e-targets.1.placement.sunk_fraction").text, 20, "the error")
+    assert "must lie within [0, 1]" in error, error
     set_value(driver, "f-targets.1.placement.sunk_fraction.1", 0.3)
     for k, n in enumerate(LITTER["count"]):
         set_value(driver, f"f-targets.1.count.{k}", n)

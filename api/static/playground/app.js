@@ -197,7 +197,9 @@ function showErrors(errors) {
   document.querySelectorAll(".invalid").forEach((e) => e.classList.remove("invalid"));
   const loose = [];
   for (const err of errors) {
-    let loc = err.loc.slice(), span = null;
+    // a placement's error names its kind after "placement" (pydantic's tag of the union): its fields sit without it
+    let loc = err.loc.filter((k, n) => !(err.loc[n - 1] === "placement" && typeof k === "string" && n < err.loc.length - 1)),
+      span = null;
     while (loc.length && !(span = $("e-" + pid(loc)))) loc.pop();
     if (!span) { loose.push(`${err.loc.join(".")}: ${err.msg}`); continue; }
     span.textContent = (span.textContent ? span.textContent + "; " : "") + err.msg;
