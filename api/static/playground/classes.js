@@ -37,46 +37,61 @@ function row(parent, path, title, controlEl) {
   parent.appendChild(r);
 }
 
-// ---- the asset picker: a thumbnail per procedural kind (ticked: in the list, with its variants), and the list's
-// other assets (local paths, uploaded asset ids) by name, removable, with a field to add one.
+// ---- the asset picker: a thumbnail per procedural kind (ticked: in the list, with its variants), a tile per mesh
+// uploaded from this page (with the service), and the list's other assets (local paths, asset ids) by name,
+// removable, with a field to add one.
+const uploads = [];  // {asset_id, filename} of the meshes uploaded from this page, shown in every picker
+
+function pickTile(path, list, key, title, picture, same, entry, emit, withVariants) {
+  const tile = document.createElement("label"), tick = document.createElement("input"), name = document.createElement("span");
+  tile.className = "kind"; tile.id = `pick-${pid(path)}-${key}`; tile.title = title;
+  tick.type = "checkbox"; tick.checked = list.some(same);
+  name.textContent = title;
+  tile.append(tick, picture, name);
+  let variants = null;
+  if (withVariants) {  // (variants are a procedural kind's; a mesh is itself)
+    variants = numberInput(`${pid(path)}-${key}-variants`, list.find(same)?.variants, (v) => {
+      const a = list.find(same);
+      if (!a) return;
+      if (v === undefined) delete a.variants; else a.variants = v;
+      emit();
+    }, true);
+    variants.placeholder = `${resolve(defs.AssetRef.properties.variants).default} variants`; variants.title = "variants";
+    tile.appendChild(variants);
+  }
+  const show = () => { tile.classList.toggle("picked", tick.checked); if (variants) variants.hidden = !tick.checked; };
+  show();
+  tick.addEventListener("change", () => {
+    const at = list.findIndex(same);
+    if (tick.checked && at < 0) list.push(entry());
+    if (!tick.checked && at >= 0) list.splice(at, 1);
+    show(); emit();
+  });
+  return tile;
+}
 function assetPicker(path, assets, onAssets) {
   const box = document.createElement("div");
   box.className = "picker"; box.id = "f-" + pid(path);
   const list = (assets || []).map((a) => Object.assign({}, a));
   const emit = () => onAssets(list.map((a) => Object.assign({}, a)));
-  const variantsDefault = resolve(defs.AssetRef.properties.variants).default;
   for (const kind of config.kinds) {
-    const tile = document.createElement("label"), tick = document.createElement("input");
-    tile.className = "kind"; tile.id = `pick-${pid(path)}-${kind}`; tile.title = kind;
-    tick.type = "checkbox"; tick.checked = list.some((a) => a.procedural === kind);
-    const variants = numberInput(`${pid(path)}-${kind}-variants`, list.find((a) => a.procedural === kind)?.variants,
-      (v) => {
-        const a = list.find((x) => x.procedural === kind);
-        if (!a) return;
-        if (v === undefined) delete a.variants; else a.variants = v;
-        emit();
-      }, true);
-    variants.placeholder = `${variantsDefault} variants`; variants.title = "variants"; variants.hidden = !tick.checked;
-    tile.classList.toggle("picked", tick.checked);
-    tile.innerHTML = `<img src="playground/kinds/${kind}.png" alt="${kind}" loading="lazy"><span>${kind}</span>`;
-    tile.prepend(tick);
-    tile.appendChild(variants);
-    tick.addEventListener("change", () => {
-      const at = list.findIndex((a) => a.procedural === kind);
-      if (tick.checked && at < 0) list.push({procedural: kind});
-      if (!tick.checked && at >= 0) list.splice(at, 1);
-      tile.classList.toggle("picked", tick.checked);
-      variants.hidden = !tick.checked;
-      emit();
-    });
-    box.appendChild(tile);
+    const img = document.createElement("img");
+    img.src = `playground/kinds/${kind}.png`; img.alt = kind; img.loading = "lazy";
+    box.appendChild(pickTile(path, list, kind, kind, img, (a) => a.procedural === kind, () => ({procedural: kind}),
+                             emit, true));
+  }
+  for (const u of uploads) {
+    const icon = document.createElement("span");
+    icon.className = "mesh-icon"; icon.textContent = "uploaded mesh";
+    box.appendChild(pickTile(path, list, "upload-" + u.asset_id.slice(0, 12), u.filename, icon,
+                             (a) => a.asset_id === u.asset_id, () => ({asset_id: u.asset_id}), emit, false));
   }
   const others = document.createElement("div");
   others.className = "other-assets";
   const drawOthers = () => {
     others.innerHTML = "";
     list.forEach((a, n) => {
-      if (a.procedural != null) return;
+      if (a.procedural != null || uploads.some((u) => u.asset_id === a.asset_id)) return;  // a tile shows it
       const chip = document.createElement("span"), x = document.createElement("button");
       chip.className = "chip"; chip.textContent = a.path != null ? a.path : `asset ${a.asset_id}`;
       x.type = "button"; x.textContent = "×"; x.title = "remove";
@@ -94,10 +109,32 @@ function assetPicker(path, assets, onAssets) {
       drawOthers(); emit();
     });
     others.append(add, go);
+    if (config.mode === "service") others.appendChild(uploadControl(path, list, emit));
   };
   drawOthers();
   box.appendChild(others);
   return box;
+}
+// Upload a mesh to the service (POST /assets) and tick it here; every picker then shows it.
+function uploadControl(path, list, emit) {
+  const l = document.createElement("label"), file = document.createElement("input"), said = document.createElement("span");
+  file.type = "file"; file.id = `upload-${pid(path)}`; file.accept = ".glb,.gltf,.obj,.ply,.stl,.zip";
+  said.className = "upload-error";
+  l.append("upload a mesh ", file, said);
+  file.addEventListener("change", async () => {
+    if (!file.files[0]) return;
+    const form = new FormData();
+    form.append("file", file.files[0]);
+    said.textContent = "uploading…";
+    const r = await call("POST", "assets", form);
+    if (r.status !== 200 && r.status !== 201) { said.textContent = r.data ? r.data.detail : `error ${r.status}`; return; }
+    const {asset_id, filename} = r.data;
+    if (!uploads.some((u) => u.asset_id === asset_id)) uploads.push({asset_id, filename});
+    if (!list.some((a) => a.asset_id === asset_id)) list.push({asset_id});
+    emit();
+    buildForm();  // every picker shows the new mesh
+  });
+  return l;
 }
 
 // ---- the classes
