@@ -4,7 +4,7 @@ procedural kind on a sand seabed, rendered by the real renderer as examples/voca
     python examples/kind_thumbnails.py [--size 128x96]
 
 They are committed rather than rendered by the API: the API has no GL (it never imports the worker), and one
-small PNG per kind (a few KB, 256 colours) costs less than a render per process. Run it again when a kind's
+small PNG per kind (about 11 KB, 256 colours) costs less than a render per process. Run it again when a kind's
 meshes or textures change.
 """
 

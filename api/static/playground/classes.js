@@ -194,7 +194,8 @@ function classCard(path, c, i, classes, emit, redraw) {
     const [field, model] = PLACEMENT_RANGE[p.kind], shown = p[field] ?? defs[model].properties[field].default;
     row(card, path.concat("placement", field), field.replace(/_/g, " "),
         pairControl(path.concat("placement", field), shown, false, (v) => {
-          c.placement = Object.assign({kind: p.kind}, c.placement);
+          // (`placement: water` may be written by its kind alone: the shown mapping takes the edit)
+          c.placement = Object.assign({}, c.placement && typeof c.placement === "object" ? c.placement : p);
           if (v === undefined) delete c.placement[field]; else c.placement[field] = v;
           emit();
         }));
