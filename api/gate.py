@@ -6,9 +6,10 @@ from __future__ import annotations
 import hmac
 import json
 from collections.abc import Awaitable, Callable, MutableMapping
-from typing import Any
+from typing import Any, get_args
 
 from seasynth.service.settings import Settings
+from seasynth.service.spec.scene import ProceduralTarget
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -17,9 +18,10 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 # Liveness and readiness probes carry no key, nor does the playground's static page: it holds no data, and asks
-# the user for a key that its calls then send.
+# the user for a key that its calls then send. Its kinds' thumbnails are <img> sources, which send no key.
 PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/playground", "/playground/static/app.js",
-                          "/playground/static/style.css"})
+                          "/playground/static/classes.js", "/playground/static/style.css"}
+                         | {f"/playground/kinds/{kind}.png" for kind in get_args(ProceduralTarget)})
 METRICS_PATH = "/metrics"  # public only with SEASYNTH_METRICS_PUBLIC=true
 UPLOAD_PATH = "/assets"
 CALIBRATE_PATH = "/calibrate"  # a photo and its range map: the upload limit holds for the whole body

@@ -12,7 +12,7 @@ import json
 import uuid
 from collections.abc import Callable
 from importlib.resources import files
-from typing import Annotated, Any, Literal, Protocol
+from typing import Annotated, Any, Literal, Protocol, get_args
 
 import yaml
 from fastapi import APIRouter, Header, Request
@@ -24,10 +24,12 @@ from seasynth.api.slots import RenderGate
 from seasynth.service import __version__
 from seasynth.service.errors import NotFound, RenderError, SpecError, Unavailable
 from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.spec.scene import ProceduralTarget
 from seasynth.service.water import JERLOV_TYPES, JERLOV_VEILING_LIGHT
 
 View = Literal["image", "depth", "instance", "clean", "air"]
-STATIC = {"app.js": "text/javascript", "style.css": "text/css"}
+STATIC = {"app.js": "text/javascript", "classes.js": "text/javascript", "style.css": "text/css"}
+KINDS = get_args(ProceduralTarget)
 MAX_STRIP = 16
 
 
@@ -99,6 +101,7 @@ class PlaygroundConfig(BaseModel):
     schema_: dict[str, Any] = Field(alias="schema")
     spec: dict[str, Any] = Field(description="The spec the page starts from")
     jerlov: dict[str, list[float]] = Field(description="Jerlov type -> the colour of its water (linear RGB)")
+    kinds: list[str] = Field(description="The procedural kinds, each with a thumbnail at kinds/{kind}.png")
 
 
 def field_errors(err: ValidationError) -> list[FieldError]:
@@ -131,7 +134,18 @@ def playground_router(previewer_of: Callable[[Request], Previewer], *, mode: str
     @router.get("/config", response_model=PlaygroundConfig, response_model_by_alias=True)
     def config() -> PlaygroundConfig:
         return PlaygroundConfig(mode=mode, version=__version__, schema=DatasetSpec.model_json_schema(),
-                                spec=start_spec, jerlov=jerlov_colours())
+                                spec=start_spec, jerlov=jerlov_colours(), kinds=list(KINDS))
+
+    # Thumbnails are committed PNGs drawn by the real renderer (examples/kind_thumbnails.py): the API has no GL.
+    @router.get("/kinds/{kind}.png", response_class=Response, responses={
+        200: {"content": {"image/png": {}}, "description": "Variants 0-2 of the kind on a sand seabed"},
+        **error_responses(404)})
+    def kind_thumbnail(kind: str) -> Response:
+        """A small PNG of a procedural kind, for the asset picker."""
+        if kind not in KINDS:
+            raise NotFound(f"no procedural kind {kind!r}; the kinds are {', '.join(KINDS)}")
+        return Response(page.joinpath("kinds", f"{kind}.png").read_bytes(), media_type="image/png",
+                        headers={"Cache-Control": "public, max-age=86400"})
 
     @router.post("/validate", response_model=SpecChecked, responses=error_responses(400, 413, 422))
     def validate(body: SpecCheck) -> SpecChecked:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -64,6 +66,44 @@ def wait(pred, timeout: float, what: str, interval: float = 0.1):
             return got
         time.sleep(interval)
     raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def shot(driver, name: str) -> None:
+    """With SEASYNTH_SCREENSHOTS=DIR, the page as DIR/NAME.png, in 256 colours to stay small."""
+    from PIL import Image
+
+    folder = os.environ.get("SEASYNTH_SCREENSHOTS")
+    if folder:
+        path = Path(folder) / f"{name}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(path))
+        Image.open(path).convert("RGB").quantize(256, method=Image.Quantize.FASTOCTREE, dither=Image.Dither.NONE).save(
+            path, optimize=True)  # (median cut, the default, loses a small box's colour)
+
+
+def status(driver) -> str:
+    return driver.find_element("id", "status").text
+
+
+def preview_src(driver) -> str:
+    return driver.find_element("id", "preview-image").get_attribute("src") or ""
+
+
+def server_preview(base: str, spec: dict, frame: int = 0) -> dict:
+    """The preview the server renders for `spec` (no views), as the page would get it."""
+    r = httpx.post(base + "/playground/preview", json={"spec": spec, "frame": frame, "views": []}, timeout=60)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def page_spec(driver) -> dict:
+    return driver.execute_script("return spec;")
 
 
 @contextmanager

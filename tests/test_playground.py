@@ -249,3 +249,30 @@ def test_the_local_playground_answers_only_its_loopback_host_names():
             return (await c.get("/playground/config")).status_code
 
     assert asyncio.run(get_shared()) == 200
+
+
+def test_each_procedural_kind_has_a_small_png_thumbnail_and_an_unknown_kind_is_404():
+    """The asset picker's thumbnails: every kind the spec takes, a 128x96 PNG under 20 KB, and 404 naming an
+    unknown kind; the page's config lists the same kinds."""
+    from typing import get_args
+
+    from seasynth.api.playground_local import create_local_app
+    from seasynth.service.spec.scene import ProceduralTarget
+
+    app = create_local_app(None, {}, Path("/nonexistent"))
+
+    async def gets(paths: list[str]) -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1:8765") as c:
+            return [await c.get(p) for p in paths]
+
+    kinds = list(get_args(ProceduralTarget))
+    config, *thumbs, unknown = asyncio.run(gets(["/playground/config"] + [f"/playground/kinds/{k}.png" for k in kinds]
+                                                + ["/playground/kinds/kraken.png"]))
+    assert config.json()["kinds"] == kinds and len(kinds) == 19
+    for kind, r in zip(kinds, thumbs):
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png", kind
+        assert r.content[:8] == b"\x89PNG\r\n\x1a\n" and len(r.content) < 20_000, kind
+        assert Image.open(io.BytesIO(r.content)).size == (128, 96), kind
+    assert len({r.content for r in thumbs}) == len(kinds)  # each its own picture
+    assert unknown.status_code == 404 and "kraken" in unknown.json()["detail"]

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import base64
 import json
-import os
-import socket
 import time
 from pathlib import Path
 
@@ -18,7 +16,19 @@ import httpx
 import numpy as np
 import pytest
 import yaml
-from browser import chromium, playground_server, prefix_proxy, set_value, wait
+from browser import (
+    chromium,
+    free_port,
+    page_spec,
+    playground_server,
+    prefix_proxy,
+    preview_src,
+    server_preview,
+    set_value,
+    shot,
+    status,
+    wait,
+)
 from PIL import Image
 from selenium.webdriver.support.ui import Select
 
@@ -36,12 +46,6 @@ SPEC = {
 }
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def page(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("playground")
@@ -55,31 +59,6 @@ def page(tmp_path_factory):
             yield driver, base, downloads
 
 
-def shot(driver, name: str) -> None:
-    folder = os.environ.get("SEASYNTH_SCREENSHOTS")
-    if folder:
-        Path(folder).mkdir(parents=True, exist_ok=True)
-        driver.save_screenshot(str(Path(folder) / f"{name}.png"))
-
-
-def status(driver) -> str:
-    return driver.find_element("id", "status").text
-
-
-def preview_src(driver) -> str:
-    return driver.find_element("id", "preview-image").get_attribute("src") or ""
-
-
-def server_preview(base: str, spec: dict, frame: int = 0) -> dict:
-    r = httpx.post(base + "/playground/preview", json={"spec": spec, "frame": frame, "views": []}, timeout=60)
-    assert r.status_code == 200, r.text
-    return r.json()
-
-
-def page_spec(driver) -> dict:
-    return driver.execute_script("return spec;")
-
-
 def test_the_page_previews_the_spec_it_was_started_with(page):
     driver, base, _ = page
     wait(lambda: preview_src(driver).startswith("data:image/png") and "rendered" in status(driver), 60,
@@ -89,7 +68,7 @@ def test_the_page_previews_the_spec_it_was_started_with(page):
     assert preview_src(driver) == expected["images"]["image"]
     assert int(driver.find_element("id", "preview-boxes").get_attribute("data-boxes")) == len(expected["boxes"])
     wait(lambda: len(driver.find_elements("css selector", "#strip img")) == 8, 60, "the strip of 8 frames")
-    shot(driver, "playground")
+    shot(driver, "playground-small")
 
 
 def test_changing_the_water_type_and_a_count_re_renders_exactly_that_spec(page):
@@ -97,9 +76,10 @@ def test_changing_the_water_type_and_a_count_re_renders_exactly_that_spec(page):
     before = preview_src(driver)
     driver.find_element("id", "f-water.jerlov-9C").click()
     driver.find_element("id", "f-water.jerlov-II").click()
-    # targets (one class, or a list of classes) is edited as JSON, as the form edits every list
-    set_value(driver, "f-targets", json.dumps({**SPEC["targets"], "count": [1, 1]}))
-    want = {**SPEC, "water": {"jerlov": ["9C"]}, "targets": {**SPEC["targets"], "count": [1, 1]}}
+    # the spec's one class (a mapping) is edited in the class editor, which writes targets as a list of classes
+    set_value(driver, "f-targets.0.count.0", 1)
+    set_value(driver, "f-targets.0.count.1", 1)
+    want = {**SPEC, "water": {"jerlov": ["9C"]}, "targets": [{**SPEC["targets"], "count": [1, 1]}]}
     wait(lambda: page_spec(driver) == want, 10, "the page's spec to follow the controls")
     expected = server_preview(base, want)
     wait(lambda: preview_src(driver) == expected["images"]["image"], 60, "the preview of the changed spec")
@@ -298,5 +278,6 @@ def test_the_page_works_behind_a_proxy_that_mounts_it_under_a_path(page):
     # (a browser asks for /favicon.ico at the host's root by itself: not the page's doing)
     assert [p for p in asked if not p.startswith("/site/") and p != "/favicon.ico"] == []
     assert {"/site/playground", "/site/playground/static/style.css", "/site/playground/static/app.js",
+            "/site/playground/static/classes.js",
             "/site/playground/config", "/site/playground/preview", "/site/playground/strip",
             "/site/playground/generate"} <= set(asked)

@@ -37,7 +37,8 @@ def local_draft_png(spec: dict, frame: int) -> bytes:
 def test_the_page_is_public_and_its_calls_need_the_key(keyed):
     page = httpx.get(f"{keyed}/playground")
     assert page.status_code == 200 and "<title>seasynth playground</title>" in page.text
-    assert httpx.get(f"{keyed}/playground/static/app.js").status_code == 200
+    for public in ("static/app.js", "static/classes.js", "kinds/urchin.png"):  # an <img> sends no key
+        assert httpx.get(f"{keyed}/playground/{public}").status_code == 200, public
     assert httpx.get(f"{keyed}/playground/config").status_code == 401
     r = httpx.post(f"{keyed}/playground/preview", json={"spec": tiny_spec()})
     assert r.status_code == 401
@@ -103,3 +104,33 @@ def test_in_the_browser_generate_posts_the_dataset_and_follows_it(keyed, tmp_pat
     listed = httpx.get(f"{keyed}/datasets", headers={"X-API-Key": KEY}).json()["items"]
     match = [d for d in listed if d["id"].startswith(dataset_id)]
     assert len(match) == 1 and match[0]["state"] == "succeeded" and match[0]["seed"] == 7
+
+
+def test_in_the_browser_a_mesh_uploaded_in_the_asset_picker_is_ticked_and_every_picker_shows_it(keyed, tmp_path):
+    """The picker's upload: POST /assets with the key, the mesh ticked in that class's assets (by its sha256 id), a
+    tile for it in the distractors' picker too, and the worker's preview of the spec with it on the page."""
+    import hashlib
+
+    import trimesh
+
+    mesh = tmp_path / "box.ply"
+    mesh.write_bytes(trimesh.creation.box(extents=(0.2, 0.2, 0.2)).export(file_type="ply"))
+    asset_id = hashlib.sha256(mesh.read_bytes()).hexdigest()
+    with chromium(tmp_path) as driver:
+        driver.get(f"{keyed}/playground")
+        wait(lambda: driver.find_element("id", "key-box").is_displayed(), 30, "the key prompt")
+        set_value(driver, "api-key", KEY)
+        wait(lambda: driver.find_elements("id", "f-camera.width"), 30, "the form")
+        driver.execute_script("spec = arguments[0]; buildForm(); refresh();", tiny_spec())
+        driver.find_element("id", "upload-targets.0.assets").send_keys(str(mesh))
+        spec = wait(lambda: (s := driver.execute_script("return spec;")) and isinstance(s["targets"], list) and
+                    {"asset_id": asset_id} in s["targets"][0]["assets"] and s, 30, "the uploaded mesh in the spec")
+        tile = f"pick-{{}}-upload-{asset_id[:12]}"
+        assert "picked" in driver.find_element("id", tile.format("targets.0.assets")).get_attribute("class")
+        assert "picked" not in driver.find_element("id", tile.format("distractors.assets")).get_attribute("class")
+        assert driver.find_element("id", tile.format("distractors.assets")).get_attribute("title") == "box.ply"
+        want = httpx.post(f"{keyed}/playground/preview", json={"spec": spec, "frame": 0, "views": []},
+                          headers={"X-API-Key": KEY}, timeout=60)
+        assert want.status_code == 200, want.text
+        wait(lambda: driver.find_element("id", "preview-image").get_attribute("src") == want.json()["images"]["image"],
+             90, "the worker's preview of the spec with the mesh")

@@ -1,5 +1,5 @@
-// The playground page: a form built from the spec's JSON schema, validated by the server's model, a debounced
-// preview (the latest request wins), a strip of neighbouring frames, YAML download, generate, and water from a photo.
+// The playground page: a form built from the spec's JSON schema (targets and asset lists by classes.js), validated
+// by the server's model, a debounced preview with its boxes by class (the latest request wins), a strip of neighbouring frames, YAML download, generate, and water from a photo.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
@@ -83,6 +83,7 @@ function addField(parent, path, raw, inherited) {
   const s = resolve(raw), own = raw.default !== undefined ? raw.default : s.default;
   const dflt = own !== undefined ? own : inherited;
   const current = getAt(spec, path), value = current !== undefined ? current : dflt;
+  if (pid(path) === "targets") { parent.appendChild(classesEditor(path, value)); return; }  // classes.js
   if (s.type === "object" && s.properties) {
     if (dflt && typeof dflt === "object") shownDefaults[pid(path)] = dflt;
     const fs = document.createElement("fieldset");
@@ -119,6 +120,7 @@ function numberInput(id, value, onValue, integer) {
 }
 function control(path, s, value) {
   if (pid(path) === "water.jerlov") return jerlovControl(path, value || []);
+  if (pid(path) === "distractors.assets") return assetPicker(path, value, (v) => changed(path, v));
   if (s.enum) {
     const sel = document.createElement("select");
     sel.id = "f-" + pid(path);
@@ -195,7 +197,9 @@ function showErrors(errors) {
   document.querySelectorAll(".invalid").forEach((e) => e.classList.remove("invalid"));
   const loose = [];
   for (const err of errors) {
-    let loc = err.loc.slice(), span = null;
+    // a placement's error names its kind after "placement" (pydantic's tag of the union): its fields sit without it
+    let loc = err.loc.filter((k, n) => !(err.loc[n - 1] === "placement" && typeof k === "string" && n < err.loc.length - 1)),
+      span = null;
     while (loc.length && !(span = $("e-" + pid(loc)))) loc.pop();
     if (!span) { loose.push(`${err.loc.join(".")}: ${err.msg}`); continue; }
     span.textContent = (span.textContent ? span.textContent + "; " : "") + err.msg;
@@ -252,10 +256,12 @@ function drawBoxes(p) {
   const g = c.getContext("2d");
   g.clearRect(0, 0, c.width, c.height);
   c.dataset.boxes = p.boxes.length;
+  drawLegend(p.boxes);
   if (!$("show-boxes").checked) return;
-  g.strokeStyle = "#ffea00"; g.fillStyle = "#ffea00"; g.lineWidth = 2; g.font = "13px sans-serif";
+  g.lineWidth = 2; g.font = "13px sans-serif";
   for (const b of p.boxes) {  // KITTI boxes hold inclusive pixel indices: the outline runs round those pixels
     const [l, t, r, btm] = b.box;
+    g.strokeStyle = g.fillStyle = boxColour(b.class);
     g.strokeRect(l * k, t * k, (r - l + 1) * k, (btm - t + 1) * k);
     g.fillText(b.class, l * k + 2, Math.max(12, t * k - 3));
   }
