@@ -92,7 +92,7 @@ def _imports(path: Path) -> list[tuple[str, str, int]]:
 
 # The benchmark commands import bench/, which no image ships.
 BENCH_COMMANDS = {("cli/bench.py", f"bench_{name}"): {"bench"} for name in (
-    "playground", "throughput", "accuracy", "fidelity", "scale", "load", "calibration", "blender")}
+    "playground", "throughput", "accuracy", "fidelity", "scale", "load", "calibration", "blender", "transfer")}
 # CLI commands shipped in every image but run only where their package is: (module, function) -> the project
 # packages they may import that an image lacks. Nothing else is excused.
 COMMANDS_OF_OTHER_IMAGES = {
