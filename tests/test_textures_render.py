@@ -216,9 +216,10 @@ def test_each_face_group_is_drawn_with_its_own_material(gl):
     assert (out.instance[H // 2 - 15, W // 2 + 15], out.instance[H // 2 + 15, W // 2 - 15]) == (7, 7)
 
 
-def tiled_quad(key: str, texels: np.ndarray, repeats: float) -> DrawItem:
+def tiled_quad(key: str, texels: np.ndarray, repeats: float, normal_scale: float = 1.0) -> DrawItem:
     """quad() with the normal map `texels` repeated `repeats` times along u and v."""
-    item = quad(key, 0.8, [0.0, 0.0, 2.0], np.eye(3), Material(normal=Image(key, texels, False, key)))
+    item = quad(key, 0.8, [0.0, 0.0, 2.0], np.eye(3),
+                Material(normal=Image(key, texels, False, key), normal_scale=normal_scale))
     uv = UV * repeats
     mesh = Mesh(**{**item.mesh.__dict__, "uv": uv, "tangents": tangent_frames(item.mesh.vertices,
                                                                                item.mesh.normals, uv, FACES)})
@@ -246,3 +247,19 @@ def test_relief_finer_than_a_pixel_shades_as_the_mean_of_its_normals(gl, tilt):
     n = d[0] * np.array([1.0, 0.0, 0.0]) + d[1] * np.array([0.0, -1.0, 0.0]) + d[2] * np.array([0.0, 0.0, -1.0])
     assert flat == pytest.approx(n @ SUN / np.linalg.norm(n), abs=2e-3)
     assert mean_length < 0.96  # the relief darkens the surface measurably
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.5])
+def test_a_weaker_normal_map_darkens_its_relief_less(gl, scale):
+    """normal_scale s tilts each texel s times as far: the relief's darkening 1 - cos(tilt) becomes about
+    1 - cos(s tilt) (s^2 as large for small tilts); at 0 the surface shades as flat."""
+    tilt = 0.4
+    stripes = np.stack([(np.sin(tilt), 0.0, np.cos(tilt)), (-np.sin(tilt), 0.0, np.cos(tilt))])[np.arange(64) % 2]
+    texels = np.round((np.tile(stripes[None], (64, 1, 1)) + 1.0) / 2.0 * 255.0).astype(np.uint8)
+    flat_texels = np.full((64, 64, 3), [128, 128, 255], np.uint8)
+    relief = lit_centre(gl, tiled_quad(f"test/relief-scaled/{scale}", texels, 64.0, scale))
+    flat = lit_centre(gl, tiled_quad(f"test/relief-scaled-flat/{scale}", flat_texels, 64.0, scale))
+    # 3e-3: lengths are read from 253/255, 0.8% long (cos 0.4 reads 0.928, not 0.921), which leaves a quarter of
+    # 7e-3 at s = 0.5 (2.4e-3 measured on llvmpipe)
+    assert relief / flat == pytest.approx(np.cos(scale * tilt), abs=3e-3)
+

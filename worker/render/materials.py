@@ -73,8 +73,12 @@ vec3 unpack_normal(vec3 t) { return vec3((t.xy * 2.0 - 1.0) * u_material.y, t.z 
 // The length of a filtered normal-map lookup: its texels are unit normals, so a footprint over relief averages to
 // a shorter one, and a Lambertian surface's mean shading over the footprint is that length times the shading of
 // the mean direction (irradiance linear in the normal). 8-bit texels leave a unit normal's length up to ~2/255 off 1:
-// lengths count from there.
-float spread(vec3 t) { return min(length(t * 2.0 - 1.0) * (255.0 / 253.0), 1.0); }
+// lengths count from there. normal_scale s tilts each texel's normal s times as far, which for small tilts makes
+// 1 - length s^2 times as large.
+float spread(vec3 t) {
+    float l = min(length(t * 2.0 - 1.0) * (255.0 / 253.0), 1.0);
+    return max(1.0 - u_material.y * u_material.y * (1.0 - l), 0.0);
+}
 vec3 textured_albedo(inout vec3 n, out float occlusion) {
     float len = length(v_nrm);
     float side = dot(n, v_nrm) < 0.0 ? -1.0 : 1.0;   // n faces the camera: the back of a face takes -normal
