@@ -15,9 +15,8 @@ from pathlib import Path
 from typing import get_args
 
 from PIL import Image
-from vocabulary import HERE, kind_tile
+from vocabulary import HERE, kind_tile, tile_spec
 
-from seasynth.service.spec.dataset import load_spec
 from seasynth.service.spec.scene import ProceduralTarget
 from seasynth.worker.frame.function import RenderSession
 
@@ -30,9 +29,7 @@ def main() -> None:
     parser.add_argument("--size", default="128x96", help="each thumbnail's width x height in pixels")
     args = parser.parse_args()
     w, h = (int(n) for n in args.size.split("x"))
-    spec = load_spec(HERE / "urchins.yaml", {"camera.width": w, "camera.height": h, "terrain.styles": ["sand"],
-                                             "water.jerlov": ["II"], "water.depth_m": [5.0, 5.0],
-                                             "lighting.sun_elevation_deg": [70.0, 70.0]})
+    spec = tile_spec(w, h)
     args.out.mkdir(parents=True, exist_ok=True)
     with RenderSession() as session:
         for kind in get_args(ProceduralTarget):

@@ -32,6 +32,13 @@ KINDS = ("starfish", "sea_cucumber", "scallop", "anemone", "sponge", "fish", "pl
 COLUMNS = 7
 
 
+def tile_spec(width: int, height: int):
+    """The tiles' scene: the urchins example on sand in Jerlov II at 5 m, the sun high."""
+    return load_spec(HERE / "urchins.yaml", {"camera.width": width, "camera.height": height, "terrain.styles": ["sand"],
+                                             "water.jerlov": ["II"], "water.depth_m": [5.0, 5.0],
+                                             "lighting.sun_elevation_deg": [70.0, 70.0]})
+
+
 def kind_tile(session: RenderSession, spec, kind: str) -> np.ndarray:
     """(h, w, 3) uint8 sRGB: variants 0-2 of `kind` in a row on frame 0's seabed."""
     scene = session.scene(spec, 0)
@@ -65,9 +72,7 @@ def main() -> None:
     parser.add_argument("--tile", default="192x144", help="each tile's width x height in pixels")
     args = parser.parse_args()
     w, h = (int(n) for n in args.tile.split("x"))
-    spec = load_spec(HERE / "urchins.yaml", {"camera.width": w, "camera.height": h, "terrain.styles": ["sand"],
-                                             "water.jerlov": ["II"], "water.depth_m": [5.0, 5.0],
-                                             "lighting.sun_elevation_deg": [70.0, 70.0]})
+    spec = tile_spec(w, h)
     rows = math.ceil(len(KINDS) / COLUMNS)
     sheet = Image.new("RGB", (COLUMNS * w, rows * h))
     with RenderSession() as session:
