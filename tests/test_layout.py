@@ -23,7 +23,7 @@ LAYERS = {
 }
 # Inside worker/: the frame function's packages (what one frame is made of) import nothing of how frames are run
 # (local, queue) or read (export, preview).
-FRAME_FUNCTION = {"frame", "scene", "render", "light", "sensors"}
+FRAME_FUNCTION = {"frame", "scene", "render", "light", "sensors", "optics"}
 WORKER = {
     **{name: FRAME_FUNCTION for name in FRAME_FUNCTION},
     "export": FRAME_FUNCTION,

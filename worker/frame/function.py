@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seasynth.service.seeds import STREAM_NOISE, frame_rng
+from seasynth.service.seeds import frame_rng
 from seasynth.service.shards import frame_file, frame_parts
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.spec.scene import AssetRef, FileRef
@@ -18,6 +18,7 @@ from seasynth.worker.frame import kitti, labels
 from seasynth.worker.frame.encode import encode_image, png_bytes
 from seasynth.worker.frame.meta import frame_meta
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
+from seasynth.worker.optics import Optics
 from seasynth.worker.render import DrawItem, Material, Mesh, Passes, RenderResult, Sampling, View
 from seasynth.worker.render.materials import tangent_frames
 from seasynth.worker.scene.assets import Asset, UserSurface
@@ -278,19 +279,14 @@ class RenderSession:
         items = self.draw_items(scene)
         mark("sampling")
         o = spec.outputs
-        noisy = spec.noise.gaussian_sigma > 0
-        # Without sensor noise the image needs nothing more in float: its 8-bit codes come from the GPU.
+        optics = Optics(spec, index, scene, view, items)
+        # Without effects that need the float image, its 8-bit codes come from the GPU.
         passes = Passes(clean=o.clean, ids=o.labels or o.instance or o.semantic, range=o.range or o.depth,
-                        srgb8=not noisy)
-        result = self.renderer.render(
-            view, items, scene_light(scene), scene.water, PRESETS[spec.quality], passes, mark=timer
-        )
+                        srgb8=not optics.float_image)
+        light, preset = scene_light(scene), PRESETS[spec.quality]
+        result = optics.render(
+            lambda v, drawn: self.renderer.render(v, drawn, light, scene.water, preset, passes, mark=timer))
         image = result.image
-        noise = None
-        if noisy:
-            noise_rng = frame_rng(spec.seed, index, STREAM_NOISE)
-            image = image + noise_rng.normal(0.0, spec.noise.gaussian_sigma, image.shape).astype(np.float32)
-            noise = {"gaussian_sigma_linear": spec.noise.gaussian_sigma}
         frame_labels = self.labels(view, scene, items, result, spec.labels) if o.labels else None
         mark("labels")
         # Sonar and navigation sensors, each from its own seed stream: switching one on changes no camera byte.
@@ -302,13 +298,13 @@ class RenderSession:
         def path(part: str) -> str:
             return frame_file(part, index, o.image_suffix)
 
-        image8 = encode_srgb8(image) if noisy else image
+        image8 = encode_srgb8(image) if optics.float_image else image
         files: dict[str, bytes] = {path("image"): encode_image(image8, o)}
         if o.labels:
             files[path("label")] = kitti.format_label_file(frame_labels.objects).encode()
         files[path("calib")] = kitti.format_calib(view.K).encode()
         if o.meta:
-            files[path("meta")] = self.meta(spec, index, scene, view, frame_labels, noise, sensors).encode()
+            files[path("meta")] = self.meta(spec, index, scene, view, frame_labels, optics.record, sensors).encode()
         if o.depth:
             files[path("depth")] = png_bytes(depth_png16(result.range_m, self._ray_norms(view)))
         if o.instance:
@@ -351,10 +347,10 @@ class RenderSession:
                 objects.append(labels.dont_care(box))
         return labels.FrameLabels(objects=objects, line_of=line_of, visible=visible, alone=alone)
 
-    def meta(self, spec, index, scene: Scene, view: View, fl: labels.FrameLabels | None, noise,
+    def meta(self, spec, index, scene: Scene, view: View, fl: labels.FrameLabels | None, optics: dict,
              sensors: SensorFrame | None = None) -> str:
         """The frame's audit record (seasynth.worker.frame.meta.frame_meta) as JSON text."""
-        return frame_meta(spec, index, scene, view, PRESETS[spec.quality], fl, noise, sensors, self.renderer_name,
+        return frame_meta(spec, index, scene, view, PRESETS[spec.quality], fl, optics, sensors, self.renderer_name,
                           self.versions)
 
 

@@ -14,11 +14,11 @@ from seasynth.worker.sensors.outputs import SensorFrame
 
 
 def frame_meta(spec: DatasetSpec, index: int, scene: Scene, view: View, sampling: Sampling, fl: FrameLabels | None,
-               noise: dict | None, sensors: SensorFrame | None, renderer_name: str, versions: dict[str, str]) -> str:
+               optics: dict, sensors: SensorFrame | None, renderer_name: str, versions: dict[str, str]) -> str:
     """The frame's audit record: nothing in it depends on time, host, duration, worker count, the dataset's
     frame count, shard size or the optional outputs depth/instance/clean/range (the dataset record holds the
     whole spec). With outputs.labels off there are no labels, so each object's label_line, visible_pixels
-    and pixels_alone are null."""
+    and pixels_alone are null. optics: the effects' records by name (seasynth.worker.optics.Shot.record)."""
     record = {
         "dataset_seed": spec.seed,
         "frame_index": index,
@@ -53,8 +53,11 @@ def frame_meta(spec: DatasetSpec, index: int, scene: Scene, view: View, sampling
         "objects_left_out": scene.dropped,
         # Each target class's objects drawn for this frame and left out of them (no free spot), in spec order.
         "targets": [{"class": name, "drawn": drawn, "left_out": left} for name, drawn, left in scene.class_counts],
-        "noise": noise,
+        "noise": optics.get("noise"),
     }
+    effects = {name: r for name, r in optics.items() if name != "noise"}
+    if effects:  # absent with every camera and water-column effect off, so such frames' meta is unchanged
+        record["optics"] = effects
     if sensors is not None:  # absent with every sensor off, so such frames' meta is unchanged
         record["sensors"] = sensors.record
     return json.dumps(record, indent=1, sort_keys=True) + "\n"

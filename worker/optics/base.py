@@ -1,0 +1,66 @@
+"""The interface every optical effect implements (see seasynth.worker.optics)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.render import DrawItem, RenderResult, View
+from seasynth.worker.scene.sample import Scene
+
+# Renders `items` from `view` with the frame's light, water, sampling and passes.
+RenderFn = Callable[[View, list[DrawItem]], RenderResult]
+
+
+@dataclass
+class Shot:
+    """One frame on its way through the effects.
+
+    view: the output camera (labels, calib and meta describe it); render_view: what is rasterised (a pinhole,
+    wider than `view` where a port or lens resamples it); items: what the camera draws (the scene's items plus
+    any particles: sonar and labels' per-object renders use the scene's own list); float_image: an effect needs
+    the float image (the GPU's 8-bit encode is skipped); record: meta's "optics" entry, by effect name (the
+    sensor's noise keeps meta's own "noise" entry).
+    """
+
+    spec: DatasetSpec
+    index: int
+    scene: Scene
+    view: View
+    render_view: View
+    items: list[DrawItem]
+    float_image: bool = False
+    record: dict = field(default_factory=dict)
+
+
+class Effect(Protocol):
+    name: str
+
+    def on(self, spec: DatasetSpec) -> bool: ...
+
+    def prepare(self, shot: Shot) -> None: ...
+
+    def expose(self, shot: Shot, render: RenderFn) -> RenderResult | None:
+        """The frame's render, or None to leave it to the next effect (at most one effect exposes a frame)."""
+
+    def develop(self, shot: Shot, result: RenderResult) -> RenderResult: ...
+
+
+class Plain:
+    """An effect's defaults: prepares nothing, leaves the exposure alone, develops nothing."""
+
+    name = "plain"
+
+    def on(self, spec: DatasetSpec) -> bool:
+        return False
+
+    def prepare(self, shot: Shot) -> None:
+        return None
+
+    def expose(self, shot: Shot, render: RenderFn) -> RenderResult | None:
+        return None
+
+    def develop(self, shot: Shot, result: RenderResult) -> RenderResult:
+        return result
