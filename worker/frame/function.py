@@ -281,8 +281,9 @@ class RenderSession:
         o = spec.outputs
         optics = Optics(spec, index, scene, view, items)
         # Without effects that need the float image, its 8-bit codes come from the GPU.
-        passes = Passes(clean=o.clean, ids=o.labels or o.instance or o.semantic, range=o.range or o.depth,
-                        srgb8=not optics.float_image)
+        needs = optics.shot.needs
+        passes = Passes(clean=o.clean or "clean" in needs, ids=o.labels or o.instance or o.semantic or "ids" in needs,
+                        range=o.range or o.depth or "range" in needs, srgb8=not optics.float_image)
         light, preset = scene_light(scene), PRESETS[spec.quality]
         result = optics.render(
             lambda v, drawn: self.renderer.render(v, drawn, light, scene.water, preset, passes, mark=timer))

@@ -21,8 +21,9 @@ class Shot:
     view: the output camera (labels, calib and meta describe it); render_view: what is rasterised (a pinhole,
     wider than `view` where a port or lens resamples it); items: what the camera draws (the scene's items plus
     any particles: sonar and labels' per-object renders use the scene's own list); float_image: an effect needs
-    the float image (the GPU's 8-bit encode is skipped); record: meta's "optics" entry, by effect name (the
-    sensor's noise keeps meta's own "noise" entry).
+    the float image (the GPU's 8-bit encode is skipped); needs: render passes an effect reads whether or not the
+    outputs ask for them ("clean", "ids", "range": seasynth.worker.render.Passes); record: meta's "optics" entry,
+    by effect name (the sensor's noise keeps meta's own "noise" entry).
     """
 
     spec: DatasetSpec
@@ -32,6 +33,7 @@ class Shot:
     render_view: View
     items: list[DrawItem]
     float_image: bool = False
+    needs: set[str] = field(default_factory=set)
     record: dict = field(default_factory=dict)
 
 
