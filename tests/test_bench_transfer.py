@@ -193,8 +193,8 @@ def test_held_out_scenes_draw_only_held_out_meshes_terrains_and_textures_and_lab
 
 def test_a_tiny_transfer_bench_runs_end_to_end_on_the_cpu(tmp_path, mitsuba):
     if importlib.util.find_spec("torch") is None or importlib.util.find_spec("torchvision") is None:
-        pytest.skip("torch and torchvision are not installed (CPU wheels: pip install torch torchvision "
-                    "--index-url https://download.pytorch.org/whl/cpu)")
+        pytest.skip("torch and torchvision are not installed (pip install -c constraints.txt -e '.[transfer]'; "
+                    "bash .ci/setup installs them)")
     args = ["bench", "transfer", "--recipe", TINY, "--work", tmp_path / "work", "--out", tmp_path / "out",
             "--device", "cpu", "--path-tracer", "llvm_ad_rgb", "--machine", "ci", "--jobs", "2"]
     done = subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
