@@ -1,7 +1,9 @@
 """The playground's asset picker in the service, in a real headless Chromium: every uploaded mesh listed by GET /assets
 shows as a tile with its picture beside the procedural kinds (also after a reload, and with an API key, which an
 <img> alone would not send); a mesh uploaded from the page shows at once and after a reload; a mesh without a picture
-still lists, and images do not (the picker's fields take meshes)."""
+still lists, and images do not (the picker's fields take meshes). A ticked upload is in the spec the worker previews.
+
+With SEASYNTH_SCREENSHOTS=DIR the picker is kept as DIR/playground-uploads.png (docs/playground.md shows it)."""
 
 from __future__ import annotations
 
@@ -18,14 +20,14 @@ from service_stack import Stack
 from seasynth.service.shards import asset_thumbnail_key
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from browser import chromium, page_spec, set_value, wait
+from browser import chromium, page_spec, preview_src, server_preview, set_value, shot, wait
 
 KEY = "picker-key"
 
 
 @pytest.fixture(scope="module")
-def keyed(infra: Stack):
-    proc, url = infra.start_api({"SEASYNTH_API_KEYS": KEY, "SEASYNTH_FRAME_TIMEOUT_S": "2"})
+def keyed(stack: Stack):
+    proc, url = stack.start_api({"SEASYNTH_API_KEYS": KEY})
     with httpx.Client(base_url=url, timeout=60, headers={"X-API-Key": KEY}) as c:
         yield c
     proc.stop()
@@ -38,7 +40,7 @@ def tile(driver, asset_id: str) -> str:
 def picture(driver, asset_id: str) -> dict:
     """The tile's picture as the page shows it: its state, size and (when shown) its PNG bytes."""
     got = driver.execute_async_script("""
-        const [id, done] = arguments, img = document.querySelector(`[id='${id}'] img`);
+        const [id, done] = arguments, img = document.querySelector(`[id='${id}'] .upload-picture`);
         if (!img) return done(null);
         const out = {state: img.dataset.state, w: img.naturalWidth, h: img.naturalHeight, png: null};
         if (img.dataset.state !== "shown" || !img.complete) return done(out);
@@ -75,12 +77,13 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
     upload = tmp_path / "crate.obj"
     upload.write_bytes(trimesh.creation.box((0.5, 0.3, 0.2)).export(file_type="obj").encode())
     url = str(keyed.base_url).rstrip("/")
-    with chromium(tmp_path) as driver:
+    with chromium(tmp_path, width=1120, height=1000) as driver:
         open_page(driver, url)
-        listed = {i["asset_id"] for i in every_asset(keyed) if i["kind"] == "mesh"}
+        listed = [i["asset_id"] for i in every_asset(keyed) if i["kind"] == "mesh"]
         tiles = driver.find_elements("css selector", "[id='f-targets.0.assets'] .kind")
-        assert {t.get_attribute("id") for t in tiles if "-upload-" in t.get_attribute("id")} == {
-            tile(driver, a) for a in listed}
+        # after the kinds, newest first, each once
+        assert [t.get_attribute("id") for t in tiles if "-upload-" in t.get_attribute("id")] == [
+            tile(driver, a) for a in listed]
         assert not driver.find_elements("id", tile(driver, png))
         want = keyed.get(f"/assets/{mesh}/thumbnail.png").content
         assert wait(lambda: (p := picture(driver, mesh)) and p["state"] == "shown" and p["png"] and p, 20,
@@ -91,6 +94,9 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
         driver.find_element("css selector", f"[id='{tile(driver, mesh)}'] input[type=checkbox]").click()
         (target,) = page_spec(driver)["targets"]
         assert target["assets"][-1] == {"asset_id": mesh}
+        # the preview is the spec's with the mesh: a worker renders what the page sends
+        expected = server_preview(url, page_spec(driver), 0, {"X-API-Key": KEY})
+        wait(lambda: preview_src(driver) == expected["images"]["image"], 90, "the preview with the uploaded mesh")
         # a mesh uploaded from the page: a tile with its picture at once, and again after a reload
         driver.find_element("id", "upload-targets.0.assets").send_keys(str(upload))
         crate = wait(lambda: next((i["asset_id"] for i in every_asset(keyed) if i["filename"] == "crate.obj"), None),
@@ -101,8 +107,19 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
         for asset_id in (mesh, crate):
             assert wait(lambda a=asset_id: (p := picture(driver, a)) and p["png"], 20, "a picture after the reload") \
                 == keyed.get(f"/assets/{asset_id}/thumbnail.png").content
+        ids = [t.get_attribute("id") for t in driver.find_elements("css selector", "[id='f-targets.0.assets'] .kind")]
+        assert len(ids) == len(set(ids)) and tile(driver, crate) in ids  # the key given twice: listed once
         # the distractors' picker lists them too
         assert driver.find_elements("id", f"pick-distractors.assets-upload-{crate[:12]}")
+        # the crates alone in the class: the preview shows them (a worker renders it)
+        for asset in ("urchin", f"upload-{crate[:12]}"):
+            driver.find_element("css selector", f"[id='pick-targets.0.assets-{asset}'] input[type=checkbox]").click()
+        expected = server_preview(url, page_spec(driver), 0, {"X-API-Key": KEY})
+        wait(lambda: preview_src(driver) == expected["images"]["image"], 90, "the preview of the crates")
+        driver.execute_script("window.scrollTo(0, 0); const c = document.getElementById('controls');"
+                              "c.scrollTop = document.getElementById('f-targets.0.assets').offsetTop - c.offsetTop;")
+        shot(driver, "playground-uploads")
+
 
 
 def _png() -> bytes:

@@ -47,13 +47,14 @@ const pictures = new Map();  // asset_id -> a promise of the picture's object UR
 const MAX_LISTED = 1000;  // uploads shown (the list's pages of 100)
 
 async function loadUploads() {
-  uploads.length = 0;
-  for (let url = "assets?limit=100"; url && uploads.length < MAX_LISTED;) {
+  const got = new Map();
+  for (let url = "assets?limit=100"; url && got.size < MAX_LISTED;) {
     const r = await call("GET", url);
-    if (r.status !== 200 || !r.data) return;  // (the page works on without them)
-    for (const a of r.data.items) if (a.kind === "mesh") uploads.push(a);
+    if (r.status !== 200 || !r.data) break;  // (the page works on without them)
+    for (const a of r.data.items) if (a.kind === "mesh") got.set(a.asset_id, a);  // (an upload between pages: once)
     url = r.data.next && r.data.next.replace(/^\//, "");  // relative, as every call of the page
   }
+  uploads.splice(0, uploads.length, ...got.values());  // at once: a second load (the key given) replaces the first
 }
 // The picture comes with the API key (an <img> would send none): fetched, then shown from a blob.
 function uploadPicture(u) {
@@ -65,8 +66,9 @@ function uploadPicture(u) {
   img.alt = u.filename; img.className = "upload-picture"; img.dataset.state = "loading";
   pictures.get(u.asset_id).then((src) => {
     if (src) { img.src = src; img.dataset.state = "shown"; return; }
-    img.dataset.state = "none"; img.classList.add("mesh-icon");  // a mesh with no picture still lists
-    img.alt = "uploaded mesh";
+    const icon = document.createElement("span");  // a mesh with no picture still lists, by name
+    icon.className = "upload-picture mesh-icon"; icon.dataset.state = "none"; icon.textContent = "no picture";
+    img.replaceWith(icon);
   });
   return img;
 }
