@@ -77,21 +77,33 @@ def test_a_convex_meshs_silhouette_is_its_projected_hull(seed, view, n):
     assert ((face.ravel() >= 0) == (dist <= 0))[sure].all()
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=60, deadline=None)
+@given(seed=seeds, view=views, scale=st.floats(1e-3, 1e3))
+def test_the_mesh_is_fitted_centred_to_the_margins_on_its_limiting_side(seed, view, scale):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(20, 3)) * rng.uniform(0.05, 5, 3) * scale + rng.normal(size=3) * scale
+    w, h, m = 128, 96, mesh_thumbnail.MARGIN
+    screen = project(points, view_axes(*view), w, h)
+    lo, hi = screen[:, :2].min(axis=0), screen[:, :2].max(axis=0)
+    np.testing.assert_allclose((lo + hi) / 2, [w / 2, h / 2], atol=1e-9)
+    room = (1 - 2 * m) * np.array([w, h])
+    assert ((hi - lo) <= room + 1e-9).all() and np.isclose(((hi - lo) / room).max(), 1)
+
+
+@settings(max_examples=40, deadline=None)
 @given(extents=st.tuples(*[st.floats(0.01, 20)] * 3))
-def test_the_picture_fills_its_margins_on_the_limiting_side(extents):
+def test_the_picture_is_the_flat_shaded_mesh_within_its_projection(extents):
     box = trimesh.creation.box(extents=extents)
     rgba = draw(box.vertices, box.faces)
     assert rgba.shape == (96, 128, 4) and rgba.dtype == np.uint8
+    screen = project(box.vertices, view_axes(mesh_thumbnail.AZIMUTH_DEG, mesh_thumbnail.ELEVATION_DEG), 128, 96)
     rows, cols = np.nonzero(rgba[..., 3])
-    m = mesh_thumbnail.MARGIN
-    # the mesh's projection spans (1 - 2 m) of one side exactly (to a pixel) and at most that of the other
-    spans = (cols.max() + 1 - cols.min()) / 128, (rows.max() + 1 - rows.min()) / 96
-    assert max(spans[0] - (1 - 2 * m), spans[1] - (1 - 2 * m)) <= 1.5 / 96
-    assert min(abs(spans[0] - (1 - 2 * m)) * 128, abs(spans[1] - (1 - 2 * m)) * 96) <= 1.5
-    assert abs((cols.min() + cols.max() + 1) / 2 - 64) <= 1 and abs((rows.min() + rows.max() + 1) / 2 - 48) <= 1
-    lit = rgba[rgba[..., 3] == 255, :3]
-    shade = lit / mesh_thumbnail.COLOUR
+    # nothing drawn outside the pixels the projection's bounding box touches
+    lo, hi = screen[:, :2].min(axis=0), screen[:, :2].max(axis=0)
+    assert cols.min() >= np.floor(lo[0]) and cols.max() <= np.ceil(hi[0]) - 1
+    assert rows.min() >= np.floor(lo[1]) and rows.max() <= np.ceil(hi[1]) - 1
+    # a fully covered pixel is the clay colour at a shade between the ambient light and full light
+    shade = rgba[rgba[..., 3] == 255, :3] / mesh_thumbnail.COLOUR
     assert (shade >= mesh_thumbnail.AMBIENT - 0.01).all() and (shade <= 1 + 0.01).all()
 
 

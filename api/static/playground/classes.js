@@ -237,7 +237,7 @@ function classCard(path, c, i, classes, emit, redraw) {
   if (p.kind === "water") schoolFields(card, path.concat("placement", "school"), p.school, editPlacement, put, redraw);
   for (const [field, integer] of [["count", true], ["scale", false]]) {
     row(card, path.concat(field), field, pairControl(path.concat(field), c[field] ?? T[field].default, integer,
-      (v) => { if (v === undefined) delete c[field]; else c[field] = v; emit(); }));
+      (v) => { put(c, field, v); emit(); }));
   }
   const assets = c.assets ?? [{procedural: "urchin"}];
   row(card, path.concat("assets"), "assets", assetPicker(path.concat("assets"), assets, (list) => {
