@@ -8,7 +8,7 @@ import re
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import Depends, Path, Request
+from fastapi import Depends, Path, Query, Request
 
 from seasynth.service.errors import NotFound
 from seasynth.service.records.store import Records, raw_client
@@ -88,3 +88,12 @@ async def frame_index(index: Annotated[str, Path(description="Frame index: decim
 
 
 FrameIndex = Annotated[int, Depends(frame_index)]
+
+
+# A list's page: offset and limit in the query, and the link to the next page while there is one.
+PageOffset = Annotated[int, Query(ge=0, le=10**9)]
+PageLimit = Annotated[int, Query(ge=1, le=100)]
+
+
+def next_page(path: str, offset: int, limit: int, total: int) -> str | None:
+    return f"{path}?offset={offset + limit}&limit={limit}" if offset + limit < total else None

@@ -126,6 +126,20 @@ class AssetPublic(BaseModel):
     kind: str = Field(description="mesh (targets, distractors, terrain.mesh) or image (terrain.texture, normal_map, height_map)")
 
 
+class AssetListed(AssetPublic):
+    uploaded_at: datetime | None = Field(description="When these bytes were first uploaded (null where the object "
+                                         "store keeps no time)")
+    thumbnail: str | None = Field(description="A mesh's picture (PNG, 128x96): GET it with the key; null for images")
+
+
+class AssetList(BaseModel):
+    items: list[AssetListed] = Field(description="Uploaded assets, newest first")
+    total: int
+    offset: int
+    limit: int
+    next: str | None
+
+
 class Health(BaseModel):
     status: str
     version: str

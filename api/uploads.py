@@ -67,17 +67,22 @@ def field_kind(field: str) -> str:
     return IMAGE if field in IMAGE_FIELDS else MESH
 
 
-def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = UPLOAD_CHECK_MEMORY_MIB) -> None:
+def validate(path: Path, fmt: FileFormat, name: str, mesh_budget_mib: int = UPLOAD_CHECK_MEMORY_MIB,
+             thumbnail: Path | None = None) -> str | None:
     """AssetError naming `name` unless the file at `path` loads as `fmt`: a mesh with triangles and finite
-    vertices (loaded within `mesh_budget_mib` of memory, else LimitExceeded), or an image that decodes whole."""
+    vertices (loaded within `mesh_budget_mib` of memory, else LimitExceeded), or an image that decodes whole.
+
+    With `thumbnail`, a valid mesh's picture (seasynth.api.mesh_thumbnail) is written there as PNG in the same
+    load; the answer is then None, or why it could not be drawn (the mesh is valid all the same)."""
     if fmt.kind == MESH:
-        _check_mesh(path, fmt.format, name, mesh_budget_mib)
-    else:
-        _check_image(path, name)
+        return _check_mesh(path, fmt.format, name, mesh_budget_mib, thumbnail)
+    _check_image(path, name)
+    return None
 
 
-def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
-    """Load the mesh as the workers do, in a child process (seasynth.api.mesh_check) within `budget_mib` of memory."""
+def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int, thumbnail: Path | None) -> str | None:
+    """Load the mesh as the workers do, in a child process (seasynth.api.mesh_check) within `budget_mib` of memory;
+    with `thumbnail`, draw its picture there. Returns why no picture was drawn, if asked for one and it failed."""
     # The script by its path. Besides NumPy, trimesh and Pillow it imports seasynth.service (archives, textures) for
     # .zip and .glb uploads. An archive is extracted into `work`, removed here even if the child is killed for time.
     script = Path(__file__).with_name("mesh_check.py")
@@ -85,7 +90,8 @@ def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
     try:
         with _MESH_CHECKS, tempfile.TemporaryDirectory(prefix="seasynth-check-") as work:
             # One at a time: the API's memory holds one budget beside its own (deploy/core/api.yaml).
-            cmd = [sys.executable, str(script), str(path), file_type, str(budget_mib), name, work]
+            cmd = [sys.executable, str(script), str(path), file_type, str(budget_mib), name, work,
+                   *([] if thumbnail is None else [str(thumbnail)])]
             run = subprocess.run(cmd, capture_output=True, text=True, timeout=MESH_CHECK_TIMEOUT_S, env=env)
         answer = json.loads(run.stdout.strip().splitlines()[-1]) if run.stdout.strip() else {}
     except subprocess.TimeoutExpired:
@@ -104,6 +110,7 @@ def _check_mesh(path: Path, file_type: str, name: str, budget_mib: int) -> None:
             raise ValidatorMissing(f"checking mesh uploads needs trimesh in the API's environment "
                                    f"({run.stderr.strip().splitlines()[-1]})")
         raise ValidatorMissing(f"checking {name} failed: exit code {run.returncode}: {run.stderr.strip()[-500:]}")
+    return answer.get("thumbnail_error")
 
 
 def _check_image(path: Path, name: str) -> None:

@@ -205,6 +205,11 @@ def asset_info_key(asset_id: str) -> str:
     return f"assets/{asset_id}.json"
 
 
+def asset_thumbnail_key(asset_id: str) -> str:
+    """An uploaded mesh's picture (PNG); beside it `.json` holds why none could be drawn, where it could not."""
+    return f"assets/thumbnails/{asset_id}.png"
+
+
 # Single files of one frame, by the `part` a client asks for: (folder, suffix) of its relative path.
 FRAME_PARTS: dict[str, tuple[str, str]] = {
     "image": ("image_2", ".png"),

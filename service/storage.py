@@ -6,6 +6,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -19,6 +20,7 @@ if TYPE_CHECKING:
 class ObjectInfo:
     key: str
     bytes: int
+    modified: datetime | None = None  # when the object was last written (UTC), where the store says
 
 
 class ObjectStore(Protocol):
@@ -53,6 +55,11 @@ def _check_key(key: str) -> str:
     if not key or key.startswith("/") or any(p in ("", ".", "..") for p in parts):
         raise ValueError(f"invalid object key {key!r}")
     return key
+
+
+def _file_info(key: str, path: Path) -> ObjectInfo:
+    st = path.stat()
+    return ObjectInfo(key, st.st_size, datetime.fromtimestamp(st.st_mtime, UTC))
 
 
 class LocalStore:
@@ -119,7 +126,7 @@ class LocalStore:
 
     def head(self, key: str) -> ObjectInfo | None:
         p = self._path(key)
-        return ObjectInfo(key, p.stat().st_size) if p.is_file() else None
+        return _file_info(key, p) if p.is_file() else None
 
     def list(self, prefix: str) -> Iterator[ObjectInfo]:
         # A string prefix, as S3 lists: search the deepest folder it names, keep the keys that start with it.
@@ -131,7 +138,7 @@ class LocalStore:
             if p.is_file() and not p.name.startswith(".tmp-"):
                 key = p.relative_to(self.root).as_posix()
                 if key.startswith(prefix):
-                    yield ObjectInfo(key, p.stat().st_size)
+                    yield _file_info(key, p)
 
     def delete(self, key: str) -> None:
         self._path(key).unlink(missing_ok=True)
@@ -233,13 +240,13 @@ class S3Store:
             if isinstance(e, NotFound):
                 return None
             raise e from err
-        return ObjectInfo(key, int(r["ContentLength"]))
+        return ObjectInfo(key, int(r["ContentLength"]), r.get("LastModified"))
 
     def list(self, prefix: str) -> Iterator[ObjectInfo]:
         try:
             for page in self.client.get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=prefix):
                 for o in page.get("Contents", []):
-                    yield ObjectInfo(o["Key"], int(o["Size"]))
+                    yield ObjectInfo(o["Key"], int(o["Size"]), o.get("LastModified"))
         except Exception as err:
             raise self._fail(err, prefix) from err
 

@@ -95,9 +95,12 @@ def preview_src(driver) -> str:
     return driver.find_element("id", "preview-image").get_attribute("src") or ""
 
 
-def server_preview(base: str, spec: dict, frame: int = 0) -> dict:
-    """The preview the server renders for `spec` (no views), as the page would get it."""
-    r = httpx.post(base + "/playground/preview", json={"spec": spec, "frame": frame, "views": []}, timeout=60)
+def server_preview(base: str, spec: dict, frame: int = 0, headers: dict | None = None) -> dict:
+    """The preview the server renders for `spec` (no views), as the page would get it; a busy renderer (503, the
+    page's own render holding the slot) is waited out, as the page does."""
+    body = {"spec": spec, "frame": frame, "views": []}
+    r = wait(lambda: (r := httpx.post(base + "/playground/preview", json=body, headers=headers, timeout=60))
+             .status_code != 503 and r, 120, "a free render slot")
     assert r.status_code == 200, r.text
     return r.json()
 

@@ -211,9 +211,9 @@ from seasynth.api.uploads import format_of, validate
 got = {}
 for arg in sys.argv[2:]:
     path = Path(arg)
-    try:
-        validate(path, format_of(path.name), path.name)
-        got[path.name] = None
+    fmt = format_of(path.name)
+    try:  # a mesh's picture drawn too, beside the probe (None: drawn, else why not)
+        got[path.name] = validate(path, fmt, path.name, thumbnail=Path(path.name + ".png") if fmt.kind == "mesh" else None)
     except Exception as err:
         got[path.name] = f"{type(err).__name__}: {err}"
 print(json.dumps(got))
@@ -223,7 +223,8 @@ print(json.dumps(got))
 def test_api_image_environment_checks_uploads(tmp_path):
     """The API image's Python environment, assembled offline from exactly the distributions `.[api]` installs:
     the image's modules import, pyrender and PyOpenGL are absent, and uploads of each format are checked there
-    (a good file passes, a broken one is refused naming it) instead of failing for a missing package."""
+    (a good file passes, a broken one is refused naming it; a mesh's picture is drawn) instead of failing for a
+    missing package."""
     import numpy as np
     import trimesh
     from PIL import Image
@@ -250,6 +251,9 @@ def test_api_image_environment_checks_uploads(tmp_path):
     got = json.loads(proc.stdout)
     good = {"box.glb", "box.obj", "box.ply", "box.stl", "texture.png", "texture.jpg"}
     assert {n: e for n, e in got.items() if n in good} == dict.fromkeys(good), got
+    for fmt in ("glb", "obj", "ply", "stl"):  # each mesh's picture, drawn with no GL in the environment
+        with Image.open(tmp_path / f"box.{fmt}.png") as picture:
+            assert picture.size == (128, 96) and picture.getextrema()[3] == (0, 255)
     for name in ("broken.ply", "broken.png"):
         assert got[name].startswith(f"AssetError: {name}: "), got
 

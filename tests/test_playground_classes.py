@@ -2,7 +2,7 @@
 three classes built through the form (added, named, placed, counted, their assets picked by clicking thumbnails),
 reordered and one removed, the distractors' assets picked the same way; an error shows at the class's field it
 names; the spec the page sends is exactly that, and the preview, at a real 640x480, shows boxes of every class,
-coloured and named by class in its legend.
+coloured and named by class in its legend. A water placement's every field is edited in the form and previewed.
 
 Set SEASYNTH_SCREENSHOTS=DIR to keep the screenshots (examples/playground/playground.png and
 playground-classes.png come from there)."""
@@ -26,6 +26,7 @@ from browser import (
 from selenium.webdriver.support.ui import Select
 
 from seasynth.service.spec.dataset import parse_spec
+from seasynth.service.spec.targets import InWater, School
 
 SPEC = {
     "seed": 3,
@@ -145,3 +146,47 @@ def test_three_classes_built_through_the_form_are_the_spec_sent_and_each_has_box
         driver.execute_script("window.scrollTo(0, 0); const c = document.getElementById('controls');"
                               "c.scrollTop = document.getElementById(arguments[0]).offsetTop - c.offsetTop;", card)
         shot(driver, name)
+
+
+def test_water_placement_fields_edit_the_spec_the_preview_renders(page):
+    """Every field of `water` in the form: the ranges as pairs, schools ticked with their fields; an edit writes
+    that field alone, the form shows the spec's values after a redraw, and the preview is the spec's frame."""
+    driver, base = page
+    driver.get(base + "/playground")  # the starting spec again: one class, on the seabed
+    (kind,) = wait(lambda: driver.find_elements("id", "f-targets.0.placement.kind"), 30, "the class card")
+    Select(kind).select_by_value("water")
+    where = "f-targets.0.placement"
+    defaults = InWater(kind="water")
+    for field in ("height_m", "yaw_deg", "pitch_deg", "roll_deg"):  # shown, not written
+        shown = [float(driver.find_element("id", f"{where}.{field}.{k}").get_attribute("value")) for k in (0, 1)]
+        assert shown == list(getattr(defaults, field)), field
+    assert page_spec(driver)["targets"] == [{**SPEC["targets"], "placement": {"kind": "water"}}]
+    for field, pair in (("yaw_deg", (30, 90)), ("pitch_deg", (-5, 5))):
+        for k, v in enumerate(pair):
+            set_value(driver, f"{where}.{field}.{k}", v)
+    set_value(driver, f"{where}.roll_deg.1", 3)  # the min stays the shown default
+    click(driver, f"{where}.school")
+    school = School()
+    assert [driver.find_element("id", f"{where}.school.size.{k}").get_attribute("value") for k in (0, 1)] == [
+        str(n) for n in school.size]
+    for k, n in enumerate((2, 3)):
+        set_value(driver, f"{where}.school.size.{k}", n)
+    set_value(driver, f"{where}.school.spacing_m.1", 0.3)
+    set_value(driver, f"{where}.school.heading_jitter_deg", 25)
+    placement = {"kind": "water", "yaw_deg": [30, 90], "pitch_deg": [-5, 5], "roll_deg": [-10, 3],
+                 "school": {"size": [2, 3], "spacing_m": [school.spacing_m[0], 0.3], "heading_jitter_deg": 25}}
+    want = {**SPEC, "targets": [{**SPEC["targets"], "placement": placement}]}
+    wait(lambda: page_spec(driver) == want, 10, "the page's spec to carry the water placement")
+    parse_spec(want)
+    expected = server_preview(base, want)
+    wait(lambda: preview_src(driver) == expected["images"]["image"], 60, "the preview of the spec with schools")
+    # redrawn (a class added and removed), the form shows the spec's values and the spec is unchanged
+    click(driver, "add-class")
+    click(driver, "class-remove-1")
+    assert page_spec(driver) == want
+    assert [driver.find_element("id", f"{where}.{f}").get_attribute("value") for f in (
+        "yaw_deg.0", "roll_deg.0", "roll_deg.1", "school.spacing_m.1", "school.heading_jitter_deg")] == [
+        "30", "-10", "3", "0.3", "25"]
+    click(driver, f"{where}.school")  # schools off: the key goes, its fields too
+    assert page_spec(driver)["targets"][0]["placement"] == {k: v for k, v in placement.items() if k != "school"}
+    assert not driver.find_elements("id", f"{where}.school.size.0")

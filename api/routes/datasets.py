@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Body, Query, Response, status
 
 from seasynth.api import operations
-from seasynth.api.deps import DatasetId, FrameIndex, ServicesDep
+from seasynth.api.deps import DatasetId, FrameIndex, PageLimit, PageOffset, ServicesDep, next_page
 from seasynth.api.models import (
     SPEC_EXAMPLE,
     SPEC_RULES,
@@ -36,15 +36,11 @@ def create_dataset(spec: Annotated[DatasetSpec, Body(openapi_examples={"small": 
 
 
 @router.get("", response_model=DatasetList)
-def list_datasets(
-    services: ServicesDep,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
-    limit: Annotated[int, Query(ge=1, le=100)] = 20,
-) -> DatasetList:
+def list_datasets(services: ServicesDep, offset: PageOffset = 0, limit: PageLimit = 20) -> DatasetList:
     """Datasets, newest first."""
     items, total = operations.list_datasets(services, offset, limit)
-    nxt = f"/datasets?offset={offset + limit}&limit={limit}" if offset + limit < total else None
-    return DatasetList(items=items, total=total, offset=offset, limit=limit, next=nxt)
+    return DatasetList(items=items, total=total, offset=offset, limit=limit,
+                       next=next_page("/datasets", offset, limit, total))
 
 
 @router.get("/{id}", response_model=DatasetPublic, responses=error_responses(404))

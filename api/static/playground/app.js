@@ -376,6 +376,7 @@ async function start() {
   config = r.data;
   spec = structuredClone(config.spec);
   $("mode").textContent = `${config.mode} · ${config.version}`;
+  if (config.mode === "service") await loadUploads();  // classes.js: the pickers list them
   buildForm();
   refresh();
 }

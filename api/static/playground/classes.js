@@ -6,7 +6,9 @@
 // Class i's colour, in the editor and on the preview's boxes and legend.
 const CLASS_COLOURS = ["#ffea00", "#00e5ff", "#ff4081", "#76ff03", "#ff9100", "#d500f9", "#ffffff", "#2979ff"];
 const classColour = (i) => (i < 0 ? "#9e9e9e" : CLASS_COLOURS[i % CLASS_COLOURS.length]);
-const PLACEMENT_RANGE = {buried: ["sunk_fraction", "Buried"], water: ["height_m", "InWater"]};
+// Each placement's model and its ranges (min, max); water's schools have their own fields (schoolFields).
+const PLACEMENT_RANGES = {buried: ["Buried", ["sunk_fraction"]],
+                          water: ["InWater", ["height_m", "yaw_deg", "pitch_deg", "roll_deg"]]};
 
 function targetsOf(value) {  // one mapping is a list of that one class
   if (Array.isArray(value)) return value;
@@ -37,10 +39,39 @@ function row(parent, path, title, controlEl) {
   parent.appendChild(r);
 }
 
-// ---- the asset picker: a thumbnail per procedural kind (ticked: in the list, with its variants), a tile per mesh
-// uploaded from this page (with the service), and the list's other assets (local paths, asset ids) by name,
-// removable, with a field to add one.
-const uploads = [];  // {asset_id, filename} of the meshes uploaded from this page, shown in every picker
+// ---- the asset picker: a thumbnail per procedural kind (ticked: in the list, with its variants), one per mesh
+// uploaded to the service (GET assets lists them; their pictures are drawn there), and the list's other assets
+// (local paths, asset ids) by name, removable, with a field to add one.
+const uploads = [];  // {asset_id, filename, thumbnail} of the service's uploaded meshes, newest first
+const pictures = new Map();  // asset_id -> a promise of the picture's object URL (null: none), fetched once
+const MAX_LISTED = 1000;  // uploads shown (the list's pages of 100)
+
+async function loadUploads() {
+  const got = new Map();
+  for (let url = "assets?limit=100"; url && got.size < MAX_LISTED;) {
+    const r = await call("GET", url);
+    if (r.status !== 200 || !r.data) break;  // (the page works on without them)
+    for (const a of r.data.items) if (a.kind === "mesh") got.set(a.asset_id, a);  // (an upload between pages: once)
+    url = r.data.next && r.data.next.replace(/^\//, "");  // relative, as every call of the page
+  }
+  uploads.splice(0, uploads.length, ...got.values());  // at once: a second load (the key given) replaces the first
+}
+// The picture comes with the API key (an <img> would send none): fetched, then shown from a blob.
+function uploadPicture(u) {
+  if (!pictures.has(u.asset_id)) {
+    pictures.set(u.asset_id, !u.thumbnail ? Promise.resolve(null) : fetch(u.thumbnail.replace(/^\//, ""), {headers: headers()})
+      .then((r) => (r.ok ? r.blob().then((b) => URL.createObjectURL(b)) : null)).catch(() => null));
+  }
+  const img = document.createElement("img");
+  img.alt = u.filename; img.className = "upload-picture"; img.dataset.state = "loading";
+  pictures.get(u.asset_id).then((src) => {
+    if (src) { img.src = src; img.dataset.state = "shown"; return; }
+    const icon = document.createElement("span");  // a mesh with no picture still lists, by name
+    icon.className = "upload-picture mesh-icon"; icon.dataset.state = "none"; icon.textContent = "no picture";
+    img.replaceWith(icon);
+  });
+  return img;
+}
 
 function pickTile(path, list, key, title, picture, same, entry, emit, withVariants) {
   const tile = document.createElement("label"), tick = document.createElement("input"), name = document.createElement("span");
@@ -81,9 +112,7 @@ function assetPicker(path, assets, onAssets) {
                              emit, true));
   }
   for (const u of uploads) {
-    const icon = document.createElement("span");
-    icon.className = "mesh-icon"; icon.textContent = "uploaded mesh";
-    box.appendChild(pickTile(path, list, "upload-" + u.asset_id.slice(0, 12), u.filename, icon,
+    box.appendChild(pickTile(path, list, "upload-" + u.asset_id.slice(0, 12), u.filename, uploadPicture(u),
                              (a) => a.asset_id === u.asset_id, () => ({asset_id: u.asset_id}), emit, false));
   }
   const others = document.createElement("div");
@@ -129,7 +158,9 @@ function uploadControl(path, list, emit) {
     const r = await call("POST", "assets", form);
     if (r.status !== 200 && r.status !== 201) { said.textContent = r.data ? r.data.detail : `error ${r.status}`; return; }
     const {asset_id, filename} = r.data;
-    if (!uploads.some((u) => u.asset_id === asset_id)) uploads.push({asset_id, filename});
+    if (!uploads.some((u) => u.asset_id === asset_id)) {
+      uploads.unshift({asset_id, filename, thumbnail: `assets/${asset_id}/thumbnail.png`});
+    }
     if (!list.some((a) => a.asset_id === asset_id)) list.push({asset_id});
     emit();
     buildForm();  // every picker shows the new mesh
@@ -182,7 +213,7 @@ function classCard(path, c, i, classes, emit, redraw) {
   name.id = "f-" + pid(path.concat("class_name")); name.value = c.class_name ?? T.class_name.default;
   name.addEventListener("input", () => { c.class_name = name.value; emit(); });
   row(card, path.concat("class_name"), "name", name);
-  // placement: its kind, and the range that kind takes (the other fields of water keep their defaults)
+  // placement: its kind, and the ranges that kind takes (an edit writes the one field; the rest stay as written)
   const p = typeof c.placement === "string" ? {kind: c.placement} : (c.placement || {kind: "seabed"});
   const kind = document.createElement("select");
   kind.id = "f-" + pid(path.concat("placement", "kind"));
@@ -190,25 +221,49 @@ function classCard(path, c, i, classes, emit, redraw) {
   kind.value = p.kind;
   kind.addEventListener("change", () => { c.placement = {kind: kind.value}; emit(); redraw(); });
   row(card, path.concat("placement"), "placement", kind);
-  if (PLACEMENT_RANGE[p.kind]) {
-    const [field, model] = PLACEMENT_RANGE[p.kind], shown = p[field] ?? defs[model].properties[field].default;
+  const editPlacement = (edit) => {
+    // (`placement: water` may be written by its kind alone: the shown mapping takes the edit)
+    c.placement = Object.assign({}, c.placement && typeof c.placement === "object" ? c.placement : p);
+    edit(c.placement);
+    emit();
+  };
+  const put = (o, field, v) => { if (v === undefined) delete o[field]; else o[field] = v; };
+  const [model, ranges] = PLACEMENT_RANGES[p.kind] || [null, []];
+  for (const field of ranges) {
     row(card, path.concat("placement", field), field.replace(/_/g, " "),
-        pairControl(path.concat("placement", field), shown, false, (v) => {
-          // (`placement: water` may be written by its kind alone: the shown mapping takes the edit)
-          c.placement = Object.assign({}, c.placement && typeof c.placement === "object" ? c.placement : p);
-          if (v === undefined) delete c.placement[field]; else c.placement[field] = v;
-          emit();
-        }));
+        pairControl(path.concat("placement", field), p[field] ?? defs[model].properties[field].default, false,
+                    (v) => editPlacement((pl) => put(pl, field, v))));
   }
+  if (p.kind === "water") schoolFields(card, path.concat("placement", "school"), p.school, editPlacement, put, redraw);
   for (const [field, integer] of [["count", true], ["scale", false]]) {
     row(card, path.concat(field), field, pairControl(path.concat(field), c[field] ?? T[field].default, integer,
-      (v) => { if (v === undefined) delete c[field]; else c[field] = v; emit(); }));
+      (v) => { put(c, field, v); emit(); }));
   }
   const assets = c.assets ?? [{procedural: "urchin"}];
   row(card, path.concat("assets"), "assets", assetPicker(path.concat("assets"), assets, (list) => {
     c.assets = list; emit();
   }));
   return card;
+}
+
+// Water's schools: a tick (count then counts schools), and each school's size, spacing and heading jitter.
+function schoolFields(card, path, school, editPlacement, put, redraw) {
+  const S = defs.School.properties, on = document.createElement("input");
+  on.type = "checkbox"; on.id = "f-" + pid(path); on.checked = school != null;
+  on.addEventListener("change", () => {
+    editPlacement((pl) => { if (on.checked) pl.school = {}; else delete pl.school; });
+    redraw();
+  });
+  row(card, path, "in schools", on);
+  if (school == null) return;
+  const edit = (field, v) => editPlacement((pl) => { pl.school = Object.assign({}, pl.school); put(pl.school, field, v); });
+  for (const [field, integer] of [["size", true], ["spacing_m", false]]) {
+    row(card, path.concat(field), `school ${field.replace(/_/g, " ")}`,
+        pairControl(path.concat(field), school[field] ?? S[field].default, integer, (v) => edit(field, v)));
+  }
+  const jitter = numberInput(pid(path.concat("heading_jitter_deg")), school.heading_jitter_deg ?? S.heading_jitter_deg.default,
+                             (v) => edit("heading_jitter_deg", v), false);
+  row(card, path.concat("heading_jitter_deg"), "heading jitter deg", jitter);
 }
 
 // ---- the preview's legend: each class of the frame's boxes, in its colour, with its count
