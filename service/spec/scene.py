@@ -17,6 +17,7 @@ from pydantic import (
     model_validator,
 )
 
+from seasynth.service.spec.optics import Distortion, Port, check_distortion, distortion_folds
 from seasynth.service.spec.types import (
     MAX_CHOICES,
     MAX_MAGNITUDE,
@@ -102,6 +103,10 @@ class Camera(SpecModel):
     intrinsics: Intrinsics | None = None
     clip: PositiveInterval = (0.02, 300.0)
     look_at_jitter_m: StrictFloat = Field(0.05, ge=0, le=100)
+    # The housing's window (none: a pinhole in water, as before) and the lens's Brown-Conrady distortion
+    # [k1, k2, p1, p2, k3] (OpenCV's order; all zero: none). seasynth.service.camera_model maps pixels to rays.
+    port: Port = Port()
+    distortion: Annotated[Distortion, AfterValidator(check_distortion)] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     @field_validator("clip")
     @classmethod
@@ -120,6 +125,10 @@ class Camera(SpecModel):
                 if 2 * math.degrees(math.atan(side / (2 * f))) >= 170.0:
                     raise ValueError(f"intrinsics.{name} {f} px gives a field of view of 170 deg or more over "
                                      f"{side} px; at least {side / (2 * math.tan(math.radians(85.0))):.4g}")
+        folds = distortion_folds(self.distortion, self.K(), self.width, self.height)
+        if folds is not None:
+            raise ValueError(f"distortion {list(self.distortion)} folds the image over: its radial map stops "
+                             f"growing at r = {folds:.4g} (normalised), inside the image's corners")
         return self
 
     def K(self) -> list[list[float]]:
