@@ -139,12 +139,15 @@ class CameraModel:
         K = self.K
         return np.stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
 
-    def _miss(self, P: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """(n, 3): how far the water ray of air slope xy passes from P, perpendicular to the ray (metres)."""
+    def _miss(self, P: np.ndarray, xy: np.ndarray, ahead: bool = False) -> np.ndarray:
+        """(n, 3): how far the water ray of air slope xy passes from P, perpendicular to the ray (metres); ahead:
+        NaN where P lies behind the ray's origin (inside the housing)."""
         d = np.concatenate([xy, np.ones_like(xy[:, :1])], axis=1)
         o, w = self.water_rays(d / np.linalg.norm(d, axis=1, keepdims=True))
         r = P - o
-        return r - np.sum(r * w, axis=1, keepdims=True) * w
+        along = np.sum(r * w, axis=1, keepdims=True)
+        miss = r - along * w
+        return np.where(along > 0, miss, np.nan) if ahead else miss
 
     def _solve_air(self, P: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Undistorted normalised coordinates (n, 2) of the air rays whose water rays pass through P (n, 3)."""
@@ -157,7 +160,7 @@ class CameraModel:
             JtJ = np.einsum("nki,nkj->nij", J, J)
             step = np.linalg.solve(JtJ + 1e-30 * np.eye(2), np.einsum("nki,nk->ni", J, e)[..., None])[..., 0]
             xy = xy - step
-        e = self._miss(P, xy)
+        e = self._miss(P, xy, ahead=True)
         xy[~(np.linalg.norm(e, axis=1) <= 1e3 * PROJECT_TOL_M)] = np.nan
         return xy
 

@@ -74,8 +74,8 @@ def distortion_folds(d, K, width: int, height: int) -> float | None:
     (fx, _, cx), (_, fy, cy), _ = K
     corner = max(((u - cx) / fx) ** 2 + ((v - cy) / fy) ** 2
                  for u in (-0.5, width - 0.5) for v in (-0.5, height - 0.5)) ** 0.5
-    # margin: tangential terms and the edges' half pixel move the radius a little past the corner
-    reach = 1.25 * corner + 0.05
+    # margin: the tangential terms move a corner's radius by up to about 3 (|p1| + |p2|) r^2
+    reach = corner + 3 * (abs(d[2]) + abs(d[3])) * corner * corner + 1e-6
     r, step = 0.0, reach / 4096
     while True:
         r2 = r * r

@@ -12,6 +12,7 @@ from pydantic import (
     StrictBool,
     StrictFloat,
     StrictInt,
+    ValidationInfo,
     WithJsonSchema,
     field_validator,
     model_validator,
@@ -115,6 +116,19 @@ class Camera(SpecModel):
             raise ValueError(f"near {v[0]} must be < far {v[1]}")
         return v
 
+    @field_validator("distortion")
+    @classmethod
+    def _invertible(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        d = info.data
+        if not {"width", "height", "hfov_deg", "intrinsics"} <= d.keys():
+            return v  # another field is refused
+        K = camera_K(d["width"], d["height"], d["hfov_deg"], d["intrinsics"])
+        folds = distortion_folds(v, K, d["width"], d["height"])
+        if folds is not None:
+            raise ValueError(f"{list(v)} folds the image over: its radial map stops growing at r = {folds:.4g} "
+                             f"(normalised), inside the image's corners")
+        return v
+
     @model_validator(mode="after")
     def _one_projection(self) -> Camera:
         if self.hfov_deg is not None and self.intrinsics is not None:
@@ -125,20 +139,21 @@ class Camera(SpecModel):
                 if 2 * math.degrees(math.atan(side / (2 * f))) >= 170.0:
                     raise ValueError(f"intrinsics.{name} {f} px gives a field of view of 170 deg or more over "
                                      f"{side} px; at least {side / (2 * math.tan(math.radians(85.0))):.4g}")
-        folds = distortion_folds(self.distortion, self.K(), self.width, self.height)
-        if folds is not None:
-            raise ValueError(f"distortion {list(self.distortion)} folds the image over: its radial map stops "
-                             f"growing at r = {folds:.4g} (normalised), inside the image's corners")
         return self
 
     def K(self) -> list[list[float]]:
         """The 3x3 intrinsic matrix (pixels; pixel centres at integer coordinates)."""
-        if self.intrinsics is not None:
-            i = self.intrinsics
-            return [[i.fx, 0.0, i.cx], [0.0, i.fy, i.cy], [0.0, 0.0, 1.0]]
-        hfov = math.radians(70.0 if self.hfov_deg is None else self.hfov_deg)
-        f = (self.width / 2.0) / math.tan(hfov / 2.0)
-        return [[f, 0.0, (self.width - 1) / 2.0], [0.0, f, (self.height - 1) / 2.0], [0.0, 0.0, 1.0]]
+        return camera_K(self.width, self.height, self.hfov_deg, self.intrinsics)
+
+
+def camera_K(width: int, height: int, hfov_deg: float | None, intrinsics: Intrinsics | None) -> list[list[float]]:
+    """The 3x3 intrinsic matrix of a camera section's fields (pixels; pixel centres at integer coordinates)."""
+    if intrinsics is not None:
+        i = intrinsics
+        return [[i.fx, 0.0, i.cx], [0.0, i.fy, i.cy], [0.0, 0.0, 1.0]]
+    hfov = math.radians(70.0 if hfov_deg is None else hfov_deg)
+    f = (width / 2.0) / math.tan(hfov / 2.0)
+    return [[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
 
 
 class FileRef(SpecModel):

@@ -27,6 +27,7 @@ from seasynth.worker.render import DrawItem, RenderResult, ray_norms
 
 MARGIN_PX = 2  # wide pixels beyond the outermost water ray (bilinear taps and the parallax of near surfaces)
 PARALLAX_ITERATIONS = 4
+MAX_OFF_AXIS_DEG = 80.0
 NEAREST_PORT_M = 0.1  # the wide field also covers each ray's point this far from the port (nearer surfaces clamp)
 
 
@@ -48,6 +49,9 @@ def camera_rays(camera: Camera) -> Rays:
     model = CameraModel.from_spec(camera)
     v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
     o, d = model.pixel_rays(u, v)
+    # A pinhole cannot hold rays at or beyond 90 deg off its axis: those past MAX_OFF_AXIS_DEG are lost (recorded).
+    behind = ~(d[..., 2] >= np.cos(np.radians(MAX_OFF_AXIS_DEG)))
+    o[behind], d[behind] = np.nan, np.nan
     with np.errstate(divide="ignore", invalid="ignore"):
         q = d[..., :2] / d[..., 2:3]  # normalised pinhole coordinates of each ray's far end
         near = o + NEAREST_PORT_M * d
