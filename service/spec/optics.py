@@ -23,11 +23,14 @@ class Port(SpecModel):
     (the pinhole) at its origin; air (index 1.0) fills the housing.
     """
 
+    # none: no port; flat: a plane window; dome: a spherical shell.
     kind: Literal["none", "flat", "dome"] = "none"
     # The glass (flat: between its two planes; dome: between its two spheres).
     thickness_mm: StrictFloat = Field(10.0, gt=0, le=200)
-    glass_index: StrictFloat = Field(1.49, ge=MIN_INDEX, le=MAX_INDEX)  # acrylic
-    water_index: StrictFloat = Field(1.34, ge=MIN_INDEX, le=MAX_INDEX)  # sea water, visible light
+    # The glass's refractive index: acrylic 1.49, glass 1.47-1.52, sapphire 1.77.
+    glass_index: StrictFloat = Field(1.49, ge=MIN_INDEX, le=MAX_INDEX)
+    # The water's refractive index: sea water 1.34, fresh water 1.33 (visible light).
+    water_index: StrictFloat = Field(1.34, ge=MIN_INDEX, le=MAX_INDEX)
     # flat: the entrance pupil's distance to the window's inner plane, along the optical axis.
     distance_mm: StrictFloat = Field(20.0, gt=0, le=1000)
     # dome: the outer sphere's radius (the inner one's is radius_mm - thickness_mm).
@@ -38,6 +41,7 @@ class Port(SpecModel):
 
     @model_validator(mode="after")
     def _fits(self) -> Port:
+        """A dome's glass is thinner than its radius, and the entrance pupil lies inside its inner sphere."""
         if self.kind == "dome":
             if self.thickness_mm >= self.radius_mm:
                 raise ValueError(f"thickness_mm {self.thickness_mm} must be less than radius_mm {self.radius_mm}")
@@ -58,6 +62,7 @@ MAX_TANGENTIAL = 1.0
 
 
 def check_distortion(d: tuple[float, float, float, float, float]) -> tuple[float, float, float, float, float]:
+    """|k1|, |k2|, |k3| <= 10 and |p1|, |p2| <= 1."""
     k1, k2, p1, p2, k3 = d
     for name, value, bound in (("k1", k1, MAX_RADIAL), ("k2", k2, MAX_RADIAL), ("p1", p1, MAX_TANGENTIAL),
                                ("p2", p2, MAX_TANGENTIAL), ("k3", k3, MAX_RADIAL)):

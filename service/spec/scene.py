@@ -104,9 +104,11 @@ class Camera(SpecModel):
     intrinsics: Intrinsics | None = None
     clip: PositiveInterval = (0.02, 300.0)
     look_at_jitter_m: StrictFloat = Field(0.05, ge=0, le=100)
-    # The housing's window (none: a pinhole in water, as before) and the lens's Brown-Conrady distortion
-    # [k1, k2, p1, p2, k3] (OpenCV's order; all zero: none). seasynth.service.camera_model maps pixels to rays.
+    # The housing's window (kind none: a pinhole in water, as before); seasynth.service.camera_model maps pixels to
+    # rays in water (docs/optics.md).
     port: Port = Port()
+    # The lens's Brown-Conrady distortion [k1, k2, p1, p2, k3] in OpenCV's order, on normalised image coordinates
+    # (all zero: none).
     distortion: Annotated[Distortion, AfterValidator(check_distortion)] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     @field_validator("clip")
@@ -119,6 +121,7 @@ class Camera(SpecModel):
     @field_validator("distortion")
     @classmethod
     def _invertible(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        """The distortion's radial map keeps growing out to the image's corners (one ray a pixel)."""
         d = info.data
         if not {"width", "height", "hfov_deg", "intrinsics"} <= d.keys():
             return v  # another field is refused

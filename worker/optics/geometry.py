@@ -6,8 +6,8 @@ what its ray in water (seasynth.service.camera_model) meets, resampled from a wi
 value of the output's pixel-to-direction Jacobian). `develop` finds, for each output pixel, the point of the wide
 render its water ray meets: a water ray starts on the port, not at the pupil (a flat port has no single viewpoint),
 so the search is a fixed point along the ray: project the ray's point at the current distance into the wide render,
-read the surface's depth there, move to the ray's point at that depth, PARALLAX_ITERATIONS times (the largest
-remaining step is recorded). Depth between the wide pixels is interpolated as inverse depth (exact on a plane)
+read the surface's depth there, move to the ray's point at that depth, until no sample moves more than
+CONVERGED_PX or PARALLAX_ITERATIONS times (the iterations and the largest last step are recorded). Depth between the wide pixels is interpolated as inverse depth (exact on a plane)
 among four neighbours of one instance, else taken from the nearest. Image and clean are then sampled bilinearly in
 linear light, instance nearest; range is the distance along the water ray from its origin on the port.
 """
@@ -27,6 +27,7 @@ from seasynth.worker.render import DrawItem, RenderResult, ray_norms
 
 MARGIN_PX = 2  # wide pixels beyond the outermost water ray (bilinear taps and the parallax of near surfaces)
 PARALLAX_ITERATIONS = 4
+CONVERGED_PX = 1e-4
 MAX_OFF_AXIS_DEG = 80.0
 NEAREST_PORT_M = 0.1  # the wide field also covers each ray's point this far from the port (nearer surfaces clamp)
 
@@ -133,18 +134,18 @@ class Geometry(Plain):
         with np.errstate(divide="ignore"):
             inv_z = (ray_norms(wide.K, wide.width, wide.height) / result.range_m).astype(np.float64)  # 0 where no surface
         qx, qy = _project(wide.K, d)
-        step = np.zeros(0)
-        for k in range(PARALLAX_ITERATIONS + 1):
+        step, k = np.zeros(0), 0
+        while True:
             z = surface_depth(inv_z, result.instance, qx, qy)
             with np.errstate(invalid="ignore"):
                 t = np.maximum((z - o[..., 2]) / d[..., 2], 0.0)  # along the water ray to the surface's depth
-            if k == PARALLAX_ITERATIONS:
+            if k == PARALLAX_ITERATIONS or (k > 0 and not np.nanmax(step, initial=0.0) > CONVERGED_PX):
                 break
             far = ~np.isfinite(t)
             p = np.where(far[..., None], d, o + np.where(far, 0.0, t)[..., None] * d)
             nx, ny = _project(wide.K, p)
             step = np.hypot(nx - qx, ny - qy)
-            qx, qy = nx, ny
+            qx, qy, k = nx, ny, k + 1
         lost = np.isnan(d[..., 0])  # rays that never reach the water: black, no surface
         self.samples = (qx, qy, lost)
         image = np.where(lost[..., None], 0.0, bilinear(result.image, qx, qy)).astype(np.float32)
@@ -159,7 +160,7 @@ class Geometry(Plain):
         shot.record[self.name] = {
             "render": {"K": wide.K.tolist(), "width": wide.width, "height": wide.height,
                        "finest_step_px": rays.resolution},
-            "parallax_iterations": PARALLAX_ITERATIONS,
+            "parallax_iterations": k,
             "last_step_px_max": float(finite.max()) if finite.size else 0.0,
             "rays_lost": int(lost.sum()),
         }
