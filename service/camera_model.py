@@ -128,13 +128,17 @@ class CameraModel:
     def project(self, points: np.ndarray) -> np.ndarray:
         """(n, 2) float64 pixels (u, v) where points (n, 3) in water (camera frame, metres) are seen: the pixel
         whose water ray passes through the point (solved by Gauss-Newton on the air direction to PROJECT_TOL_M);
-        NaN for points the camera cannot see (behind it, inside the housing, not converged)."""
+        NaN for points the camera cannot see (behind it, inside the housing, not converged, or beyond the radius
+        where the distortion folds back: fold_radius)."""
         P = np.asarray(points, np.float64).reshape(-1, 3)
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = P[:, :2] / P[:, 2:3]
             xy[P[:, 2] <= 0] = np.nan
             if self.kind != "none":
                 xy = self._solve_air(P, xy)
+            # Beyond the radius where Brown-Conrady's radial map stops growing it folds back into the image
+            if self.distortion.any():
+                xy[np.sum(xy * xy, axis=1) >= fold_radius(self.distortion) ** 2] = np.nan
             xd, yd = distort(xy[:, 0], xy[:, 1], self.distortion)
         K = self.K
         return np.stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
@@ -173,6 +177,16 @@ def distort(x, y, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
             y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+
+
+def fold_radius(d: np.ndarray, reach: float = 20.0) -> float:
+    """The normalised radius where the radial map r (1 + k1 r^2 + k2 r^4 + k3 r^6) first stops growing (within
+    `reach`, to 1e-4 of it), else inf."""
+    k1, k2, _, _, k3 = d
+    r2 = np.linspace(0.0, reach, 200_001) ** 2
+    slope = 1 + r2 * (3 * k1 + r2 * (5 * k2 + 7 * k3 * r2))
+    bad = np.flatnonzero(slope <= 0)
+    return float(np.sqrt(r2[bad[0]])) if bad.size else np.inf
 
 
 def undistort(xd, yd, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

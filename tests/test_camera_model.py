@@ -9,7 +9,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from spec_helpers import refusal
 
-from seasynth.service.camera_model import CameraModel, distort, undistort
+from seasynth.service.camera_model import CameraModel, distort, fold_radius, undistort
 from seasynth.service.errors import SpecError
 from seasynth.service.spec.dataset import parse_spec
 
@@ -149,6 +149,11 @@ def test_points_the_camera_cannot_see_project_to_nan():
     m = model_of({"port": {"kind": "flat"}})
     uv = m.project(np.array([[0.0, 0.0, -1.0], [0.1, 0.0, 0.02], [0.0, 0.0, 1.0]]))
     assert np.isnan(uv[:2]).all() and np.allclose(uv[2], m.K[:2, 2])
+    # k1 = -0.2 folds at r = 1 / sqrt(0.6): a point beyond would land back inside the image
+    m = model_of({"distortion": [-0.2, 0.0, 0.0, 0.0, 0.0], "hfov_deg": 60.0})
+    assert fold_radius(m.distortion) == pytest.approx(1 / np.sqrt(0.6), abs=1e-4)
+    uv = m.project(np.array([[1.2, 0.0, 1.0], [1.4, 0.0, 1.0]]))
+    assert np.isfinite(uv[0]).all() and np.isnan(uv[1]).all()
 
 
 @settings(max_examples=50, deadline=None)
