@@ -36,8 +36,8 @@ PORTS = st.sampled_from([
 DISTORTIONS = st.sampled_from([[0.0] * 5, [-0.2, 0.05, 0.0, 0.0, 0.0], [0.1, 0.0, 0.002, -0.003, 0.0]])
 
 
-def plane_item(normal: np.ndarray, c: float) -> DrawItem:
-    """A 400 m square on the plane normal . p = c (camera frame = world), instance 1."""
+def plane_item(normal: np.ndarray, c: float, instance_id: int = 1) -> DrawItem:
+    """A 400 m square on the plane normal . p = c (camera frame = world)."""
     a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(normal, a)
@@ -45,7 +45,8 @@ def plane_item(normal: np.ndarray, c: float) -> DrawItem:
     mesh = trimesh.Trimesh(corners, [[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]], process=False)
     mesh.visual.vertex_colors = np.full((4, 4), 200, np.uint8)
     return DrawItem(mesh=to_render_mesh(f"plane{normal.tolist()}{c}", mesh), world_from_obj=np.eye(4),
-                    albedo_scale=np.ones(3, np.float32), albedo_bias=np.zeros(3, np.float32), instance_id=1)
+                    albedo_scale=np.ones(3, np.float32), albedo_bias=np.zeros(3, np.float32),
+                    instance_id=instance_id)
 
 
 @SETTINGS
@@ -136,3 +137,41 @@ def test_port_frames_are_byte_identical_from_another_process(render_session):
                          check=False)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == here
+
+
+def sphere_item(centre, radius: float, instance_id: int) -> DrawItem:
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius).apply_translation(centre)
+    mesh.visual.vertex_colors = np.full((len(mesh.vertices), 4), 150, np.uint8)
+    return DrawItem(mesh=to_render_mesh(f"sphere{list(centre)}{radius}", mesh), world_from_obj=np.eye(4),
+                    albedo_scale=np.ones(3, np.float32), albedo_bias=np.zeros(3, np.float32), instance_id=instance_id)
+
+
+@SETTINGS
+@given(port=PORTS, distortion=DISTORTIONS, x=st.floats(-0.8, 0.8), y=st.floats(-0.5, 0.5))
+def test_objects_alone_are_counted_in_the_output_image_as_the_frame_samples_it(renderer, port, distortion, x, y):
+    spec = parse_spec({"camera": {"width": 64, "height": 48, "hfov_deg": 80.0, "port": port,
+                                  "distortion": distortion}})
+    effect = Geometry()
+    if not effect.on(spec):
+        return
+    target = sphere_item([x, y, 3.0], 0.4, 1)
+    occluder = sphere_item([x + 0.2, y, 2.0], 0.15, 2)
+    background = plane_item(np.array([0.0, 0.0, 1.0]), 8.0, instance_id=0)
+    counts = []
+    for items in ([background, target], [background, target, occluder]):
+        view = View(K=CameraModel.from_spec(spec.camera).K, width=64, height=48, cam_from_world=np.eye(4), near=0.02,
+                    far=300.0)
+        shot = Shot(spec=spec, index=0, scene=None, view=view, render_view=view, items=items)
+        effect = Geometry()
+        effect.prepare(shot)
+        wide = renderer.render(shot.render_view, items, Lighting(np.array([0.0, -1.0, 0.0]), 1.0, 0.3), None,
+                               PRESETS["fast"], Passes(ids=True, range=True))
+        out = effect.develop(shot, wide)
+        mask = out.instance == 1
+        counts.append((int(mask.sum()), effect.pixels_alone(shot, renderer, [target])[0], mask))
+    (seen, alone, mask), (seen_behind, alone_behind, _) = counts
+    assert seen == alone > 0  # nothing in front: every pixel it has alone it shows
+    assert seen_behind < seen and alone_behind >= seen_behind  # the occluder hides some
+    # its hidden pixels are sampled where the rays met the occluder: the count moves by pixels of its outline at most
+    inner = mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:]
+    assert abs(alone_behind - alone) <= seen - int(inner.sum())

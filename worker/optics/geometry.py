@@ -23,7 +23,7 @@ from seasynth.service.camera_model import CameraModel
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.spec.scene import MAX_SIDE, Camera
 from seasynth.worker.optics.base import Plain, Shot
-from seasynth.worker.render import DrawItem, RenderResult, ray_norms
+from seasynth.worker.render import DrawItem, RenderResult, View, ray_norms
 
 MARGIN_PX = 2  # wide pixels beyond the outermost water ray (bilinear taps and the parallax of near surfaces)
 PARALLAX_ITERATIONS = 4
@@ -126,26 +126,12 @@ class Geometry(Plain):
         shot.render_view = dataclasses.replace(shot.view, K=rays.K, width=rays.width, height=rays.height)
         shot.needs |= {"ids", "range"}
         shot.float_image = True
-        self.samples = None  # (qx, qy) in the wide render of each output pixel, once developed
+        self.samples = None  # (qx, qy, lost): each output pixel's position in the wide render, once developed
 
     def develop(self, shot: Shot, result: RenderResult) -> RenderResult:
         rays, wide = camera_rays(shot.spec.camera), shot.render_view
         o, d = rays.origins, rays.directions
-        with np.errstate(divide="ignore"):
-            inv_z = (ray_norms(wide.K, wide.width, wide.height) / result.range_m).astype(np.float64)  # 0 where no surface
-        qx, qy = _project(wide.K, d)
-        step, k = np.zeros(0), 0
-        while True:
-            z = surface_depth(inv_z, result.instance, qx, qy)
-            with np.errstate(invalid="ignore"):
-                t = np.maximum((z - o[..., 2]) / d[..., 2], 0.0)  # along the water ray to the surface's depth
-            if k == PARALLAX_ITERATIONS or (k > 0 and not np.nanmax(step, initial=0.0) > CONVERGED_PX):
-                break
-            far = ~np.isfinite(t)
-            p = np.where(far[..., None], d, o + np.where(far, 0.0, t)[..., None] * d)
-            nx, ny = _project(wide.K, p)
-            step = np.hypot(nx - qx, ny - qy)
-            qx, qy, k = nx, ny, k + 1
+        qx, qy, t, k, step = search(o, d, wide.K, inverse_depth(wide, result.range_m), result.instance)
         lost = np.isnan(d[..., 0])  # rays that never reach the water: black, no surface
         self.samples = (qx, qy, lost)
         image = np.where(lost[..., None], 0.0, bilinear(result.image, qx, qy)).astype(np.float32)
@@ -167,7 +153,11 @@ class Geometry(Plain):
         return dataclasses.replace(result, image=image, clean=clean, instance=instance, range_m=range_m)
 
     def pixels_alone(self, shot: Shot, renderer, items: list[DrawItem]) -> list[int]:
-        """Each item's output pixels when drawn alone: its wide id render sampled where the frame's pixels were."""
+        """Each item's output pixels when drawn alone: its wide id render sampled where the frame's pixels were
+        (the search's positions for the whole scene), so an item nothing hides counts exactly its visible pixels
+        and a hidden one at least them. Where something hides it, its hidden pixels are sampled where the rays met
+        the occluder: a ray through a flat port meets the item a little elsewhere (parallax; a pixel of its outline
+        may count otherwise)."""
         qx, qy, lost = self.samples
         counts = []
         for item in items:
@@ -175,3 +165,27 @@ class Geometry(Plain):
             counts.append(int(np.count_nonzero((nearest(ids, qx, qy) == item.instance_id) & ~lost)))
         return counts
 
+
+def inverse_depth(wide: View, range_m: np.ndarray) -> np.ndarray:
+    """(H, W) float64 1 / z-depth of a wide render's range, 0 where no surface."""
+    with np.errstate(divide="ignore"):
+        return (ray_norms(wide.K, wide.width, wide.height) / range_m).astype(np.float64)
+
+
+def search(o: np.ndarray, d: np.ndarray, K: np.ndarray, inv_z: np.ndarray, ids: np.ndarray):
+    """Where water rays (origins o, unit directions d, (..., 3)) meet the surfaces of a wide render (intrinsics K,
+    inverse depth inv_z, instance ids): the fixed point (module docstring). Returns the wide pixel coordinates
+    (qx, qy), the distance t along each ray (+inf where it meets nothing), the iterations and the last step (px)."""
+    qx, qy = _project(K, d)
+    step, k = np.zeros(0), 0
+    while True:
+        z = surface_depth(inv_z, ids, qx, qy)
+        with np.errstate(invalid="ignore"):
+            t = np.maximum((z - o[..., 2]) / d[..., 2], 0.0)  # along the water ray to the surface's depth
+        if k == PARALLAX_ITERATIONS or (k > 0 and not np.nanmax(step, initial=0.0) > CONVERGED_PX):
+            return qx, qy, t, k, step
+        far = ~np.isfinite(t)
+        p = np.where(far[..., None], d, o + np.where(far, 0.0, t)[..., None] * d)
+        nx, ny = _project(K, p)
+        step = np.hypot(nx - qx, ny - qy)
+        qx, qy, k = nx, ny, k + 1
