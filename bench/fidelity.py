@@ -57,6 +57,10 @@ WORLD_CONFIGS: dict[str, str] = {
     "long-clear-sun-lamp": "I:sun+lamp@15 long textured",
     "long-turbid-sun": "III:sun@20 long textured",
     "long-turbid-sun-lamp": "III:sun+lamp@20 long textured",
+    # The near view of ocean-sun-textured through a flat port (camera.port's defaults: 10 mm acrylic 20 mm in front
+    # of the lens): the path tracer traces the slab (seasynth.bench.pathtracer._slab), seasynth resamples a wider
+    # pinhole (seasynth.worker.optics.geometry).
+    "ocean-sun-port": "II:sun@10 textured port",
 }
 PRESET_NAMES = ("draft", "fast", "default", "high")
 # The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
@@ -65,12 +69,13 @@ LONG_VIEW = {"workspaces.camera": {"min": [0.0, -1.7, 1.2], "max": [0.0, -1.7, 1
              "workspaces.look_at": {"min": [0.0, 6.0, 0.0], "max": [0.0, 6.0, 0.0]}, "camera.look_at_jitter_m": 0.0}
 
 
-VIEWS = ("textured", "long")
+VIEWS = ("textured", "long", "port")
 
 
 def config_options(text: str) -> tuple[str, frozenset[str]]:
     """'WATER:LIGHT[@DEPTH] [OPTION ...]' -> ('WATER:LIGHT[@DEPTH]', options): `textured` (the procedural textures
-    on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above)."""
+    on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above),
+    `port` (the camera behind a flat port: camera.port kind flat at its defaults)."""
     head, *options = text.split()
     unknown = sorted(set(options) - set(VIEWS))
     if unknown:
@@ -119,6 +124,7 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         # per-pixel textures (0.7.0).
         "materials.procedural": "textured" in options,
         **(LONG_VIEW if "long" in options else {}),
+        **({"camera.port": {"kind": "flat"}} if "port" in options else {}),
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
@@ -127,6 +133,8 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
 def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:
     """(preset, terms, linear float image, ms per frame) for each row of a configuration."""
     from seasynth.worker.frame.function import PRESETS
+    from seasynth.worker.optics.base import Shot
+    from seasynth.worker.optics.geometry import Geometry
     from seasynth.worker.render import Passes
 
     scene = session.scene(spec, FRAME)
@@ -147,7 +155,14 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, s
         times = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes())
+            if Geometry().on(spec):  # a port: the wide pinhole's render resampled along the water rays
+                shot = Shot(spec=spec, index=FRAME, scene=scene, view=view, render_view=view, items=items)
+                geometry = Geometry()
+                geometry.prepare(shot)
+                res = geometry.develop(shot, session.renderer.render(
+                    shot.render_view, items, lt, water, PRESETS[preset], Passes(ids=True, range=True)))
+            else:
+                res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes())
             times.append(time.perf_counter() - t0)
         rows.append((preset, terms, res.image, statistics.median(times) * 1e3))
     return rows

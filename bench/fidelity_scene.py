@@ -49,11 +49,25 @@ def exported_scene(session, spec: DatasetSpec, scene):
         for lp in light.lamps
     )
     sky = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
-    return PTScene(meshes=tuple(meshes), K=view.K, width=view.width, height=view.height,
+    return PTScene(slab=port_slab(spec), meshes=tuple(meshes), K=view.K, width=view.width, height=view.height,
                    world_from_cam=world_from_cam, sigma_a=light.medium.a, sigma_s=light.medium.b, g=light.medium.g,
                    surface_z=light.medium.surface_z, sun_dir_world=light.sun_dir_world,
                    sun_irradiance_rgb=math.pi * light.sun_irradiance, sky_radiance_rgb=sky, lamps=lamps,
                    sky_cone_deg=SNELL_CONE_DEG)
+
+
+def port_slab(spec: DatasetSpec) -> np.ndarray | None:
+    """PTScene.slab of the spec's camera: a flat port's slab, None without a port; the path tracer's camera is a
+    pinhole, so a dome or a lens distortion is refused."""
+    from seasynth.service.camera_model import CameraModel
+
+    model = CameraModel.from_spec(spec.camera)
+    if model.distortion.any() or model.kind == "dome":
+        raise ValueError("the path tracer's camera is a pinhole behind at most a flat port: no dome, no distortion")
+    if model.kind == "none":
+        return None
+    s = model.slab()
+    return np.array([s.inner_m, s.outer_m, s.air_index, s.glass_index, s.water_index])
 
 
 def paper_water(scene, view):

@@ -87,6 +87,10 @@ class PTScene:
     sky_radiance_rgb: np.ndarray
     lamps: tuple[PTLamp, ...] = ()
     sky_cone_deg: float = 48.6
+    # A flat port in front of the camera (seasynth.service.camera_model.Slab as (5,) float64: inner_m, outer_m,
+    # air_index, glass_index, water_index): the camera in air, a glass slab between the planes z = inner_m and
+    # z = outer_m of the camera frame, the water beyond. None: the camera in the water.
+    slab: np.ndarray | None = None
 
 
 def find_libllvm() -> str:
@@ -215,11 +219,33 @@ def _sensor(scene: PTScene, far_clip: float, mi) -> dict:
         "principal_point_offset_y": float(((h - 1) / 2.0 - K[1, 2]) / h),
         "near_clip": NEAR_CLIP_M, "far_clip": far_clip,
         "to_world": mi.ScalarTransform4f(np.asarray(scene.world_from_cam, np.float64) @ KITTI_FROM_MITSUBA_CAM),
-        "medium": {"type": "ref", "id": "water"},
+        **({"medium": {"type": "ref", "id": "water"}} if scene.slab is None else {}),
         "film": {"type": "hdrfilm", "width": w, "height": h, "pixel_format": "rgb", "component_format": "float32",
                  "rfilter": {"type": "box"}},
         "sampler": {"type": "independent", "sample_count": 1},
     }
+
+
+def _slab(scene: PTScene, mi) -> dict[str, dict]:
+    """A flat port's two faces as dielectric rectangles across the camera's whole field: the inner one (normal
+    towards the camera) between air and glass, the outer one between glass and the water (its exterior medium).
+    Their Fresnel reflections are traced too (about 4% at air-acrylic), which seasynth's rasteriser leaves out."""
+    inner, outer, air, glass, water = (float(x) for x in scene.slab)
+    K = np.asarray(scene.K, dtype=np.float64)
+    slope = max(abs(-0.5 - K[0, 2]), abs(scene.width - 0.5 - K[0, 2]), abs(-0.5 - K[1, 2]),
+                abs(scene.height - 0.5 - K[1, 2])) / K[0, 0]
+    half = 2.0 * outer * slope * np.sqrt(2.0) + 0.01  # metres: past every camera ray
+    world = np.asarray(scene.world_from_cam, np.float64)
+
+    def face(z: float, flip: bool, ext_ior: float) -> dict:
+        to_world = world @ np.diag([half, half, 1.0, 1.0])
+        to_world[:3, 3] = world[:3, :3] @ [0.0, 0.0, z] + world[:3, 3]
+        return {"type": "rectangle", "to_world": mi.ScalarTransform4f(to_world), "flip_normals": flip,
+                "bsdf": {"type": "dielectric", "int_ior": glass, "ext_ior": ext_ior}}
+
+    out = {"port_inner": face(inner, True, air), "port_outer": face(outer, False, water)}
+    out["port_outer"]["exterior"] = {"type": "ref", "id": "water"}
+    return out
 
 
 def _lamp(lamp: PTLamp, mi, scene: PTScene, housing_m: float) -> dict[str, dict]:
@@ -268,6 +294,8 @@ def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, varian
         d["sky"] = {"type": "envmap", "bitmap": mi.Bitmap(sky_image(scene.sky_radiance_rgb, scene.sky_cone_deg)),
                     # the lat-long map's pole is local +y: turn it to world +z
                     "to_world": mi.ScalarTransform4f().rotate(axis=[1.0, 0.0, 0.0], angle=90.0)}
+    if scene.slab is not None:
+        d.update(_slab(scene, mi))
     for i, lamp in enumerate(scene.lamps):
         for part, value in _lamp(lamp, mi, scene, lamp_housing_m).items():
             d[f"lamp_{i:04d}_{part}"] = value
@@ -306,8 +334,11 @@ def render_ids(scene: PTScene, variant: str = VARIANT) -> np.ndarray:
     """(h, w) uint32 instance ids at pixel centres (0 where the centre ray hits terrain or nothing).
 
     Rays come from the Mitsuba sensor itself at film positions ((u + 0.5) / w, (v + 0.5) / h), so this checks the
-    camera export as well as the geometry."""
+    camera export as well as the geometry; through a port (PTScene.slab) each goes on as the port's faces' own
+    dielectric BSDFs transmit it."""
     mi = load_mitsuba(variant)
+    import drjit as dr
+
     ms = mitsuba_scene(scene, variant=variant)
     w, h = int(scene.width), int(scene.height)
     v, u = np.mgrid[0:h, 0:w]
@@ -316,6 +347,13 @@ def render_ids(scene: PTScene, variant: str = VARIANT) -> np.ndarray:
     ray, _ = ms.sensors()[0].sample_ray(0.0, 0.5, film, mi.Point2f(0.5, 0.5))
     si = ms.ray_intersect(ray)
     shapes = {s.id(): s for s in ms.shapes()}
+    ctx = mi.BSDFContext()
+    for _ in range(2 * (scene.slab is not None)):  # through the port's two faces, by their own BSDFs
+        port = (si.shape == mi.ShapePtr(shapes["port_inner"])) | (si.shape == mi.ShapePtr(shapes["port_outer"]))
+        bs, _ = si.bsdf().sample(ctx, si, 0.9999, mi.Point2f(0.5, 0.5), port)  # 0.9999 > Fresnel's R: transmitted
+        onward = si.spawn_ray(si.to_world(bs.wo))
+        ray = mi.Ray3f(dr.select(port, onward.o, ray.o), dr.select(port, onward.d, ray.d))
+        si = dr.select(port, ms.ray_intersect(ray), si)
     ids = np.zeros(h * w, dtype=np.uint32)
     for i, mesh in enumerate(scene.meshes):
         hit = np.asarray(si.shape == mi.ShapePtr(shapes[f"mesh_{i:04d}"]), dtype=bool)

@@ -45,6 +45,8 @@ def _scene_arrays(scene: PTScene) -> dict[str, np.ndarray]:
                 out[f"mesh{i}_instance_id"] = np.asarray(m.instance_id, np.int64)
                 if m.material is not None:
                     out.update(_material_arrays(m.material, f"mesh{i}_mat_"))
+        elif f.name == "slab" and value is None:  # no port: the scene's arrays (and digest) as before ports
+            continue
         elif f.name == "lamps":
             for i, lamp in enumerate(value):
                 for g in dataclasses.fields(PTLamp):
@@ -79,7 +81,7 @@ def load_scene(path: Path) -> PTScene:
                   for i in range(sum(k.endswith("_intensity_rgb") for k in a)))
     scalars = {"width": int, "height": int, "g": float, "surface_z": float, "sky_cone_deg": float}
     rest = {f.name: (scalars[f.name](a[f.name]) if f.name in scalars else a[f.name])
-            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps")}
+            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps") and f.name in a}
     return PTScene(meshes=meshes, lamps=lamps, **rest)
 
 

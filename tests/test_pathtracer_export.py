@@ -172,3 +172,41 @@ def test_rendering_several_seeds_at_once_gives_each_seed_s_own_render():
     images = pt.render_seeds(scene, 3, (5, 6))
     assert all(np.array_equal(image, pt.render(scene, 3, seed=s)) for image, s in zip(images, (5, 6)))
     assert not np.array_equal(*images)
+
+
+def test_a_flat_port_traced_by_mitsubas_dielectrics_bends_rays_as_the_camera_model_does():
+    from seasynth.service.camera_model import CameraModel
+
+    terrain = trimesh.Trimesh([[-3, -3, 0], [3, -3, 0], [3, 3, 0.4], [-3, 3, 0.4]], [[0, 1, 2], [0, 2, 3]])
+    spheres = [trimesh.creation.icosphere(subdivisions=3, radius=r).apply_translation(c)
+               for r, c in ((0.45, [0.8, -0.3, 0.55]), (0.3, [-0.6, 0.4, 0.5]))]
+    K = np.array([[F, 0.0, 14.2], [0.0, F, 12.7], [0.0, 0.0, 1.0]])
+    # a thick, strongly refracting port close to the scene, so its bending moves silhouettes by many pixels
+    model = CameraModel(K=K, width=W, height=H, distortion=np.zeros(5), kind="flat", thickness_m=0.05,
+                        glass_index=1.77, water_index=1.34, distance_m=0.03)
+    s = model.slab()
+    scene = pt.PTScene(
+        meshes=(pt_mesh(terrain, 0, 0.5), pt_mesh(spheres[0], 1, 0.7), pt_mesh(spheres[1], 2, 0.3)), K=K, width=W,
+        height=H, world_from_cam=world_from_cam([0.3, -1.6, 1.9], [0.0, 0.0, 0.3], [0.0, 0.0, 1.0]),
+        sigma_a=np.zeros(3), sigma_s=np.zeros(3), g=0.9, surface_z=5.0, sun_dir_world=np.array([0.0, 0.0, 1.0]),
+        sun_irradiance_rgb=np.ones(3), sky_radiance_rgb=np.ones(3),
+        slab=np.array([s.inner_m, s.outer_m, s.air_index, s.glass_index, s.water_index]))
+    ids = pt.render_ids(scene)
+
+    both = trimesh.util.concatenate([terrain, *spheres])
+    face_ids = np.repeat([0, 1, 2], [len(terrain.faces), len(spheres[0].faces), len(spheres[1].faces)])
+    T = scene.world_from_cam
+
+    def cast(du: float, dv: float, port: bool = True) -> np.ndarray:
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+        o, d = model.pixel_rays(u + du, v + dv) if port else (np.zeros((H, W, 3)), model.air_directions(u, v))
+        origins, dirs = o.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3], d.reshape(-1, 3) @ T[:3, :3].T
+        tri = both.ray.intersects_first(origins, dirs)
+        return np.where(tri >= 0, face_ids[np.maximum(tri, 0)], 0).reshape(H, W)
+
+    centre = cast(0.0, 0.0)
+    jittered = [cast(du, dv) for du, dv in [(1e-3, 0), (-1e-3, 0), (0, 1e-3), (0, -1e-3)]]
+    ambiguous = np.any([j != centre for j in jittered], axis=0)
+    assert ambiguous.sum() <= 2
+    assert np.array_equal(ids[~ambiguous], centre[~ambiguous])
+    assert (cast(0.0, 0.0, port=False) != centre).sum() >= 20  # without the port's bending many pixels differ

@@ -25,8 +25,15 @@ def world_scenes(tmp_path_factory):
     return fidelity.export_scenes(out, configs=fidelity.WORLD_CONFIGS, platform="egl")
 
 
+# Configurations whose references are still to be path traced (on a GPU): each lacks its stored file.
+AWAITING_REFERENCE = {"ocean-sun-port"}
+
+
 def test_the_worlds_stored_references_are_of_the_scenes_the_bench_exports_today(world_scenes):
     for name, path in zip(fidelity.WORLD_CONFIGS, world_scenes):
+        if name in AWAITING_REFERENCE:
+            assert not (STORED / f"{name}{REF_SUFFIX}").exists(), f"{name} has its reference: check it"
+            continue
         pts = load_scene(path)
         ref = load_reference(STORED / f"{name}{REF_SUFFIX}")
         assert ref.scene_sha256 == scene_digest(pts), name

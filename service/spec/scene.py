@@ -12,11 +12,13 @@ from pydantic import (
     StrictBool,
     StrictFloat,
     StrictInt,
+    ValidationInfo,
     WithJsonSchema,
     field_validator,
     model_validator,
 )
 
+from seasynth.service.spec.optics import Distortion, Port, check_distortion, distortion_folds
 from seasynth.service.spec.types import (
     MAX_CHOICES,
     MAX_MAGNITUDE,
@@ -102,12 +104,32 @@ class Camera(SpecModel):
     intrinsics: Intrinsics | None = None
     clip: PositiveInterval = (0.02, 300.0)
     look_at_jitter_m: StrictFloat = Field(0.05, ge=0, le=100)
+    # The housing's window (kind none: a pinhole in water, as before); seasynth.service.camera_model maps pixels to
+    # rays in water (docs/optics.md).
+    port: Port = Port()
+    # The lens's Brown-Conrady distortion [k1, k2, p1, p2, k3] in OpenCV's order, on normalised image coordinates
+    # (all zero: none).
+    distortion: Annotated[Distortion, AfterValidator(check_distortion)] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     @field_validator("clip")
     @classmethod
     def _near_before_far(cls, v: tuple[float, float]) -> tuple[float, float]:
         if v[0] >= v[1]:
             raise ValueError(f"near {v[0]} must be < far {v[1]}")
+        return v
+
+    @field_validator("distortion")
+    @classmethod
+    def _invertible(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        """The distortion's radial map keeps growing out to the image's corners (one ray a pixel)."""
+        d = info.data
+        if not {"width", "height", "hfov_deg", "intrinsics"} <= d.keys():
+            return v  # another field is refused
+        K = camera_K(d["width"], d["height"], d["hfov_deg"], d["intrinsics"])
+        folds = distortion_folds(v, K, d["width"], d["height"])
+        if folds is not None:
+            raise ValueError(f"{list(v)} folds the image over: its radial map stops growing at r = {folds:.4g} "
+                             f"(normalised), inside the image's corners")
         return v
 
     @model_validator(mode="after")
@@ -124,12 +146,17 @@ class Camera(SpecModel):
 
     def K(self) -> list[list[float]]:
         """The 3x3 intrinsic matrix (pixels; pixel centres at integer coordinates)."""
-        if self.intrinsics is not None:
-            i = self.intrinsics
-            return [[i.fx, 0.0, i.cx], [0.0, i.fy, i.cy], [0.0, 0.0, 1.0]]
-        hfov = math.radians(70.0 if self.hfov_deg is None else self.hfov_deg)
-        f = (self.width / 2.0) / math.tan(hfov / 2.0)
-        return [[f, 0.0, (self.width - 1) / 2.0], [0.0, f, (self.height - 1) / 2.0], [0.0, 0.0, 1.0]]
+        return camera_K(self.width, self.height, self.hfov_deg, self.intrinsics)
+
+
+def camera_K(width: int, height: int, hfov_deg: float | None, intrinsics: Intrinsics | None) -> list[list[float]]:
+    """The 3x3 intrinsic matrix of a camera section's fields (pixels; pixel centres at integer coordinates)."""
+    if intrinsics is not None:
+        i = intrinsics
+        return [[i.fx, 0.0, i.cx], [0.0, i.fy, i.cy], [0.0, 0.0, 1.0]]
+    hfov = math.radians(70.0 if hfov_deg is None else hfov_deg)
+    f = (width / 2.0) / math.tan(hfov / 2.0)
+    return [[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
 
 
 class FileRef(SpecModel):

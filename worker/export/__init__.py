@@ -18,7 +18,7 @@ import numpy as np
 
 from seasynth.service.errors import ExportError
 from seasynth.service.spec.outputs import EXPORT_FORMATS, SPLIT_SUM_TOLERANCE, SPLITS
-from seasynth.worker.export.base import STREAM_SPLIT, Exporter, ExportInfo, parse_split, split_of
+from seasynth.worker.export.base import STREAM_SPLIT, Exporter, ExportInfo, camera_record, parse_split, split_of
 from seasynth.worker.export.dataset import (
     DISTRACTOR_NAME,
     Frame,
@@ -136,7 +136,8 @@ def run_export(plan: ExportPlan, out: Path, *, on_frames: Callable[[int], None] 
     info = ExportInfo(out=out, categories=plan.categories, distractors=plan.distractors, width=ds.spec.camera.width,
                       height=ds.spec.camera.height, dataset_seed=ds.spec.seed, spec_sha256=ds.spec_sha256,
                       code_version=ds.code_version, fractions=plan.fractions, sensors=ds.spec.sensors,
-                      image_format=ds.spec.outputs.image_format, trajectory=ds.spec.trajectory)
+                      image_format=ds.spec.outputs.image_format, trajectory=ds.spec.trajectory,
+                      camera=camera_record(ds.spec.camera))
     counts = dict.fromkeys(SPLITS, 0)
     with FrameReader(ds, masks=exporter.needs_masks, distractors=plan.distractors, platform=platform) as reader:
         exporter.begin(info)

@@ -9,9 +9,11 @@ from typing import Protocol
 
 import numpy as np
 
+from seasynth.service.camera_model import CameraModel
 from seasynth.service.errors import ExportError
 from seasynth.service.seeds import frame_rng
 from seasynth.service.spec.outputs import IMAGE_SUFFIXES, SPLITS, split_problem
+from seasynth.service.spec.scene import Camera
 from seasynth.service.spec.sensors import Sensors, Trajectory
 from seasynth.worker.export.dataset import Frame
 
@@ -74,6 +76,9 @@ class ExportInfo:
     image_format: str = "png"  # the frames' image_2 files (the spec's outputs.image_format: png or jpeg)
     trajectory: Trajectory = Trajectory()  # the spec's: when each frame was taken (MCAP's stamps)
     distractors: bool = False  # the last category is "distractor" (export --distractors)
+    # The camera model (seasynth.service.camera_model.CameraModel.record: K, Brown-Conrady distortion, port) where
+    # the spec has a port or a distortion; None: the calib's pinhole is the whole camera.
+    camera: dict | None = None
 
     @property
     def image_suffix(self) -> str:
@@ -108,3 +113,9 @@ class Exporter(Protocol):
     def abort(self) -> None:
         """Remove the temporary files of an export that stopped early (frame files already placed stay)."""
         ...
+
+
+def camera_record(camera: Camera) -> dict | None:
+    """ExportInfo.camera of a spec's camera section."""
+    model = CameraModel.from_spec(camera)
+    return None if model.pinhole else model.record()

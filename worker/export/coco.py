@@ -4,7 +4,9 @@ Per split, the `images` and `annotations` arrays are appended to two temporary f
 object per line), and `finish` assembles the final file by copying them between the fixed head and tail, so memory
 stays flat in the number of frames.
 
-- image: `id` = frame index, `file_name` = "000123.png" (or .jpg; under images/{split}/), `width`, `height` (px).
+- image: `id` = frame index, `file_name` = "000123.png" (or .jpg; under images/{split}/), `width`, `height` (px),
+  and `camera_model` where the spec has a port or a lens distortion: K, Brown-Conrady `distortion` [k1, k2, p1, p2,
+  k3] and `port` (seasynth.service.camera_model.CameraModel.from_record maps its pixels to rays in water).
 - annotation: `id` = frame index * 65536 + instance id (unique, >= 1, the same whatever the split), `image_id`,
   `category_id` (i + 1 for the spec's i-th target class, then "distractor" with --distractors), `bbox`
   (coco_bbox), `area` = the instance's pixel count, `iscrowd` = 0, or 1 for a region to ignore (a DontCare line:
@@ -154,8 +156,11 @@ class CocoExporter:
     def add(self, frame: Frame, split: str) -> None:
         info = self._info
         place_file(frame.image, info.out / self.frame_outputs(split, frame.name)[0])
-        self._append(split, "images", {"id": frame.index, "file_name": f"{frame.name}{info.image_suffix}",
-                                       "width": frame.width, "height": frame.height})
+        image = {"id": frame.index, "file_name": f"{frame.name}{info.image_suffix}", "width": frame.width,
+                 "height": frame.height}
+        if info.camera is not None:
+            image["camera_model"] = info.camera
+        self._append(split, "images", image)
         runs = instance_runs(frame.instance)
         size = frame.width * frame.height
         for obj in frame.objects:

@@ -9,8 +9,11 @@ survey, round(i * 1e9 / trajectory.rate_hz) ns (seasynth.worker.scene.trajectory
 
   /camera/image/compressed  sensor_msgs/msg/CompressedImage  format "png" (or "jpeg" with outputs.image_format
                             jpeg): the image_2 file's bytes as they are
-  /camera/camera_info       sensor_msgs/msg/CameraInfo       K and P (= [K | 0]) from calib's P2, R = I, no
-                                                             distortion (d empty, "plumb_bob")
+  /camera/camera_info       sensor_msgs/msg/CameraInfo       K and P (= [K | 0]) from calib's P2, R = I,
+                                                             "plumb_bob" with d = the spec's camera.distortion
+                                                             [k1, k2, p1, p2, k3] (empty without one). A housing's
+                                                             port is beyond CameraInfo: the metadata record's
+                                                             "camera_model" holds it (as meta/ does)
   /detections               vision_msgs/msg/Detection2DArray one Detection2D per label line (then distractors):
                                                              bbox centre and size in pixel-edge coordinates of
                                                              the KITTI box, one hypothesis (class name, 1.0);
@@ -244,6 +247,11 @@ class McapExporter:
         self._bags[split].write_message(topic, schemas[topic], message, log_time=ns, publish_time=ns,
                                         sequence=sequence)
 
+    def _distortion(self) -> list[float]:
+        """CameraInfo's plumb_bob d: [k1, k2, p1, p2, k3] (ROS's order is OpenCV's), empty for none."""
+        camera = self._info.camera
+        return [] if camera is None or not any(camera["distortion"]) else list(camera["distortion"])
+
     def add(self, frame: Frame, split: str) -> None:
         ns, seq = stamp_ns(frame.index, self._info.trajectory), frame.index
         if self._frames[split] == 0:  # once a bag, with its first frame
@@ -261,7 +269,8 @@ class McapExporter:
         p = camera_projection(frame.calib)
         self._write(split, INFO_TOPIC, {
             "header": _header(ns), "height": frame.height, "width": frame.width, "distortion_model": "plumb_bob",
-            "d": [], "k": p[:, :3].ravel().tolist(), "r": np.eye(3).ravel().tolist(), "p": p.ravel().tolist(),
+            "d": self._distortion(), "k": p[:, :3].ravel().tolist(), "r": np.eye(3).ravel().tolist(),
+            "p": p.ravel().tolist(),
             "binning_x": 0, "binning_y": 0,
             "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
         }, ns, seq)
@@ -310,6 +319,8 @@ class McapExporter:
                 "spec_sha256": info.spec_sha256,
                 "code_version": str(info.code_version),
                 "camera_frame": f"{CAMERA_FRAME} (optical: x right, y down, z forward)",
+                # the full camera model (port and distortion; seasynth.service.camera_model), where there is one
+                **({} if info.camera is None else {"camera_model": json.dumps(info.camera, sort_keys=True)}),
             })
             bag.finish()
             path = self.bag_path(split)

@@ -16,6 +16,7 @@ from seasynth.service.errors import ExportError
 from seasynth.service.shards import frame_file
 from seasynth.service.spec.dataset import DatasetSpec, spec_digest
 from seasynth.worker.export import SPLITS, ExportInfo, exporter_class, exporter_for, split_of
+from seasynth.worker.export.base import camera_record
 from seasynth.worker.export.dataset import decode_instance, frame_of, mask_spec
 
 # Files of an export that describe the folder rather than frames: left out of parts, written by the merge.
@@ -49,7 +50,8 @@ def part_info(spec: DatasetSpec, out: Path, code_version: str | None) -> ExportI
     return ExportInfo(out=Path(out).absolute(), categories=spec.class_names, width=spec.camera.width,
                       height=spec.camera.height, dataset_seed=spec.seed, spec_sha256=spec_digest(spec),
                       code_version=code_version, fractions=spec.outputs.split, sensors=spec.sensors,
-                      image_format=spec.outputs.image_format, trajectory=spec.trajectory)
+                      image_format=spec.outputs.image_format, trajectory=spec.trajectory,
+                      camera=camera_record(spec.camera))
 
 
 def write_part(spec: DatasetSpec, fmt: str, frames: range, root: Path, out: Path,

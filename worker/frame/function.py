@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seasynth.service.camera_model import CameraModel
 from seasynth.service.seeds import frame_rng
 from seasynth.service.shards import frame_file, frame_parts
 from seasynth.service.spec.dataset import DatasetSpec
@@ -19,7 +20,7 @@ from seasynth.worker.frame.encode import encode_image, png_bytes
 from seasynth.worker.frame.meta import frame_meta
 from seasynth.worker.frame.srgb import decode_srgb8, encode_srgb8
 from seasynth.worker.optics import Optics
-from seasynth.worker.render import DrawItem, Material, Mesh, Passes, RenderResult, Sampling, View
+from seasynth.worker.render import DrawItem, Material, Mesh, Passes, RenderResult, Sampling, View, ray_norms
 from seasynth.worker.render.materials import tangent_frames
 from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.procedural import procedural_asset
@@ -95,15 +96,6 @@ def npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=False)
     return buf.getvalue()
-
-
-def ray_norms(K: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(h, w) float32: |K^-1 [u, v, 1]| per pixel centre, so range = z_depth * ray_norm."""
-    u = np.arange(width, dtype=np.float64)
-    v = np.arange(height, dtype=np.float64)
-    x = (u - K[0, 2]) / K[0, 0]
-    y = (v - K[1, 2]) / K[1, 1]
-    return np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2).astype(np.float32)
 
 
 def depth_png16(range_m: np.ndarray, norms: np.ndarray) -> np.ndarray:
@@ -288,7 +280,7 @@ class RenderSession:
         result = optics.render(
             lambda v, drawn: self.renderer.render(v, drawn, light, scene.water, preset, passes, mark=timer))
         image = result.image
-        frame_labels = self.labels(view, scene, items, result, spec.labels) if o.labels else None
+        frame_labels = self.labels(view, scene, items, result, spec.labels, optics) if o.labels else None
         mark("labels")
         # Sonar and navigation sensors, each from its own seed stream: switching one on changes no camera byte.
         sensors = None
@@ -307,7 +299,8 @@ class RenderSession:
         if o.meta:
             files[path("meta")] = self.meta(spec, index, scene, view, frame_labels, optics.record, sensors).encode()
         if o.depth:
-            files[path("depth")] = png_bytes(depth_png16(result.range_m, self._ray_norms(view)))
+            norms = self._ray_norms(view) if optics.shot.range_norms is None else optics.shot.range_norms
+            files[path("depth")] = png_bytes(depth_png16(result.range_m, norms))
         if o.instance:
             files[path("instance")] = png_bytes(result.instance.astype(np.uint16))
         if o.semantic:
@@ -323,21 +316,26 @@ class RenderSession:
         return files
 
     def labels(self, view: View, scene: Scene, items: list[DrawItem], result: RenderResult,
-               filters: Labels | None = None) -> labels.FrameLabels:
+               filters: Labels | None = None, optics: Optics | None = None) -> labels.FrameLabels:
         """KITTI objects of the targets with at least one visible pixel, in instance-id order: a target below the
-        filters (spec labels; None: the defaults, which keep every one) is a DontCare line with its 2D box."""
+        filters (spec labels; None: the defaults, which keep every one) is a DontCare line with its 2D box.
+        optics: the frame's effects, which count the pixels of objects alone as its image was made (a port or a
+        distorting lens resamples them) and project for truncation through its camera model."""
         filters = Labels() if filters is None else filters
+        model = CameraModel.from_spec(optics.shot.spec.camera) if optics is not None else None
+        to_pixels = None if model is None or model.pinhole else model.project
         boxes = labels.tight_boxes(result.instance)
         objects, line_of, visible, alone = [], {}, {}, {}
         by_id = {it.instance_id: it for it in items}
         shown = [(p, boxes[p.instance_id], _points_cam(view, p)) for p in scene.objects
                  if p.role == "target" and p.instance_id in boxes]
-        counts = self.renderer.pixels_alone_many(
-            view, [(by_id[p.instance_id], _pixel_region(pts, view)) for p, _, pts in shown])
+        jobs = [(by_id[p.instance_id], _pixel_region(pts, view)) for p, _, pts in shown]
+        counts = self.renderer.pixels_alone_many(view, jobs) if optics is None else optics.pixels_alone(
+            self.renderer, jobs)
         for (p, box, pts), alone_px in zip(shown, counts):
             # Rendered alone an object covers at least what it covers among others (same rasterisation).
             alone_px = max(alone_px, box.pixels)
-            truncated = labels.truncation(pts, view.K, view.width, view.height, view.near)
+            truncated = labels.truncation(pts, view.K, view.width, view.height, view.near, to_pixels)
             occluded = labels.occlusion_level(box.pixels, alone_px)
             line_of[p.instance_id] = len(objects)
             visible[p.instance_id] = box.pixels

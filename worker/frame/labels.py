@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -158,14 +159,16 @@ def _axis_fraction(lo: float, hi: float, start: float, stop: float) -> float:
     return 1.0 if start <= lo <= stop else 0.0
 
 
-def truncation(points_cam: np.ndarray, K: np.ndarray, width: int, height: int, z_near: float) -> float:
+def truncation(points_cam: np.ndarray, K: np.ndarray, width: int, height: int, z_near: float,
+               to_pixels: Callable[[np.ndarray], np.ndarray] | None = None) -> float:
     """KITTI truncated in [0, 1]: 1 - (area of the projected box clipped to the image) / (its whole area).
 
     points_cam: (n, 3) object vertices, metres, camera frame. The image is the continuous rectangle
     [-0.5, width - 0.5] x [-0.5, height - 0.5] (outer edges of the border pixels). The projected box is the
     box of the object's convex hull cut at the near plane z = z_near (see clip_near), so parts behind the
     camera count as outside: an object wholly nearer than z_near gives 1.0. A zero-width box side counts
-    as inside or outside along that axis.
+    as inside or outside along that axis. to_pixels: a camera model's projection (seasynth.service.camera_model),
+    NaN for points it cannot see, instead of the pinhole K's; the box is then the box of the hull points' images.
     """
     points = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0 or not np.isfinite(points).all():
@@ -175,8 +178,10 @@ def truncation(points_cam: np.ndarray, K: np.ndarray, width: int, height: int, z
     clipped = clip_near(points, z_near)
     if len(clipped) == 0:
         return 1.0
-    uv = project(clipped, K)
-    (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
+    uv = project(clipped, K) if to_pixels is None else to_pixels(clipped)
+    if np.isnan(uv).all():
+        return 1.0
+    (u0, v0), (u1, v1) = np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)
     inside = _axis_fraction(u0, u1, -0.5, width - 0.5) * _axis_fraction(v0, v1, -0.5, height - 0.5)
     return 1.0 - inside
 

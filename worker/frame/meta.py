@@ -6,6 +6,7 @@ import dataclasses
 import json
 
 from seasynth import service
+from seasynth.service.camera_model import CameraModel
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.frame.labels import FrameLabels
 from seasynth.worker.render import Material, Sampling, View
@@ -55,6 +56,9 @@ def frame_meta(spec: DatasetSpec, index: int, scene: Scene, view: View, sampling
         "targets": [{"class": name, "drawn": drawn, "left_out": left} for name, drawn, left in scene.class_counts],
         "noise": optics.get("noise"),
     }
+    model = CameraModel.from_spec(spec.camera)
+    if not model.pinhole:  # the port and distortion (seasynth.service.camera_model.CameraModel.from_record)
+        record["camera"]["model"] = model.record()
     effects = {name: r for name, r in optics.items() if name != "noise"}
     if effects:  # absent with every camera and water-column effect off, so such frames' meta is unchanged
         record["optics"] = effects

@@ -18,7 +18,7 @@ Every effect that ran adds its record to meta (`Optics.record`); draws come from
 from __future__ import annotations
 
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.optics import sensor
+from seasynth.worker.optics import geometry, sensor
 from seasynth.worker.optics.base import Effect, RenderFn, Shot
 from seasynth.worker.render import DrawItem, RenderResult, View
 from seasynth.worker.scene.sample import Scene
@@ -26,7 +26,7 @@ from seasynth.worker.scene.sample import Scene
 
 def effects() -> list[Effect]:
     """Every effect, in the order light meets it."""
-    return [sensor.Sensor()]
+    return [geometry.Geometry(), sensor.Sensor()]
 
 
 class Optics:
@@ -58,5 +58,13 @@ class Optics:
     @property
     def record(self) -> dict:
         return self.shot.record
+
+    def pixels_alone(self, renderer, jobs: list[tuple[DrawItem, tuple[int, int, int, int] | None]]) -> list[int]:
+        """Each item's pixels in the output image when drawn alone, counted as the frame's instance image is made
+        (regions bound the item's pinhole projection; an effect that resamples counts the whole render)."""
+        for effect in self.active:
+            if hasattr(effect, "pixels_alone"):
+                return effect.pixels_alone(self.shot, renderer, [item for item, _ in jobs])
+        return renderer.pixels_alone_many(self.shot.view, jobs)
 
 

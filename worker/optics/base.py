@@ -6,6 +6,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import numpy as np
+
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.render import DrawItem, RenderResult, View
 from seasynth.worker.scene.sample import Scene
@@ -23,7 +25,8 @@ class Shot:
     any particles: sonar and labels' per-object renders use the scene's own list); float_image: an effect needs
     the float image (the GPU's 8-bit encode is skipped); needs: render passes an effect reads whether or not the
     outputs ask for them ("clean", "ids", "range": seasynth.worker.render.Passes); record: meta's "optics" entry,
-    by effect name (the sensor's noise keeps meta's own "noise" entry).
+    by effect name (the sensor's noise keeps meta's own "noise" entry); range_norms: (h, w) float32 range / z-depth
+    of each output pixel where an effect's rays do not all leave the pinhole (None: the pinhole's ray norms).
     """
 
     spec: DatasetSpec
@@ -35,6 +38,7 @@ class Shot:
     float_image: bool = False
     needs: set[str] = field(default_factory=set)
     record: dict = field(default_factory=dict)
+    range_norms: np.ndarray | None = None
 
 
 class Effect(Protocol):

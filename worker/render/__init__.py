@@ -21,6 +21,15 @@ class View:
     far: float  # metres
 
 
+def ray_norms(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(h, w) float32: |K^-1 [u, v, 1]| per pixel centre, so range = z_depth * ray_norm."""
+    u = np.arange(width, dtype=np.float64)
+    v = np.arange(height, dtype=np.float64)
+    x = (u - K[0, 2]) / K[0, 0]
+    y = (v - K[1, 2]) / K[1, 1]
+    return np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2).astype(np.float32)
+
+
 @dataclass(frozen=True, eq=False)
 class Image:
     """A texture image, uploaded once per process under `key` (with its mipmaps)."""

@@ -1,0 +1,191 @@
+"""The housing's port and the lens's distortion (spec `camera.port`, `camera.distortion`): every output pixel shows
+what its ray in water (seasynth.service.camera_model) meets, resampled from a wider pinhole render.
+
+`prepare` swaps the render for a pinhole at the entrance pupil whose field covers every output pixel's water ray
+(plus MARGIN_PX) with pixels no coarser than the output's anywhere (its focal length is 1 / the smallest singular
+value of the output's pixel-to-direction Jacobian). `develop` finds, for each output pixel, the point of the wide
+render its water ray meets: a water ray starts on the port, not at the pupil (a flat port has no single viewpoint),
+so the search is a fixed point along the ray: project the ray's point at the current distance into the wide render,
+read the surface's depth there, move to the ray's point at that depth, until no sample moves more than
+CONVERGED_PX or PARALLAX_ITERATIONS times (the iterations and the largest last step are recorded). Depth between the wide pixels is interpolated as inverse depth (exact on a plane)
+among four neighbours of one instance, else taken from the nearest. Image and clean are then sampled bilinearly in
+linear light, instance nearest; range is the distance along the water ray from its origin on the port.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+
+from seasynth.service.camera_model import CameraModel
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.spec.scene import MAX_SIDE, Camera
+from seasynth.worker.optics.base import Plain, Shot
+from seasynth.worker.render import DrawItem, RenderResult, View, ray_norms
+
+MARGIN_PX = 2  # wide pixels beyond the outermost water ray (bilinear taps and the parallax of near surfaces)
+PARALLAX_ITERATIONS = 4
+CONVERGED_PX = 1e-4
+MAX_OFF_AXIS_DEG = 80.0
+NEAREST_PORT_M = 0.1  # the wide field also covers each ray's point this far from the port (nearer surfaces clamp)
+
+
+@dataclasses.dataclass(frozen=True)
+class Rays:
+    """A camera's per-pixel water rays and the wide pinhole that covers them."""
+
+    origins: np.ndarray  # (h, w, 3) float64 metres, camera frame; NaN where the ray never reaches the water
+    directions: np.ndarray  # (h, w, 3) float64 unit
+    K: np.ndarray  # (3, 3) float64: the wide pinhole's intrinsics
+    width: int
+    height: int
+    resolution: float  # the wide pinhole's finest output step, in wide pixels (>= 1 unless MAX_SIDE capped it)
+
+
+@functools.lru_cache(maxsize=8)
+def camera_rays(camera: Camera) -> Rays:
+    """The water rays of every output pixel centre of `camera` and the wide pinhole covering them."""
+    model = CameraModel.from_spec(camera)
+    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    o, d = model.pixel_rays(u, v)
+    # A pinhole cannot hold rays at or beyond 90 deg off its axis: those past MAX_OFF_AXIS_DEG are lost (recorded).
+    behind = ~(d[..., 2] >= np.cos(np.radians(MAX_OFF_AXIS_DEG)))
+    o[behind], d[behind] = np.nan, np.nan
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = d[..., :2] / d[..., 2:3]  # normalised pinhole coordinates of each ray's far end
+        near = o + NEAREST_PORT_M * d
+        q_near = near[..., :2] / near[..., 2:3]
+    # The finest output step: the smallest singular value of [dq/du, dq/dv] over the image.
+    du, dv = q[:-1, 1:] - q[:-1, :-1], q[1:, :-1] - q[:-1, :-1]
+    a, b, c = (du * du).sum(-1), (du * dv).sum(-1), (dv * dv).sum(-1)
+    sigma_min = np.sqrt(np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0))
+    f = 1.0 / np.nanmin(sigma_min)
+    pts = np.concatenate([q.reshape(-1, 2), q_near.reshape(-1, 2)])
+    lo, hi = np.nanmin(pts, axis=0), np.nanmax(pts, axis=0)
+    span = np.max((hi - lo) * f) + 2 * MARGIN_PX + 1
+    scale = min(1.0, (MAX_SIDE - 1) / span)  # the renderer's largest side: coarser beyond it (recorded)
+    f *= scale
+    size = np.ceil((hi - lo) * f + 2 * MARGIN_PX).astype(int) + 1
+    K = np.array([[f, 0.0, MARGIN_PX - lo[0] * f], [0.0, f, MARGIN_PX - lo[1] * f], [0.0, 0.0, 1.0]])
+    return Rays(origins=o, directions=d, K=K, width=int(size[0]), height=int(size[1]), resolution=scale)
+
+
+def _project(K: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Wide pixel coordinates (qx, qy) of camera-frame points or directions p (..., 3)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return K[0, 0] * p[..., 0] / p[..., 2] + K[0, 2], K[1, 1] * p[..., 1] / p[..., 2] + K[1, 2]
+
+
+def _corners(qx: np.ndarray, qy: np.ndarray, w: int, h: int):
+    """Top-left integer tap (x0, y0) of each sample clamped so both taps lie inside, and weights (fx, fy)."""
+    qx, qy = np.clip(np.nan_to_num(qx, nan=-1.0), 0, w - 1), np.clip(np.nan_to_num(qy, nan=-1.0), 0, h - 1)
+    x0, y0 = np.minimum(np.floor(qx).astype(np.intp), w - 2), np.minimum(np.floor(qy).astype(np.intp), h - 2)
+    return x0, y0, qx - x0, qy - y0
+
+
+def bilinear(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
+    """image (H, W, ...) sampled at fractional pixels (qx, qy) (clamped to the image), bilinearly."""
+    h, w = image.shape[:2]
+    x0, y0, fx, fy = _corners(qx, qy, w, h)
+    fx, fy = fx.reshape(fx.shape + (1,) * (image.ndim - 2)), fy.reshape(fy.shape + (1,) * (image.ndim - 2))
+    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
+    return (top * (1 - fy) + bottom * fy).astype(image.dtype)
+
+
+def nearest(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
+    h, w = image.shape[:2]
+    x = np.clip(np.rint(np.nan_to_num(qx, nan=0.0)), 0, w - 1).astype(np.intp)
+    y = np.clip(np.rint(np.nan_to_num(qy, nan=0.0)), 0, h - 1).astype(np.intp)
+    return image[y, x]
+
+
+def surface_depth(inv_z: np.ndarray, ids: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
+    """z-depth (metres, +inf where no surface) at fractional wide pixels: inverse depth interpolated bilinearly
+    where the four neighbours show one instance and all hit a surface, else the nearest pixel's."""
+    h, w = inv_z.shape
+    x0, y0, _, _ = _corners(qx, qy, w, h)
+    taps = [(y0, x0), (y0, x0 + 1), (y0 + 1, x0), (y0 + 1, x0 + 1)]
+    near_id = nearest(ids, qx, qy)
+    same = np.logical_and.reduce([(ids[t] == near_id) & (inv_z[t] > 0) for t in taps])
+    iz = np.where(same, bilinear(inv_z, qx, qy), nearest(inv_z, qx, qy))
+    with np.errstate(divide="ignore"):
+        return 1.0 / iz
+
+
+class Geometry(Plain):
+    name = "geometry"
+
+    def on(self, spec: DatasetSpec) -> bool:
+        return not CameraModel.from_spec(spec.camera).pinhole
+
+    def prepare(self, shot: Shot) -> None:
+        rays = camera_rays(shot.spec.camera)
+        shot.render_view = dataclasses.replace(shot.view, K=rays.K, width=rays.width, height=rays.height)
+        shot.needs |= {"ids", "range"}
+        shot.float_image = True
+        self.samples = None  # (qx, qy, lost): each output pixel's position in the wide render, once developed
+
+    def develop(self, shot: Shot, result: RenderResult) -> RenderResult:
+        rays, wide = camera_rays(shot.spec.camera), shot.render_view
+        o, d = rays.origins, rays.directions
+        qx, qy, t, k, step = search(o, d, wide.K, inverse_depth(wide, result.range_m), result.instance)
+        lost = np.isnan(d[..., 0])  # rays that never reach the water: black, no surface
+        self.samples = (qx, qy, lost)
+        image = np.where(lost[..., None], 0.0, bilinear(result.image, qx, qy)).astype(np.float32)
+        clean = None if result.clean is None else np.where(
+            lost[..., None], 0.0, bilinear(result.clean, qx, qy)).astype(np.float32)
+        instance = np.where(lost, 0, nearest(result.instance, qx, qy)).astype(result.instance.dtype)
+        range_m = np.where(lost, np.inf, t).astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z_out = np.where(np.isfinite(t), o[..., 2] + t * d[..., 2], np.inf)
+            shot.range_norms = np.where(np.isfinite(t), t / z_out, 1.0 / d[..., 2]).astype(np.float32)
+        finite = step[np.isfinite(step)]
+        shot.record[self.name] = {
+            "render": {"K": wide.K.tolist(), "width": wide.width, "height": wide.height,
+                       "finest_step_px": rays.resolution},
+            "parallax_iterations": k,
+            "last_step_px_max": float(finite.max()) if finite.size else 0.0,
+            "rays_lost": int(lost.sum()),
+        }
+        return dataclasses.replace(result, image=image, clean=clean, instance=instance, range_m=range_m)
+
+    def pixels_alone(self, shot: Shot, renderer, items: list[DrawItem]) -> list[int]:
+        """Each item's output pixels when drawn alone: its wide id render sampled where the frame's pixels were
+        (the search's positions for the whole scene), so an item nothing hides counts exactly its visible pixels
+        and a hidden one at least them. Where something hides it, its hidden pixels are sampled where the rays met
+        the occluder: a ray through a flat port meets the item a little elsewhere (parallax; a pixel of its outline
+        may count otherwise)."""
+        qx, qy, lost = self.samples
+        counts = []
+        for item in items:
+            ids, _ = renderer.geometry(shot.render_view, [item])
+            counts.append(int(np.count_nonzero((nearest(ids, qx, qy) == item.instance_id) & ~lost)))
+        return counts
+
+
+def inverse_depth(wide: View, range_m: np.ndarray) -> np.ndarray:
+    """(H, W) float64 1 / z-depth of a wide render's range, 0 where no surface."""
+    with np.errstate(divide="ignore"):
+        return (ray_norms(wide.K, wide.width, wide.height) / range_m).astype(np.float64)
+
+
+def search(o: np.ndarray, d: np.ndarray, K: np.ndarray, inv_z: np.ndarray, ids: np.ndarray):
+    """Where water rays (origins o, unit directions d, (..., 3)) meet the surfaces of a wide render (intrinsics K,
+    inverse depth inv_z, instance ids): the fixed point (module docstring). Returns the wide pixel coordinates
+    (qx, qy), the distance t along each ray (+inf where it meets nothing), the iterations and the last step (px)."""
+    qx, qy = _project(K, d)
+    step, k = np.zeros(0), 0
+    while True:
+        z = surface_depth(inv_z, ids, qx, qy)
+        with np.errstate(invalid="ignore"):
+            t = np.maximum((z - o[..., 2]) / d[..., 2], 0.0)  # along the water ray to the surface's depth
+        if k == PARALLAX_ITERATIONS or (k > 0 and not np.nanmax(step, initial=0.0) > CONVERGED_PX):
+            return qx, qy, t, k, step
+        far = ~np.isfinite(t)
+        p = np.where(far[..., None], d, o + np.where(far, 0.0, t)[..., None] * d)
+        nx, ny = _project(K, p)
+        step = np.hypot(nx - qx, ny - qy)
+        qx, qy, k = nx, ny, k + 1
