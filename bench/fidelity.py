@@ -124,9 +124,12 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
 
 
-def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:
-    """(preset, terms, linear float image, ms per frame) for each row of a configuration."""
+def seasynth_rows(session, spec: DatasetSpec, repeats: int,
+                  forward_scatter: bool = False) -> list[tuple[str, str, np.ndarray, float]]:
+    """(preset, terms, linear float image, ms per frame) for each row of a configuration; forward_scatter: one more
+    row, `default` with the forward-scatter blur (seasynth.worker.optics.forward_scatter; terms `+forward_scatter`)."""
     from seasynth.worker.frame.function import PRESETS
+    from seasynth.worker.optics.forward_scatter import forward_scatter as blur
     from seasynth.worker.render import Passes
 
     scene = session.scene(spec, FRAME)
@@ -142,14 +145,20 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, s
     if light.terms.lamps:
         variants.append(("default", "-lamps", dataclasses.replace(
             light, terms=dataclasses.replace(light.terms, lamps=0)), None))
+    if forward_scatter:
+        variants.append(("default", "+forward_scatter", light, None))
     rows = []
     for preset, terms, lt, water in variants:
         times = []
+        blurred = terms == "+forward_scatter"
         for _ in range(repeats):
             t0 = time.perf_counter()
-            res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes())
+            res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes(clean=blurred, range=blurred))
+            image = res.image
+            if blurred:
+                image = blur(image, res.clean, res.range_m, light.medium, view.K[0, 0], view.K[1, 1])[0]
             times.append(time.perf_counter() - t0)
-        rows.append((preset, terms, res.image, statistics.median(times) * 1e3))
+        rows.append((preset, terms, image, statistics.median(times) * 1e3))
     return rows
 
 
@@ -253,11 +262,12 @@ def stored_reference(references: Path | None, name: str, pts):
 
 
 def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: str | None, platform: str,
-        references: Path | None = None, timing_spp: int = 64, size: tuple[int, int] = (WIDTH, HEIGHT)) -> dict:
+        references: Path | None = None, timing_spp: int = 64, size: tuple[int, int] = (WIDTH, HEIGHT),
+        forward_scatter: bool = False) -> dict:
     """Scores every configuration. Its reference is the stored one in `references` when there is one for this exact
     scene, else two renders of `spp` here. The path tracer's cost is always measured here (path_tracer_cost: a
     warm-up, then `timing_spp` and 4x `timing_spp` samples per pixel; a stored reference's own host and seconds are
-    recorded beside them)."""
+    recorded beside them). forward_scatter: each configuration gets a `+forward_scatter` row (seasynth_rows)."""
     from seasynth.bench.reference import render_reference
     from seasynth.bench.throughput import machine_description
     from seasynth.worker.frame.function import RenderSession
@@ -279,7 +289,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
             floor_blocks = psnr_db(*(encode_srgb8(block_means(half)) for half in ref.halves))
             target = encode_srgb8(ref.mean)
             target_blocks = encode_srgb8(block_means(ref.mean))
-            for preset, terms, linear, ms in seasynth_rows(session, spec, repeats):
+            for preset, terms, linear, ms in seasynth_rows(session, spec, repeats, forward_scatter):
                 image = encode_srgb8(linear)
                 spp_eq = equal_error_spp(mse(image, target), halves_mse, ref.spp)
                 diff = np.abs(image.astype(np.int64) - target.astype(np.int64))
