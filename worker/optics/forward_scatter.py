@@ -98,23 +98,26 @@ def spread(light: np.ndarray, variance_px: np.ndarray, aspect: float = 1.0) -> t
     var = np.where(lit, variance_px, 0.0)
     sigmas = levels_px(math.sqrt(float(var.max())))
     level_var = sigmas**2
-    lo = np.clip(np.searchsorted(level_var, var, side="right") - 1, 0, len(sigmas) - 2)
-    t = np.clip((var - level_var[lo]) / (level_var[lo + 1] - level_var[lo]), 0.0, 1.0).astype(np.float32)
+    lo = np.clip(np.searchsorted(level_var, var, side="right") - 1, 0, len(sigmas) - 2).ravel()
+    t = np.clip((var.ravel() - level_var[lo]) / (level_var[lo + 1] - level_var[lo]), 0.0, 1.0)
+    weights = np.zeros((len(sigmas), light.size), np.float32)  # each level's share of each pixel and channel
+    at = np.arange(light.size)
+    weights[lo, at] = 1.0 - t
+    weights[lo + 1, at] += t
     wy = (np.pi * np.arange(h) / h) ** 2
     wx = (np.pi * np.arange(w) / w) ** 2
     omega2 = (aspect**2 * wy[:, None] + wx[None, :])[..., None]  # (h, w, 1) squared angular frequency, px^-2
     total = None
     used = []
-    for k in np.unique(np.concatenate([lo[lit], lo[lit] + 1])):
-        weight = np.where(lo == k, 1.0 - t, 0.0) + np.where(lo + 1 == k, t, 0.0)
-        part = light * weight.astype(np.float32)
+    for k, sigma in enumerate(sigmas):
+        part = light * weights[k].reshape(light.shape)
         if not part.any():
             continue
         spectrum = fft.dctn(part, type=2, axes=(0, 1), norm="ortho")
-        if sigmas[k] > 0:
-            spectrum *= np.exp(-0.5 * sigmas[k] ** 2 * omega2).astype(np.float32)
+        if sigma > 0:
+            spectrum *= np.exp(-0.5 * sigma**2 * omega2).astype(np.float32)
         total = spectrum if total is None else total + spectrum
-        used.append(float(sigmas[k]))
+        used.append(float(sigma))
     out = fft.idctn(total, type=2, axes=(0, 1), norm="ortho")
     return out.astype(np.float32, copy=False), np.asarray(used)
 
