@@ -100,17 +100,21 @@ def spread(light: np.ndarray, variance_px: np.ndarray, aspect: float = 1.0) -> t
     level_var = sigmas**2
     lo = np.clip(np.searchsorted(level_var, var, side="right") - 1, 0, len(sigmas) - 2).ravel()
     t = np.clip((var.ravel() - level_var[lo]) / (level_var[lo + 1] - level_var[lo]), 0.0, 1.0)
-    weights = np.zeros((len(sigmas), light.size), np.float32)  # each level's share of each pixel and channel
-    at = np.arange(light.size)
-    weights[lo, at] = 1.0 - t
-    weights[lo + 1, at] += t
+    upper = t.astype(np.float32)  # the upper level's share; the lower one has the rest
+    lower = 1.0 - upper
     wy = (np.pi * np.arange(h) / h) ** 2
     wx = (np.pi * np.arange(w) / w) ** 2
     omega2 = (aspect**2 * wy[:, None] + wx[None, :])[..., None]  # (h, w, 1) squared angular frequency, px^-2
     total = None
     used = []
-    for k, sigma in enumerate(sigmas):
-        part = light * weights[k].reshape(light.shape)
+    for k in np.flatnonzero(np.bincount(np.concatenate([lo, lo + 1]), minlength=len(sigmas))):
+        sigma = sigmas[k]
+        weight = np.zeros(light.size, np.float32)  # this level's share of each pixel and channel
+        at = lo == k
+        weight[at] = lower[at]
+        at = lo == k - 1
+        weight[at] += upper[at]
+        part = light * weight.reshape(light.shape)
         if not part.any():
             continue
         spectrum = fft.dctn(part, type=2, axes=(0, 1), norm="ortho")
