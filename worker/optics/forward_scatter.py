@@ -32,8 +32,6 @@ from seasynth.worker.render import RenderResult
 
 LEVEL_RATIO = math.sqrt(2.0)  # widths of neighbouring Gaussian levels; a pixel's kernel mixes two, in variance
 FINEST_LEVEL_PX = 0.5  # the narrowest level above none: narrower kernels mix it with the unblurred image
-
-
 SMALL_ANGLE_RAD = 0.5  # turns within it spread the image (sin within 4% of the angle); wider ones leave it
 
 
