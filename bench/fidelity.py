@@ -130,11 +130,12 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
 
 
-def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:
-    """(preset, terms, linear float image, ms per frame) for each row of a configuration."""
+def seasynth_rows(session, spec: DatasetSpec, repeats: int,
+                  forward_scatter: bool = False) -> list[tuple[str, str, np.ndarray, float]]:
+    """(preset, terms, linear float image, ms per frame) for each row of a configuration; forward_scatter: one more
+    row, `default` with the forward-scatter blur (seasynth.worker.optics.forward_scatter; terms `+forward_scatter`)."""
     from seasynth.worker.frame.function import PRESETS
-    from seasynth.worker.optics.base import Shot
-    from seasynth.worker.optics.geometry import Geometry
+    from seasynth.worker.optics import Optics
     from seasynth.worker.render import Passes
 
     scene = session.scene(spec, FRAME)
@@ -150,21 +151,23 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, s
     if light.terms.lamps:
         variants.append(("default", "-lamps", dataclasses.replace(
             light, terms=dataclasses.replace(light.terms, lamps=0)), None))
+    if forward_scatter:
+        variants.append(("default", "+forward_scatter", light, None))
+    blurred = spec.model_copy(update={"water": spec.water.model_copy(update={"forward_scatter": True})})
     rows = []
     for preset, terms, lt, water in variants:
+        # Every row through the spec's optical effects, as frames are made (a port's resampling, particles, ...).
+        optics = Optics(blurred if terms == "+forward_scatter" else spec, FRAME, scene, view, items)
+        needs = optics.shot.needs
+        passes = Passes(clean="clean" in needs, ids="ids" in needs, range="range" in needs)
         times = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            if Geometry().on(spec):  # a port: the wide pinhole's render resampled along the water rays
-                shot = Shot(spec=spec, index=FRAME, scene=scene, view=view, render_view=view, items=items)
-                geometry = Geometry()
-                geometry.prepare(shot)
-                res = geometry.develop(shot, session.renderer.render(
-                    shot.render_view, items, lt, water, PRESETS[preset], Passes(ids=True, range=True)))
-            else:
-                res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes())
+            image = optics.render(
+                lambda v, drawn, lt=lt, water=water, preset=preset: session.renderer.render(
+                    v, drawn, lt, water, PRESETS[preset], passes)).image
             times.append(time.perf_counter() - t0)
-        rows.append((preset, terms, res.image, statistics.median(times) * 1e3))
+        rows.append((preset, terms, image, statistics.median(times) * 1e3))
     return rows
 
 
@@ -268,11 +271,12 @@ def stored_reference(references: Path | None, name: str, pts):
 
 
 def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: str | None, platform: str,
-        references: Path | None = None, timing_spp: int = 64, size: tuple[int, int] = (WIDTH, HEIGHT)) -> dict:
+        references: Path | None = None, timing_spp: int = 64, size: tuple[int, int] = (WIDTH, HEIGHT),
+        forward_scatter: bool = False) -> dict:
     """Scores every configuration. Its reference is the stored one in `references` when there is one for this exact
     scene, else two renders of `spp` here. The path tracer's cost is always measured here (path_tracer_cost: a
     warm-up, then `timing_spp` and 4x `timing_spp` samples per pixel; a stored reference's own host and seconds are
-    recorded beside them)."""
+    recorded beside them). forward_scatter: each configuration gets a `+forward_scatter` row (seasynth_rows)."""
     from seasynth.bench.reference import render_reference
     from seasynth.bench.throughput import machine_description
     from seasynth.worker.frame.function import RenderSession
@@ -294,7 +298,7 @@ def run(out: Path, *, configs: dict[str, str], spp: int, repeats: int, machine: 
             floor_blocks = psnr_db(*(encode_srgb8(block_means(half)) for half in ref.halves))
             target = encode_srgb8(ref.mean)
             target_blocks = encode_srgb8(block_means(ref.mean))
-            for preset, terms, linear, ms in seasynth_rows(session, spec, repeats):
+            for preset, terms, linear, ms in seasynth_rows(session, spec, repeats, forward_scatter):
                 image = encode_srgb8(linear)
                 spp_eq = equal_error_spp(mse(image, target), halves_mse, ref.spp)
                 diff = np.abs(image.astype(np.int64) - target.astype(np.int64))

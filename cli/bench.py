@@ -155,6 +155,9 @@ def bench_fidelity(
                                             "(other than the table's 320x240: references NAME-WxH.ref.npz).")]
     = "320x240",
     gl: PlatformOpt = "egl",
+    forward_scatter: Annotated[bool, typer.Option("--forward-scatter", help="One more row per configuration: "
+                                                  "`default` with the forward-scatter blur (+forward_scatter).")]
+    = False,
 ) -> None:
     """seasynth's frames against a volumetric path tracer of the same scene: PSNR, MAE, time, per term."""
     from seasynth.bench.fidelity import CONFIGS, WORLD_CONFIGS, parse_config, run
@@ -177,7 +180,7 @@ def bench_fidelity(
     if out is None:
         raise typer.BadParameter("give --out (or --export-scenes)", param_hint="--out")
     run(out, configs=chosen, spp=spp, repeats=repeats, machine=machine, platform=gl, references=references,
-        timing_spp=timing_spp, size=size)
+        timing_spp=timing_spp, size=size, forward_scatter=forward_scatter)
 
 
 @bench_app.command("calibration")

@@ -114,6 +114,12 @@ REFUSED = [
     ),
     ({"water": {"jerlov": []}}, "water", "with no jerlov types, give absorption and scattering explicitly"),
     ({"water": {"model": "paper", "jerlov": []}}, "water", "with no jerlov types, give beta_D and B_inf explicitly"),
+    # the forward-scatter blur spreads the physical model's scattered light
+    ({"water": {"model": "paper", "forward_scatter": True}}, "water",
+     "forward_scatter spreads light the physical model scatters; it needs water.enabled: true and water.model: "
+     "physical (got enabled True, model paper)"),
+    ({"water": {"enabled": False, "forward_scatter": True}}, "water", "(got enabled False, model physical)"),
+    ({"water": {"forward_scatter": "yes"}}, "water.forward_scatter", "valid boolean"),
 ]
 
 

@@ -117,6 +117,9 @@ class Water(SpecModel):
     B_inf: RGBInterval | None = None
     # Multiplies each type's default veiling light per frame (when B_inf is not given).
     B_inf_jitter: PositiveInterval = (0.8, 1.2)
+    # Spread the surfaces' forward-scattered light by its point spread function (seasynth.worker.optics
+    # .forward_scatter); physical model only.
+    forward_scatter: StrictBool = False
 
     @field_validator("jerlov")
     @classmethod
@@ -142,6 +145,9 @@ class Water(SpecModel):
                 how = "is" if self.model is not None else "resolves to (unset, with paper-only fields given)"
                 raise ValueError(f"{name} belongs to the {'physical' if model == 'paper' else 'paper'} model, "
                                  f"but water.model {how} {model}")
+        if self.forward_scatter and not (self.enabled and model == "physical"):
+            raise ValueError("forward_scatter spreads light the physical model scatters; it needs water.enabled: "
+                             f"true and water.model: physical (got enabled {self.enabled}, model {model})")
         if not self.enabled or self.jerlov:
             return self
         if model == "paper" and (self.beta_D is None or self.B_inf is None):
