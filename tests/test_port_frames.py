@@ -155,7 +155,8 @@ def test_objects_alone_are_counted_in_the_output_image_as_the_frame_samples_it(r
     if not effect.on(spec):
         return
     target = sphere_item([x, y, 3.0], 0.4, 1)
-    occluder = sphere_item([x + 0.2, y, 2.0], 0.15, 2)
+    # on the sight line to the target (from the pupil), a little aside: it hides part of the target, never all
+    occluder = sphere_item([x * 2.0 / 3.0 + 0.05, y * 2.0 / 3.0, 2.0], 0.15, 2)
     background = plane_item(np.array([0.0, 0.0, 1.0]), 8.0, instance_id=0)
     counts = []
     for items in ([background, target], [background, target, occluder]):
