@@ -57,7 +57,14 @@ WORLD_CONFIGS: dict[str, str] = {
     "long-clear-sun-lamp": "I:sun+lamp@15 long textured",
     "long-turbid-sun": "III:sun@20 long textured",
     "long-turbid-sun-lamp": "III:sun+lamp@20 long textured",
+    # Marine snow (water.particles at the type's default density): spheres in the path tracer, lit by the sun and
+    # sky (beside coastal-sun-textured), and by the lamps near the camera.
+    "coastal-sun-particles": "1C:sun@6 textured particles",
+    "turbid-lamps-particles": "3C:lamp@40 textured particles",
 }
+# Configurations whose references are still to be path traced (on a GPU host: bench/reference.py) and stored in
+# bench/results/cpu/fidelity-references/; until then `seasynth bench fidelity --config NAME` renders one here.
+REFERENCES_PENDING = frozenset({"coastal-sun-particles", "turbid-lamps-particles"})
 PRESET_NAMES = ("draft", "fast", "default", "high")
 # The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
 # frame holds seabed from ~2 m out to where the water hides it and open water above.
@@ -65,12 +72,13 @@ LONG_VIEW = {"workspaces.camera": {"min": [0.0, -1.7, 1.2], "max": [0.0, -1.7, 1
              "workspaces.look_at": {"min": [0.0, 6.0, 0.0], "max": [0.0, 6.0, 0.0]}, "camera.look_at_jitter_m": 0.0}
 
 
-VIEWS = ("textured", "long")
+VIEWS = ("textured", "long", "particles")
 
 
 def config_options(text: str) -> tuple[str, frozenset[str]]:
     """'WATER:LIGHT[@DEPTH] [OPTION ...]' -> ('WATER:LIGHT[@DEPTH]', options): `textured` (the procedural textures
-    on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above)."""
+    on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above),
+    `particles` (marine snow at the water type's default density)."""
     head, *options = text.split()
     unknown = sorted(set(options) - set(VIEWS))
     if unknown:
@@ -119,6 +127,7 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         # per-pixel textures (0.7.0).
         "materials.procedural": "textured" in options,
         **(LONG_VIEW if "long" in options else {}),
+        **({"water.particles.enabled": True} if "particles" in options else {}),
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
@@ -127,11 +136,12 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
 def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:
     """(preset, terms, linear float image, ms per frame) for each row of a configuration."""
     from seasynth.worker.frame.function import PRESETS
+    from seasynth.worker.optics import Optics
     from seasynth.worker.render import Passes
 
     scene = session.scene(spec, FRAME)
     view = session.view(spec, scene)
-    items = session.draw_items(scene)
+    items = Optics(spec, FRAME, scene, view, session.draw_items(scene)).shot.items  # with any particles
     light = scene.light
     variants = [(p, "full", light, None) for p in PRESET_NAMES]
     variants.append(("default", "paper", scene.lighting, paper_water(scene, view)))

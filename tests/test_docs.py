@@ -30,7 +30,7 @@ def test_spec_reference_is_what_the_models_generate():
 def test_spec_reference_is_deterministic_and_short():
     text = reference.reference_markdown()
     assert reference.reference_markdown() == text
-    assert len(text.splitlines()) < 450  # grew with the target classes, their placements and the label filters
+    assert len(text.splitlines()) < 470  # grew with the target classes, their placements, the label filters and marine snow
 
 
 def section(text: str, heading: str) -> str:

@@ -164,6 +164,16 @@ def surface_attenuation(scene: Scene) -> float:
     return 0.0
 
 
+def frame_field(spec: DatasetSpec, index: int, scene: Scene, view: View) -> Field:
+    """Frame `index`'s particles in `view` (spec water.particles on), from the frame's own marine snow stream."""
+    p = spec.water.particles
+    rng = frame_rng(spec.seed, index, STREAM_SNOW)
+    density = float(rng.uniform(*(p.density_per_m3 if p.density_per_m3 is not None
+                                  else MARINE_SNOW_PER_M3[scene.water_type])))
+    return draw_field(rng, view, density, (p.diameter_mm[0] / 1e3, p.diameter_mm[1] / 1e3), p.size_slope, p.albedo,
+                      surface_attenuation(scene))
+
+
 class MarineSnow(Plain):
     name = "particles"
 
@@ -171,15 +181,11 @@ class MarineSnow(Plain):
         return spec.water.enabled and spec.water.particles.enabled
 
     def prepare(self, shot: Shot) -> None:
-        p = shot.spec.water.particles
-        rng = frame_rng(shot.spec.seed, shot.index, STREAM_SNOW)
-        density_range = p.density_per_m3 if p.density_per_m3 is not None else MARINE_SNOW_PER_M3[shot.scene.water_type]
-        density = float(rng.uniform(*density_range))
-        view = shot.render_view
-        field = draw_field(rng, view, density, (p.diameter_mm[0] / 1e3, p.diameter_mm[1] / 1e3), p.size_slope,
-                           p.albedo, surface_attenuation(shot.scene))
+        field = frame_field(shot.spec, shot.index, shot.scene, shot.render_view)
         if len(field.diameters):
-            shot.items.append(DrawItem(mesh=particle_mesh(field), world_from_obj=np.linalg.inv(view.cam_from_world),
+            shot.items.append(DrawItem(mesh=particle_mesh(field),
+                                       world_from_obj=np.linalg.inv(shot.render_view.cam_from_world),
                                        albedo_scale=np.ones(3, np.float32), albedo_bias=np.zeros(3, np.float32),
                                        instance_id=0, casts_shadows=False))
+        p = shot.spec.water.particles
         shot.record[self.name] = field.record(p.diameter_mm, p.size_slope)
