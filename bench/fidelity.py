@@ -21,6 +21,15 @@ from pathlib import Path
 import numpy as np
 
 from seasynth.bench.accuracy import EXAMPLE, psnr_db, write_results
+from seasynth.bench.fidelity_configs import (  # noqa: F401 (the configurations are the bench's public names)
+    CONFIGS,
+    LAMPS,
+    LONG_VIEW,
+    PRESET_NAMES,
+    REFERENCES_PENDING,
+    VIEWS,
+    WORLD_CONFIGS,
+)
 from seasynth.bench.fidelity_scene import FRAME, SEED, paper_water, path_traced_scene
 from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, read_spec_file, spec_digest
 
@@ -32,50 +41,13 @@ WIDTH, HEIGHT = 320, 240
 # in turbid water), while its 8 x 8 block means are converged far beyond what is scored: the light model's error at
 # the scale it works on (its terms are smooth in the image) is judged there.
 BLOCK = 8
-LAMPS = [
-    {"offset_m": [-0.35, 0.1, 0.0], "direction": [0.15, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
-     "intensity": [3.0, 3.0]},
-    {"offset_m": [0.35, 0.1, 0.0], "direction": [-0.15, 0.35, 1.0], "beam_width_deg": 20, "cutoff_deg": 40,
-     "intensity": [3.0, 3.0]},
-]
-CONFIGS: dict[str, str] = {
-    "clear-ocean-sun": "I:sun@15",
-    "ocean-sun": "II:sun@10",
-    "coastal-sun": "1C:sun@6",
-    "clear-lamps": "I:lamp@40",
-    "turbid-lamps": "3C:lamp@40",
-    "ocean-sun-lamp": "II:sun+lamp@10",
-}
-# The world the light falls on (textures and the far field), in configurations of their own: the near view with
-# per-pixel textures, and the long view (`long`) out to where the water hides the seabed, clear and turbid, sun
-# with and without lamps.
-WORLD_CONFIGS: dict[str, str] = {
-    "clear-ocean-sun-textured": "I:sun@15 textured",
-    "ocean-sun-textured": "II:sun@10 textured",
-    "coastal-sun-textured": "1C:sun@6 textured",
-    "long-clear-sun": "I:sun@15 long textured",
-    "long-clear-sun-lamp": "I:sun+lamp@15 long textured",
-    "long-turbid-sun": "III:sun@20 long textured",
-    "long-turbid-sun-lamp": "III:sun+lamp@20 long textured",
-    # The near view of ocean-sun-textured through a flat port (camera.port's defaults: 10 mm acrylic 20 mm in front
-    # of the lens): the path tracer traces the slab (seasynth.bench.pathtracer._slab), seasynth resamples a wider
-    # pinhole (seasynth.worker.optics.geometry).
-    "ocean-sun-port": "II:sun@10 textured port",
-}
-PRESET_NAMES = ("draft", "fast", "default", "high")
-# The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
-# frame holds seabed from ~2 m out to where the water hides it and open water above.
-LONG_VIEW = {"workspaces.camera": {"min": [0.0, -1.7, 1.2], "max": [0.0, -1.7, 1.2]},
-             "workspaces.look_at": {"min": [0.0, 6.0, 0.0], "max": [0.0, 6.0, 0.0]}, "camera.look_at_jitter_m": 0.0}
-
-
-VIEWS = ("textured", "long", "port")
 
 
 def config_options(text: str) -> tuple[str, frozenset[str]]:
     """'WATER:LIGHT[@DEPTH] [OPTION ...]' -> ('WATER:LIGHT[@DEPTH]', options): `textured` (the procedural textures
     on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above),
-    `port` (the camera behind a flat port: camera.port kind flat at its defaults)."""
+    `port` (the camera behind a flat port: camera.port kind flat at its defaults),
+    `particles` (marine snow at the water type's default density)."""
     head, *options = text.split()
     unknown = sorted(set(options) - set(VIEWS))
     if unknown:
@@ -125,6 +97,7 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         "materials.procedural": "textured" in options,
         **(LONG_VIEW if "long" in options else {}),
         **({"camera.port": {"kind": "flat"}} if "port" in options else {}),
+        **({"water.particles.enabled": True} if "particles" in options else {}),
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
@@ -140,7 +113,7 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int,
 
     scene = session.scene(spec, FRAME)
     view = session.view(spec, scene)
-    items = session.draw_items(scene)
+    items = Optics(spec, FRAME, scene, view, session.draw_items(scene)).shot.items  # with any particles
     light = scene.light
     variants = [(p, "full", light, None) for p in PRESET_NAMES]
     variants.append(("default", "paper", scene.lighting, paper_water(scene, view)))
@@ -164,7 +137,7 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int,
         for _ in range(repeats):
             t0 = time.perf_counter()
             image = optics.render(
-                lambda v, drawn, lt=lt, water=water, preset=preset: session.renderer.render(
+                lambda v, drawn, lt=lt, water=water, preset=preset, passes=passes: session.renderer.render(
                     v, drawn, lt, water, PRESETS[preset], passes)).image
             times.append(time.perf_counter() - t0)
         rows.append((preset, terms, image, statistics.median(times) * 1e3))

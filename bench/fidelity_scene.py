@@ -49,7 +49,8 @@ def exported_scene(session, spec: DatasetSpec, scene):
         for lp in light.lamps
     )
     sky = light.sky_irradiance / math.sin(math.radians(SNELL_CONE_DEG)) ** 2
-    return PTScene(slab=port_slab(spec), meshes=tuple(meshes), K=view.K, width=view.width, height=view.height,
+    return PTScene(slab=port_slab(spec), spheres=particle_spheres(spec, scene, view),
+                   meshes=tuple(meshes), K=view.K, width=view.width, height=view.height,
                    world_from_cam=world_from_cam, sigma_a=light.medium.a, sigma_s=light.medium.b, g=light.medium.g,
                    surface_z=light.medium.surface_z, sun_dir_world=light.sun_dir_world,
                    sun_irradiance_rgb=math.pi * light.sun_irradiance, sky_radiance_rgb=sky, lamps=lamps,
@@ -68,6 +69,22 @@ def port_slab(spec: DatasetSpec) -> np.ndarray | None:
         return None
     s = model.slab()
     return np.array([s.inner_m, s.outer_m, s.air_index, s.glass_index, s.water_index])
+
+
+def particle_spheres(spec: DatasetSpec, scene, view):
+    """The frame's marine snow (water.particles) as the path tracer's spheres: the rasteriser's particles with their
+    true shape, same centres, diameters and albedo; None when off or none was drawn."""
+    from seasynth.bench.pathtracer import PTSpheres
+    from seasynth.worker.optics.particles import MarineSnow, frame_field
+
+    if not MarineSnow().on(spec):
+        return None
+    field = frame_field(spec, FRAME, scene, view)
+    if not len(field.diameters):
+        return None
+    world_from_cam = scene.world_from_cam
+    return PTSpheres(centres=field.centres @ world_from_cam[:3, :3].T + world_from_cam[:3, 3],
+                     radii=field.diameters / 2.0, albedo=np.repeat(field.albedo[:, None], 3, axis=1))
 
 
 def paper_water(scene, view):

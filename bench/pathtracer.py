@@ -52,6 +52,16 @@ class PTMesh:
 
 
 @dataclass(frozen=True)
+class PTSpheres:
+    """Small Lambertian spheres (marine snow): centres (n, 3) float64 world m; radii (n,) float64 m; albedo (n, 3)
+    float32 linear RGB in [0, 1]."""
+
+    centres: np.ndarray
+    radii: np.ndarray
+    albedo: np.ndarray
+
+
+@dataclass(frozen=True)
 class PTLamp:
     """A spot lamp in the water: position_world (3,) float64 m; direction_world (3,) unit; cutoff_deg and
     beam_width_deg half angles (degrees); intensity_rgb (3,) float64 radiant intensity on axis, W/sr, linear RGB."""
@@ -91,6 +101,7 @@ class PTScene:
     # air_index, glass_index, water_index): the camera in air, a glass slab between the planes z = inner_m and
     # z = outer_m of the camera frame, the water beyond. None: the camera in the water.
     slab: np.ndarray | None = None
+    spheres: PTSpheres | None = None
 
 
 def find_libllvm() -> str:
@@ -209,6 +220,15 @@ def _mesh(mesh: PTMesh, name: str, mi):
     return out
 
 
+def _spheres(spheres: PTSpheres | None) -> dict[str, dict]:
+    """Mitsuba `sphere` shapes "sphere_000000", ..., diffuse with each one's albedo (seen from outside only)."""
+    if spheres is None:
+        return {}
+    return {f"sphere_{i:06d}": {"type": "sphere", "center": [float(x) for x in c], "radius": float(r),
+                                "bsdf": {"type": "diffuse", "reflectance": _rgb(a)}}
+            for i, (c, r, a) in enumerate(zip(spheres.centres, spheres.radii, spheres.albedo))}
+
+
 def _sensor(scene: PTScene, far_clip: float, mi) -> dict:
     K = np.asarray(scene.K, dtype=np.float64)
     w, h = int(scene.width), int(scene.height)
@@ -275,7 +295,7 @@ def _lamp(lamp: PTLamp, mi, scene: PTScene, housing_m: float) -> dict[str, dict]
 
 def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, variant: str = VARIANT,
                   lamp_housing_m: float = 0.0):
-    """The mi.Scene for `scene`: water box, meshes (shape ids "mesh_0000", ... in order), sun, sky, lamps (each in
+    """The mi.Scene for `scene`: water box, meshes (shape ids "mesh_0000", ... in order), spheres, sun, sky, lamps (each in
     a water-free sphere of radius lamp_housing_m when > 0: `_lamp`), camera."""
     _check(scene)
     mi = load_mitsuba(variant)
@@ -287,6 +307,7 @@ def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, varian
     }
     for i, mesh in enumerate(scene.meshes):
         d[f"mesh_{i:04d}"] = _mesh(mesh, f"mesh_{i:04d}", mi)
+    d.update(_spheres(scene.spheres))
     if np.any(np.asarray(scene.sun_irradiance_rgb) > 0):
         d["sun"] = {"type": "directional", "direction": (-np.asarray(scene.sun_dir_world, np.float64)).tolist(),
                     "irradiance": _rgb(scene.sun_irradiance_rgb)}

@@ -26,7 +26,7 @@ from typing import BinaryIO
 import numpy as np
 
 from seasynth.bench import pathtracer
-from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
+from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene, PTSpheres
 from seasynth.bench.pathtracer_textures import PTMaterial, procedural_image
 
 SCENE_SUFFIX = ".scene.npz"
@@ -47,6 +47,10 @@ def _scene_arrays(scene: PTScene) -> dict[str, np.ndarray]:
                     out.update(_material_arrays(m.material, f"mesh{i}_mat_"))
         elif f.name == "slab" and value is None:  # no port: the scene's arrays (and digest) as before ports
             continue
+        elif f.name == "spheres":  # none: no arrays, so scenes without them keep their digests
+            if value is not None:
+                out.update({f"spheres_{g.name}": np.asarray(getattr(value, g.name), np.float32 if g.name == "albedo"
+                                                            else np.float64) for g in dataclasses.fields(PTSpheres)})
         elif f.name == "lamps":
             for i, lamp in enumerate(value):
                 for g in dataclasses.fields(PTLamp):
@@ -80,9 +84,11 @@ def load_scene(path: Path) -> PTScene:
                                      else a[f"lamp{i}_{g.name}"]) for g in dataclasses.fields(PTLamp)})
                   for i in range(sum(k.endswith("_intensity_rgb") for k in a)))
     scalars = {"width": int, "height": int, "g": float, "surface_z": float, "sky_cone_deg": float}
+    spheres = (PTSpheres(**{g.name: a[f"spheres_{g.name}"] for g in dataclasses.fields(PTSpheres)})
+               if "spheres_centres" in a else None)
     rest = {f.name: (scalars[f.name](a[f.name]) if f.name in scalars else a[f.name])
-            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps") and f.name in a}
-    return PTScene(meshes=meshes, lamps=lamps, **rest)
+            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps", "spheres") and f.name in a}
+    return PTScene(meshes=meshes, lamps=lamps, spheres=spheres, **rest)
 
 
 IMAGES = ("base", "normal")

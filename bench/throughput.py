@@ -34,6 +34,8 @@ CONFIGS: dict[str, dict] = {
     "+fls": {"sensors.fls.enabled": True},
     "+sss": {"sensors.sss.enabled": True},
     "+dvl+pressure": {"sensors.dvl.enabled": True, "sensors.pressure.enabled": True},
+    # Marine snow (water.particles) at the water type's default density, beside image+labels.
+    "+particles": {"water.particles.enabled": True},
 }
 
 

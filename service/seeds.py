@@ -10,6 +10,8 @@ STREAM_FLS = 0x666C73  # "fls": forward-looking sonar speckle and noise
 STREAM_SSS = 0x737373  # "sss": side-scan sonar speckle and noise
 STREAM_NAV = 0x6E6176  # "nav": DVL, pressure and IMU noise, and the seabed depth when the water model draws none
 STREAM_NAV_BIAS = 0x62696173  # "bias": IMU biases, drawn once per dataset (frame index 0 of this stream)
+# Optical effects' own streams (seasynth.worker.optics): switching one on changes no other draw.
+STREAM_SNOW = 0x736E6F77  # "snow": marine snow, the particle field of water.particles
 
 
 def frame_rng(dataset_seed: int, frame_index: int, stream: int = STREAM_SCENE) -> np.random.Generator:

@@ -40,6 +40,24 @@ _VEILING_LIGHT: dict[str, tuple[float, float, float]] = {
     "9C": (0.030, 0.130, 0.070),
 }
 
+# Marine snow (aggregates of diameter >= 0.5 mm, the usual definition) per cubic metre, the default range of
+# water.particles.density_per_m3 for each type. Chosen, not measured: in-situ camera counts of marine snow span
+# from under one to tens of aggregates per litre (the review of Alldredge & Silver, Progress in Oceanography
+# 20:41-82, 1988), fewest in clear open ocean and most in productive coastal water; the ranges rise with the
+# types' turbidity (their particle scattering b) within that span.
+_MARINE_SNOW: dict[str, tuple[float, float]] = {
+    "I": (20.0, 100.0),
+    "II": (100.0, 500.0),
+    "III": (300.0, 1000.0),
+    "1C": (200.0, 1000.0),
+    "3C": (500.0, 2000.0),
+    "5C": (1000.0, 3000.0),
+    "7C": (2000.0, 5000.0),
+    "9C": (3000.0, 8000.0),
+}
+MARINE_SNOW_PER_M3: MappingProxyType[str, tuple[float, float]] = MappingProxyType(_MARINE_SNOW)
+"""Read-only: type name -> default marine snow density range (min, max), particles >= 0.5 mm per m^3."""
+
 JERLOV_TRANSMITTANCE: MappingProxyType[str, tuple[float, float, float]] = MappingProxyType(_TRANSMITTANCE)
 """Read-only: type name -> per-metre transmittance N, (R, G, B), dimensionless in (0, 1)."""
 

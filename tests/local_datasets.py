@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from seasynth.service.spec.dataset import load_spec
-from seasynth.worker.local.generate import generate
+from seasynth.worker.local.generate import generate, reproduce
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 
@@ -23,6 +23,18 @@ def generate_variants(root: Path, base: dict, variants: dict[str, tuple[dict, in
 
 def tree(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def same_across_workers_and_reproduce(spec, root: Path, index: int) -> Path:
+    """Generate `spec` with one worker and with two, and frame `index` again with `reproduce`; assert every file is
+    the same bytes each way. Returns the one-worker dataset's folder."""
+    one, two = root / "one", root / "two"
+    generate(spec, one, workers=1)
+    generate(spec, two, workers=2)
+    assert tree(one) == tree(two)
+    paths = reproduce(spec, index, root / "again")
+    assert paths and all((one / p).read_bytes() == (root / "again" / p).read_bytes() for p in paths)
+    return one
 
 
 def seasynth(*args: str | Path) -> subprocess.CompletedProcess:

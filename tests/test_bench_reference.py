@@ -4,7 +4,7 @@ weights each by its samples and refuses what cannot be merged."""
 import numpy as np
 import pytest
 
-from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
+from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene, PTSpheres
 from seasynth.bench.reference import (
     Reference,
     load_reference,
@@ -38,6 +38,21 @@ def test_a_scene_round_trips_through_its_file_with_its_digest(tmp_path):
     assert back.lamps[0].cutoff_deg == 40.0 and back.width == 16 and back.g == 0.92
     assert scene_digest(scene(g=0.9)) != scene_digest(s)  # any change of the scene changes its digest
     assert scene_digest(scene(lamps=())) != scene_digest(s)
+
+
+def test_a_scene_with_spheres_round_trips_and_one_without_has_no_sphere_arrays(tmp_path):
+    rng = np.random.default_rng(1)
+    spheres = PTSpheres(rng.random((7, 3)), rng.uniform(1e-4, 3e-3, 7), rng.random((7, 3), dtype=np.float32))
+    s = scene(spheres=spheres)
+    save_scene(s, tmp_path / "s.scene.npz")
+    back = load_scene(tmp_path / "s.scene.npz")
+    assert scene_digest(back) == scene_digest(s) != scene_digest(scene())
+    for name in ("centres", "radii", "albedo"):
+        assert np.array_equal(getattr(back.spheres, name), getattr(spheres, name))
+    save_scene(scene(), tmp_path / "n.scene.npz")
+    with np.load(tmp_path / "n.scene.npz") as z:
+        assert not [k for k in z.files if k.startswith("spheres")]  # scenes before spheres keep their digests
+    assert load_scene(tmp_path / "n.scene.npz").spheres is None
 
 
 def ref(value: float, spp: int, seeds, digest="x") -> Reference:

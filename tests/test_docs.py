@@ -30,7 +30,7 @@ def test_spec_reference_is_what_the_models_generate():
 def test_spec_reference_is_deterministic_and_short():
     text = reference.reference_markdown()
     assert reference.reference_markdown() == text
-    assert len(text.splitlines()) < 480  # grew with the target classes, placements, label filters and the port
+    assert len(text.splitlines()) < 500  # grew with the target classes, placements, label filters, the port and marine snow
 
 
 def section(text: str, heading: str) -> str:

@@ -1,5 +1,6 @@
 """The Mitsuba reference renderer: exported geometry and camera match an independent ray cast; radiometry is exact."""
 
+import dataclasses
 import importlib.util
 
 import numpy as np
@@ -111,6 +112,20 @@ def test_sun_on_a_white_plane_in_clear_water_is_exact():
     image = pt.render(flat_scene(sun=E), spp=2)
     # Delta light, sampled by NEE with MIS weight 1: every sample is exactly E*cos/pi; bounces escape to a black sky.
     np.testing.assert_allclose(image, np.broadcast_to(E * np.cos(np.radians(30.0)) / np.pi, image.shape), rtol=2e-5)
+
+
+def test_a_sphere_is_lambertian_with_its_albedo_and_hides_the_plane_behind_it():
+    """A sphere of albedo 0.5 under the camera: where its top faces the camera it has radiance 0.5 E cos/pi (the
+    mean of the four pixels round the centre ray, whose normals tilt symmetrically); far from it, the plane's."""
+    E = np.array([1.0, 2.0, 3.0])
+    spheres = pt.PTSpheres(np.array([[0.0, 0.0, 0.6]]), np.array([0.3]), np.array([[0.5, 0.5, 0.5]], np.float32))
+    scene = dataclasses.replace(flat_scene(sun=E), spheres=spheres)
+    image = pt.render(scene, spp=64, seed=4)
+    plane = E * np.cos(np.radians(30.0)) / np.pi
+    centre = image[H // 2 - 1: H // 2 + 1, W // 2 - 1: W // 2 + 1].reshape(-1, 3).mean(axis=0)
+    np.testing.assert_allclose(centre, 0.5 * plane, rtol=0.02)
+    np.testing.assert_allclose(image[0, 0], plane, rtol=2e-5)
+    assert pt.render_ids(scene).max() == 0  # spheres are not instances
 
 
 def test_absorbing_water_attenuates_the_view_ray_and_the_sun_ray():

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from local_datasets import same_across_workers_and_reproduce
 from PIL import Image
 
 from seasynth import service
@@ -342,12 +343,7 @@ def test_physical_light_frames_are_the_same_across_workers_and_reproduce(tmp_pat
     are the same from one worker, two workers, and `reproduce`, and meta names the model and the terms that ran."""
     spec = load_spec(example, {"camera.width": 48, "camera.height": 36, "frames": 3, "terrain.cells": 32,
                                "quality": "default", **changes})
-    one, two = tmp_path / "one", tmp_path / "two"
-    generate(spec, one, workers=1)
-    generate(spec, two, workers=2)
-    assert tree(one) == tree(two)
-    paths = reproduce(spec, 2, tmp_path / "again")
-    assert paths and all((one / p).read_bytes() == (tmp_path / "again" / p).read_bytes() for p in paths)
+    one = same_across_workers_and_reproduce(spec, tmp_path, 2)
     for i in range(spec.frames):
         water = json.loads((one / f"meta/{i:06d}.json").read_text())["water"]
         assert water["model"] == "physical" and set(water["terms"]) == terms, water["terms"]

@@ -80,6 +80,24 @@ class RGBInterval(SpecModel):
         return self
 
 
+class Particles(SpecModel):
+    """Marine snow: suspended aggregates drawn as small spheres in the volume the camera sees, lit and attenuated
+    like every surface, never labelled but hiding what lies behind them (docs/optics.md#marine-snow). Off by
+    default."""
+
+    enabled: StrictBool = False
+    # Particles per cubic metre with a diameter in diameter_mm, drawn per frame; unset: the range of the frame's
+    # Jerlov type (seasynth.service.water.MARINE_SNOW_PER_M3).
+    density_per_m3: Annotated[NonNegInterval, AfterValidator(lambda v: within(v, 0, 1e5))] | None = None
+    # The smallest and largest diameter (mm); 0.5 mm is marine snow's usual lower bound.
+    diameter_mm: Annotated[PositiveInterval, AfterValidator(lambda v: within(v, 0, 100))] = (0.5, 5.0)
+    # Diameters follow a power law n(d) ~ d^-size_slope per unit diameter between diameter_mm's bounds (4: Junge's
+    # cumulative N(>d) ~ d^-3).
+    size_slope: StrictFloat = Field(4.0, ge=0, le=8)
+    # Each particle's diffuse albedo (linear, the same in R, G and B), drawn uniformly in this range.
+    albedo: Annotated[NonNegInterval, AfterValidator(lambda v: within(v, 0, 1))] = (0.4, 0.7)
+
+
 WaterModel = Literal["physical", "paper"]
 _PAPER_FIELDS = ("beta_D", "beta_B", "B_inf")
 # Fields only the paper's model reads: a spec giving any of them and no model was written for that model.
@@ -120,6 +138,7 @@ class Water(SpecModel):
     # Spread the surfaces' forward-scattered light by its point spread function (seasynth.worker.optics
     # .forward_scatter); physical model only.
     forward_scatter: StrictBool = False
+    particles: Particles = Particles()
 
     @field_validator("jerlov")
     @classmethod
@@ -148,6 +167,7 @@ class Water(SpecModel):
         if self.forward_scatter and not (self.enabled and model == "physical"):
             raise ValueError("forward_scatter spreads light the physical model scatters; it needs water.enabled: "
                              f"true and water.model: physical (got enabled {self.enabled}, model {model})")
+        self._particles_described(model)
         if not self.enabled or self.jerlov:
             return self
         if model == "paper" and (self.beta_D is None or self.B_inf is None):
@@ -155,3 +175,15 @@ class Water(SpecModel):
         if model == "physical" and (self.absorption is None or self.scattering is None):
             raise ValueError("with no jerlov types, give absorption and scattering explicitly")
         return self
+
+    def _particles_described(self, model: str) -> None:
+        p = self.particles
+        if not p.enabled:
+            return
+        if not self.enabled:
+            raise ValueError("particles: marine snow lives in the water; set water.enabled: true")
+        explicit = ("absorption", "scattering") if model == "physical" else ("beta_D", "B_inf")
+        typed = self.jerlov and any(getattr(self, name) is None for name in explicit)
+        if p.density_per_m3 is None and not typed:
+            raise ValueError("particles.density_per_m3: give it when the water has no Jerlov type to take it from "
+                             f"(water.jerlov empty, or {' and '.join(explicit)} given)")

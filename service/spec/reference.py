@@ -69,7 +69,8 @@ MODEL_CHECKS: dict[str, str] = {
     "Lamp._check": "`direction` is not the zero vector; `beam_width_deg` <= `cutoff_deg`; `colour` >= 0 per channel.",
     "RGBInterval._check": "0 <= min <= max per channel.",
     "Water._described": "Fields of the other model are refused; with no `jerlov` types, `absorption` and "
-                        "`scattering` (physical) or `beta_D` and `B_inf` (paper) must be given.",
+                        "`scattering` (physical) or `beta_D` and `B_inf` (paper) must be given. `particles` need "
+                        "`enabled` water, and a `density_per_m3` where no Jerlov type gives the default.",
     "FLS._beam_narrower_than_fan": f"`beam_width_deg` < `horizontal_aperture_deg`; the sonar's render is at most "
                                    f"{MAX_FLS_RENDER_SIDE} pixels a side and {MAX_FLS_RENDER_PIXELS:,} in all.",
     "DatasetSpec._resolve_water_model": "`water.model` left unset resolves to `physical`, or to `paper` where the "

@@ -18,7 +18,7 @@ Every effect that ran adds its record to meta (`Optics.record`); draws come from
 from __future__ import annotations
 
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.optics import forward_scatter, geometry, sensor
+from seasynth.worker.optics import forward_scatter, geometry, particles, sensor
 from seasynth.worker.optics.base import Effect, RenderFn, Shot
 from seasynth.worker.render import DrawItem, RenderResult, View
 from seasynth.worker.scene.sample import Scene
@@ -26,7 +26,7 @@ from seasynth.worker.scene.sample import Scene
 
 def effects() -> list[Effect]:
     """Every effect, in the order light meets it."""
-    return [forward_scatter.ForwardScatter(), geometry.Geometry(), sensor.Sensor()]
+    return [particles.MarineSnow(), forward_scatter.ForwardScatter(), geometry.Geometry(), sensor.Sensor()]
 
 
 class Optics:
@@ -35,7 +35,8 @@ class Optics:
     def __init__(self, spec: DatasetSpec, index: int, scene: Scene, view: View, items: list[DrawItem]) -> None:
         self.active = [e for e in effects() if e.on(spec)]
         self.shot = Shot(spec=spec, index=index, scene=scene, view=view, render_view=view, items=list(items))
-        for effect in self.active:
+        # Effects that choose the rendered view prepare first, so what the others add (particles) fills that view.
+        for effect in sorted(self.active, key=lambda e: not e.shapes_view):
             effect.prepare(self.shot)
 
     @property

@@ -43,6 +43,7 @@ class Shot:
 
 class Effect(Protocol):
     name: str
+    shapes_view: bool  # its prepare sets shot.render_view (a port or lens): it prepares before every other effect
 
     def on(self, spec: DatasetSpec) -> bool: ...
 
@@ -58,6 +59,7 @@ class Plain:
     """An effect's defaults: prepares nothing, leaves the exposure alone, develops nothing."""
 
     name = "plain"
+    shapes_view = False
 
     def on(self, spec: DatasetSpec) -> bool:
         return False

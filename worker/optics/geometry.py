@@ -117,6 +117,7 @@ def surface_depth(inv_z: np.ndarray, ids: np.ndarray, qx: np.ndarray, qy: np.nda
 
 class Geometry(Plain):
     name = "geometry"
+    shapes_view = True
 
     def on(self, spec: DatasetSpec) -> bool:
         return not CameraModel.from_spec(spec.camera).pinhole
