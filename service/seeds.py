@@ -10,6 +10,9 @@ STREAM_FLS = 0x666C73  # "fls": forward-looking sonar speckle and noise
 STREAM_SSS = 0x737373  # "sss": side-scan sonar speckle and noise
 STREAM_NAV = 0x6E6176  # "nav": DVL, pressure and IMU noise, and the seabed depth when the water model draws none
 STREAM_NAV_BIAS = 0x62696173  # "bias": IMU biases, drawn once per dataset (frame index 0 of this stream)
+# Camera effects' own streams (seasynth.worker.optics).
+STREAM_MOTION = 0x6D6F7469  # "moti": a random frame's velocity and turn rate over the exposure (motion blur)
+STREAM_SENSOR = 0x73656E73  # "sens": photon and read noise (gaussian_sigma keeps STREAM_NOISE)
 
 
 def frame_rng(dataset_seed: int, frame_index: int, stream: int = STREAM_SCENE) -> np.random.Generator:

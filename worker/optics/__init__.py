@@ -18,7 +18,7 @@ Every effect that ran adds its record to meta (`Optics.record`); draws come from
 from __future__ import annotations
 
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.optics import sensor
+from seasynth.worker.optics import dof, motion, sensor, vignetting
 from seasynth.worker.optics.base import Effect, RenderFn, Shot
 from seasynth.worker.render import DrawItem, RenderResult, View
 from seasynth.worker.scene.sample import Scene
@@ -26,7 +26,7 @@ from seasynth.worker.scene.sample import Scene
 
 def effects() -> list[Effect]:
     """Every effect, in the order light meets it."""
-    return [sensor.Sensor()]
+    return [dof.DepthOfField(), motion.MotionBlur(), vignetting.Vignetting(), sensor.Sensor()]
 
 
 class Optics:
