@@ -57,6 +57,7 @@ WORLD_CONFIGS: dict[str, str] = {
     "long-clear-sun-lamp": "I:sun+lamp@15 long textured",
     "long-turbid-sun": "III:sun@20 long textured",
     "long-turbid-sun-lamp": "III:sun+lamp@20 long textured",
+    "clear-ocean-sun-dof": "I:sun@15 textured dof",
 }
 PRESET_NAMES = ("draft", "fast", "default", "high")
 # The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
@@ -65,12 +66,16 @@ LONG_VIEW = {"workspaces.camera": {"min": [0.0, -1.7, 1.2], "max": [0.0, -1.7, 1
              "workspaces.look_at": {"min": [0.0, 6.0, 0.0], "max": [0.0, 6.0, 0.0]}, "camera.look_at_jitter_m": 0.0}
 
 
-VIEWS = ("textured", "long")
+VIEWS = ("textured", "long", "dof")
+# Depth of field: a thin lens at f/1 focused at 1.5 m, the seabed of the near view 1.2-3.2 m away; the 100 mm
+# sensor (a 65 mm lens at the table's 320 px) makes its circles of confusion up to ~2.5 px in radius.
+DOF = {"camera.aperture_f": 1.0, "camera.focus_m": 1.5, "camera.sensor_width_mm": 100.0}
 
 
 def config_options(text: str) -> tuple[str, frozenset[str]]:
     """'WATER:LIGHT[@DEPTH] [OPTION ...]' -> ('WATER:LIGHT[@DEPTH]', options): `textured` (the procedural textures
-    on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above)."""
+    on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above),
+    `dof` (a thin lens, DOF: the path tracer's thinlens sensor, seasynth's depth of field)."""
     head, *options = text.split()
     unknown = sorted(set(options) - set(VIEWS))
     if unknown:
@@ -119,14 +124,17 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         # per-pixel textures (0.7.0).
         "materials.procedural": "textured" in options,
         **(LONG_VIEW if "long" in options else {}),
+        **(DOF if "dof" in options else {}),
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))
 
 
 def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, str, np.ndarray, float]]:
-    """(preset, terms, linear float image, ms per frame) for each row of a configuration."""
+    """(preset, terms, linear float image, ms per frame) for each row of a configuration; with a thin lens
+    (camera.aperture_f) each row's render is defocused as a frame's is (seasynth.worker.optics.dof), timed with it."""
     from seasynth.worker.frame.function import PRESETS
+    from seasynth.worker.optics.dof import defocused
     from seasynth.worker.render import Passes
 
     scene = session.scene(spec, FRAME)
@@ -142,12 +150,14 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int) -> list[tuple[str, s
     if light.terms.lamps:
         variants.append(("default", "-lamps", dataclasses.replace(
             light, terms=dataclasses.replace(light.terms, lamps=0)), None))
-    rows = []
+    rows, lens = [], spec.camera.aperture_f is not None
     for preset, terms, lt, water in variants:
         times = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes())
+            res = session.renderer.render(view, items, lt, water, PRESETS[preset], Passes(range=lens))
+            if lens:
+                res = defocused(spec.camera, view, res)[0]
             times.append(time.perf_counter() - t0)
         rows.append((preset, terms, res.image, statistics.median(times) * 1e3))
     return rows

@@ -26,7 +26,7 @@ from typing import BinaryIO
 import numpy as np
 
 from seasynth.bench import pathtracer
-from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene
+from seasynth.bench.pathtracer import PTLamp, PTLens, PTMesh, PTScene
 from seasynth.bench.pathtracer_textures import PTMaterial, procedural_image
 
 SCENE_SUFFIX = ".scene.npz"
@@ -45,6 +45,10 @@ def _scene_arrays(scene: PTScene) -> dict[str, np.ndarray]:
                 out[f"mesh{i}_instance_id"] = np.asarray(m.instance_id, np.int64)
                 if m.material is not None:
                     out.update(_material_arrays(m.material, f"mesh{i}_mat_"))
+        elif f.name == "lens":  # absent for a pinhole, so the digests of scenes from before lenses stay
+            if value is not None:
+                out.update({f"lens_{g.name}": np.asarray(getattr(value, g.name), np.float64)
+                            for g in dataclasses.fields(PTLens)})
         elif f.name == "lamps":
             for i, lamp in enumerate(value):
                 for g in dataclasses.fields(PTLamp):
@@ -79,8 +83,10 @@ def load_scene(path: Path) -> PTScene:
                   for i in range(sum(k.endswith("_intensity_rgb") for k in a)))
     scalars = {"width": int, "height": int, "g": float, "surface_z": float, "sky_cone_deg": float}
     rest = {f.name: (scalars[f.name](a[f.name]) if f.name in scalars else a[f.name])
-            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps")}
-    return PTScene(meshes=meshes, lamps=lamps, **rest)
+            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps", "lens")}
+    lens = PTLens(**{g.name: float(a[f"lens_{g.name}"]) for g in dataclasses.fields(PTLens)}) \
+        if "lens_focus_m" in a else None
+    return PTScene(meshes=meshes, lamps=lamps, lens=lens, **rest)
 
 
 IMAGES = ("base", "normal")

@@ -10,9 +10,10 @@ import math
 import numpy as np
 
 from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.spec.lens import Lens
 from seasynth.worker.light.volume import pixel_rays
 from seasynth.worker.optics.base import Plain, Shot
-from seasynth.worker.render import RenderResult
+from seasynth.worker.render import RenderResult, View
 
 # A larger circle of confusion is drawn at this radius: the gather's cost grows with its square (pi R^2 offsets).
 MAX_RADIUS_PX = 16
@@ -80,21 +81,22 @@ class DepthOfField(Plain):
         shot.needs.add("range")
 
     def develop(self, shot: Shot, result: RenderResult) -> RenderResult:
-        cam, view = shot.spec.camera, shot.view
-        fx = float(view.K[0, 0])
-        focal_m = cam.focal_length_m(fx, view.width)
-        cos_field = pixel_rays(view.K, view.width, view.height, np.eye(4))[1][..., 2]
-        z = result.range_m * cos_field  # range along the pixel's ray -> depth along the optical axis
-        radius = coc_radius_px(z, fx, focal_m, cam.aperture_f, cam.focus_m)
-        images = [result.image] + ([] if result.clean is None else [result.clean])
-        blurred = gather_blur(images, radius, z)
-        shot.record[self.name] = {
-            "aperture_f": cam.aperture_f,
-            "focus_m": cam.focus_m,
-            "focal_length_mm": focal_m * 1000.0,
-            "sensor_width_mm": cam.sensor_width_mm,
-            "max_coc_radius_px": float(radius.max()),
-            "radius_cap_px": MAX_RADIUS_PX,
-        }
-        clean = None if result.clean is None else blurred[1]
-        return dataclasses.replace(result, image=blurred[0], clean=clean)
+        out, shot.record[self.name] = defocused(shot.spec.camera, shot.view, result)
+        return out
+
+
+def defocused(cam: Lens, view: View, result: RenderResult) -> tuple[RenderResult, dict]:
+    """The render (its image and clean image; range from its range pass) as the lens `cam` images it from `view`,
+    and meta's record of it."""
+    fx = float(view.K[0, 0])
+    focal_m = cam.focal_length_m(fx, view.width)
+    cos_field = pixel_rays(view.K, view.width, view.height, np.eye(4))[1][..., 2]
+    z = result.range_m * cos_field  # range along the pixel's ray -> depth along the optical axis
+    radius = coc_radius_px(z, fx, focal_m, cam.aperture_f, cam.focus_m)
+    images = [result.image] + ([] if result.clean is None else [result.clean])
+    blurred = gather_blur(images, radius, z)
+    record = {"aperture_f": cam.aperture_f, "focus_m": cam.focus_m, "focal_length_mm": focal_m * 1000.0,
+              "sensor_width_mm": cam.sensor_width_mm, "max_coc_radius_px": float(radius.max()),
+              "radius_cap_px": MAX_RADIUS_PX}
+    clean = None if result.clean is None else blurred[1]
+    return dataclasses.replace(result, image=blurred[0], clean=clean), record
