@@ -7,7 +7,7 @@ import json
 import math
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from seasynth.service.spec.dataset import load_spec, parse_spec
@@ -15,6 +15,7 @@ from seasynth.worker.optics.base import Shot
 from seasynth.worker.optics.dof import MAX_RADIUS_PX, DepthOfField, coc_radius_px, gather_blur
 from seasynth.worker.optics.motion import (
     MAX_INSTANTS,
+    MotionBlur,
     frame_motion,
     instant_count,
     instants,
@@ -24,11 +25,13 @@ from seasynth.worker.optics.motion import (
 )
 from seasynth.worker.optics.vignetting import Vignetting, vignetting_gain
 from seasynth.worker.render import RenderResult, View
+from seasynth.worker.scene.trajectory import vehicle_state
 
 EXAMPLE = "examples/urchins.yaml"
 SMALL = {"camera.width": 64, "camera.height": 48, "outputs.meta": True, "outputs.instance": True,
          "outputs.range": True}
 sides = st.integers(9, 41)
+seconds = st.one_of(st.just(0.0), st.floats(1e-5, 0.5))  # an exposure or readout time: none, or one
 
 
 def camera(width: int, height: int, hfov_deg: float, cx: float | None = None, cy: float | None = None) -> View:
@@ -153,7 +156,7 @@ def test_vignetting_keeps_the_centre_and_darkens_corners_by_cos4(w, h, hfov, s, 
 
 @settings(max_examples=50, deadline=None)
 @given(span=st.floats(1e-4, 1), n=st.integers(1, MAX_INSTANTS // 2).map(lambda k: 2 * k + 1),
-       exposure=st.floats(0, 0.5), readout=st.floats(0, 0.5), h=st.integers(8, 64))
+       exposure=seconds, readout=seconds, h=st.integers(8, 64))
 def test_instants_and_row_weights(span, n, exposure, readout, h):
     span = exposure + readout if exposure + readout > 0 else span
     t = instants(span, n)
@@ -192,6 +195,16 @@ def test_a_random_frame_s_motion_is_drawn_in_its_ranges_from_its_own_stream(seed
     assert math.radians(rate[0]) - 1e-9 <= np.linalg.norm(omega) <= math.radians(rate[1]) + 1e-9
 
 
+@settings(max_examples=20, deadline=None)
+@given(index=st.integers(0, 10**4), speed=st.floats(0.05, 5), heave=st.floats(0, 2), rate=st.floats(0.1, 20))
+def test_a_survey_frame_moves_at_its_trajectorys_velocity(index, speed, heave, rate):
+    spec = parse_spec({"camera": {"exposure_s": 0.01, "velocity_m_s": [9.0, 9.0]},
+                       "trajectory": {"kind": "lawnmower", "speed_m_s": speed, "heave_m": heave, "rate_hz": rate}})
+    velocity, omega = frame_motion(spec, index, np.eye(4))
+    state = vehicle_state(spec.trajectory, index)
+    assert velocity.tobytes() == state.velocity_world.tobytes() and omega.tobytes() == state.angular_rate_world.tobytes()
+
+
 def test_no_motion_or_no_exposure_is_no_blur_to_the_byte(render_session):
     off = render_session.frame_files(load_spec(EXAMPLE, SMALL), 1)
     for extra in ({"camera.exposure_s": 0.0, "camera.velocity_m_s": [1.0, 2.0]},  # no exposure: the effect is off
@@ -223,3 +236,38 @@ def test_a_blurred_frame_keeps_the_mid_exposure_labels_and_geometry(render_sessi
     # The middle rows are read at the frame's time; the top and bottom ones at other instants.
     h = mid.shape[0]
     assert not np.array_equal(skewed[0], mid[0]) or not np.array_equal(skewed[h - 1], mid[h - 1])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), speed=st.floats(0.2, 3), exposure=seconds, readout=seconds,
+       h=st.integers(8, 40))
+def test_each_row_averages_the_instants_of_its_window_and_takes_its_labels_from_the_nearest(seed, speed, exposure,
+                                                                                             readout, h):
+    spec = parse_spec({"seed": seed, "camera": {"width": 16, "height": h, "exposure_s": exposure, "readout_s": readout,
+                                                "velocity_m_s": [speed, speed]}})
+    assume(exposure + readout > 1e-3)  # a streak of at least a few hundredths of a pixel
+    view = camera(16, h, 60.0)
+    velocity, _ = frame_motion(spec, 0, np.eye(4))
+    times: list[float] = []
+
+    def render(v: View, items) -> RenderResult:
+        """Each pixel holds the instant's time (the camera's travel along the velocity over the speed); its
+        instance ids the call's number; everything 2 m away."""
+        t = float(np.linalg.inv(v.cam_from_world)[:3, 3] @ velocity) / speed**2
+        times.append(t)
+        full = np.full((h, 16), len(times), np.uint32)
+        return RenderResult(image=np.full((h, 16, 3), t, np.float32), clean=None, instance=full,
+                            range_m=np.full((h, 16), 2.0, np.float32))
+
+    s = shot(spec, view)
+    out = MotionBlur().expose(s, render)
+    n = s.record["motion_blur"]["instants"]
+    assert len(times) == n and n >= 3 and times[0] == 0.0  # the middle instant first: the frame's own view
+    centre = (np.arange(h) / (h - 1) - 0.5) * readout
+    cell = (exposure + readout) / n
+    # A row's window [c - T/2, c + T/2] averaged over cells of the instants: its mean time is c, to within a cell.
+    assert np.all(np.abs(out.image[:, 0, 0] - centre) <= cell / 2 + 1e-6)
+    nearest = np.array(times)[out.instance[:, 0] - 1]
+    assert np.all(np.abs(nearest - centre) <= cell / 2 + 1e-9)  # labels from the instant nearest the row's centre
+    if readout == 0:
+        assert np.all(out.instance == 1)  # a global shutter: the middle instant's, the frame's own
