@@ -188,8 +188,8 @@ def test_a_random_frame_s_motion_is_drawn_in_its_ranges_from_its_own_stream(seed
     v, rate = tuple(sorted(v)), tuple(sorted(rate))
     spec = parse_spec({"seed": seed, "camera": {"exposure_s": 0.01, "velocity_m_s": list(v),
                                                 "angular_rate_deg_s": list(rate)}})
-    velocity, omega = frame_motion(spec, index, np.eye(4))
-    again = frame_motion(spec, index, np.eye(4))
+    velocity, omega = frame_motion(spec, index)
+    again = frame_motion(spec, index)
     assert velocity.tobytes() == again[0].tobytes() and omega.tobytes() == again[1].tobytes()
     assert v[0] - 1e-9 <= np.linalg.norm(velocity) <= v[1] + 1e-9
     assert math.radians(rate[0]) - 1e-9 <= np.linalg.norm(omega) <= math.radians(rate[1]) + 1e-9
@@ -200,7 +200,7 @@ def test_a_random_frame_s_motion_is_drawn_in_its_ranges_from_its_own_stream(seed
 def test_a_survey_frame_moves_at_its_trajectorys_velocity(index, speed, heave, rate):
     spec = parse_spec({"camera": {"exposure_s": 0.01, "velocity_m_s": [9.0, 9.0]},
                        "trajectory": {"kind": "lawnmower", "speed_m_s": speed, "heave_m": heave, "rate_hz": rate}})
-    velocity, omega = frame_motion(spec, index, np.eye(4))
+    velocity, omega = frame_motion(spec, index)
     state = vehicle_state(spec.trajectory, index)
     assert velocity.tobytes() == state.velocity_world.tobytes() and omega.tobytes() == state.angular_rate_world.tobytes()
 
@@ -247,7 +247,7 @@ def test_each_row_averages_the_instants_of_its_window_and_takes_its_labels_from_
                                                 "velocity_m_s": [speed, speed]}})
     assume(exposure + readout > 1e-3)  # a streak of at least a few hundredths of a pixel
     view = camera(16, h, 60.0)
-    velocity, _ = frame_motion(spec, 0, np.eye(4))
+    velocity, _ = frame_motion(spec, 0)
     times: list[float] = []
 
     def render(v: View, items) -> RenderResult:

@@ -35,7 +35,6 @@ MAX_INSTANTS = 33  # odd, so the middle instant is the frame's time
 PIXELS_PER_INSTANT = 1.0
 
 
-
 def rotation(axis_angle: np.ndarray) -> np.ndarray:
     """(3, 3) rotation by |axis_angle| radians about its direction (Rodrigues)."""
     angle = float(np.linalg.norm(axis_angle))
@@ -55,7 +54,7 @@ def pose_at(world_from_cam: np.ndarray, velocity_world: np.ndarray, rate_world: 
     return out
 
 
-def frame_motion(spec: DatasetSpec, index: int, world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def frame_motion(spec: DatasetSpec, index: int) -> tuple[np.ndarray, np.ndarray]:
     """(velocity_world m/s, angular_rate_world rad/s), each (3,) float64: the trajectory's, or for random frames
     drawn from the frame's motion stream (speed, direction, rate, axis; directions uniform on the sphere)."""
     state = vehicle_state(spec.trajectory, index)
@@ -145,7 +144,7 @@ class MotionBlur(Plain):
     def expose(self, shot: Shot, render: RenderFn) -> RenderResult:
         cam, view = shot.spec.camera, shot.render_view
         world_from_cam = np.linalg.inv(view.cam_from_world)
-        velocity, rate = frame_motion(shot.spec, shot.index, world_from_cam)
+        velocity, rate = frame_motion(shot.spec, shot.index)
         span = cam.exposure_s + cam.readout_s
         mid = render(view, shot.items)
         ends = [pose_at(world_from_cam, velocity, rate, t) for t in (-span / 2, span / 2)]
