@@ -26,6 +26,8 @@ from seasynth.service.spec.lens import Noise
 from seasynth.worker.optics.base import Plain, Shot
 from seasynth.worker.render import RenderResult
 
+SATURATE = 1.0 + 1e-6
+
 
 def gray_world(image: np.ndarray) -> np.ndarray:
     """(3,) float64 multipliers that make the channel means of image ((h, w, 3) linear) equal to their mean (a
@@ -38,7 +40,8 @@ def gray_world(image: np.ndarray) -> np.ndarray:
 def metered_scale(values: np.ndarray, target: float) -> float:
     """The s >= 0 with mean(clip(s * values, 0, 1)) == target, values >= 0 (any shape); the mean is piecewise
     linear in s: with the k smallest values unclipped it is (s C_k + n - k) / n, C_k their sum. When the target is
-    out of reach (at least as many values are 0 as the target leaves dark), s saturates every nonzero value."""
+    out of reach (at least as many values are 0 as the target leaves dark), s saturates every nonzero value (a
+    margin over the smallest's reciprocal so that float32 products reach 1 too)."""
     v = np.sort(np.maximum(values.reshape(-1).astype(np.float64), 0.0))
     n = v.size
     c = np.cumsum(v)
@@ -50,7 +53,7 @@ def metered_scale(values: np.ndarray, target: float) -> float:
     if ok.any():
         return float(s[np.argmax(ok)])
     nonzero = v[v > 0]
-    return 1.0 / float(nonzero.min()) if nonzero.size else 1.0
+    return SATURATE / float(nonzero.min()) if nonzero.size else 1.0
 
 
 def wb_multipliers(noise: Noise, image: np.ndarray) -> np.ndarray:
