@@ -23,6 +23,7 @@ import numpy as np
 from seasynth.bench.accuracy import EXAMPLE, psnr_db, write_results
 from seasynth.bench.fidelity_configs import (  # noqa: F401 (the configurations are the bench's public names)
     CONFIGS,
+    DOF,
     LAMPS,
     LONG_VIEW,
     PRESET_NAMES,
@@ -47,7 +48,8 @@ def config_options(text: str) -> tuple[str, frozenset[str]]:
     """'WATER:LIGHT[@DEPTH] [OPTION ...]' -> ('WATER:LIGHT[@DEPTH]', options): `textured` (the procedural textures
     on), `long` (a long view: a low camera pitch, the seabed out to where the water hides it, open water above),
     `port` (the camera behind a flat port: camera.port kind flat at its defaults),
-    `particles` (marine snow at the water type's default density)."""
+    `particles` (marine snow at the water type's default density),
+    `dof` (a thin lens, DOF: the path tracer's thinlens sensor, seasynth's depth of field)."""
     head, *options = text.split()
     unknown = sorted(set(options) - set(VIEWS))
     if unknown:
@@ -98,6 +100,7 @@ def config_spec(text: str, size: tuple[int, int] = (WIDTH, HEIGHT)) -> DatasetSp
         **(LONG_VIEW if "long" in options else {}),
         **({"camera.port": {"kind": "flat"}} if "port" in options else {}),
         **({"water.particles.enabled": True} if "particles" in options else {}),
+        **(DOF if "dof" in options else {}),
         **_water_overrides(water),
     }
     return DatasetSpec.model_validate(apply_overrides(read_spec_file(EXAMPLE), overrides))

@@ -34,10 +34,12 @@ WORLD_CONFIGS: dict[str, str] = {
     # sky (beside coastal-sun-textured), and by the lamps near the camera.
     "coastal-sun-particles": "1C:sun@6 textured particles",
     "turbid-lamps-particles": "3C:lamp@40 textured particles",
+    "clear-ocean-sun-dof": "I:sun@15 textured dof",
 }
 # Configurations whose references are still to be path traced (on a GPU host: bench/reference.py) and stored in
 # bench/results/cpu/fidelity-references/; until then `seasynth bench fidelity --config NAME` renders one here.
-REFERENCES_PENDING = frozenset({"ocean-sun-port", "coastal-sun-particles", "turbid-lamps-particles"})
+REFERENCES_PENDING = frozenset({"ocean-sun-port", "coastal-sun-particles", "turbid-lamps-particles",
+                                "clear-ocean-sun-dof"})
 PRESET_NAMES = ("draft", "fast", "default", "high")
 # The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
 # frame holds seabed from ~2 m out to where the water hides it and open water above.
@@ -45,4 +47,7 @@ LONG_VIEW = {"workspaces.camera": {"min": [0.0, -1.7, 1.2], "max": [0.0, -1.7, 1
              "workspaces.look_at": {"min": [0.0, 6.0, 0.0], "max": [0.0, 6.0, 0.0]}, "camera.look_at_jitter_m": 0.0}
 
 
-VIEWS = ("textured", "long", "port", "particles")
+VIEWS = ("textured", "long", "port", "particles", "dof")
+# Depth of field: a thin lens at f/1 focused at 1.5 m, the seabed of the near view 1.2-3.2 m away; the 100 mm
+# sensor (a 65 mm lens at the table's 320 px) makes its circles of confusion up to ~2.5 px in radius.
+DOF = {"camera.aperture_f": 1.0, "camera.focus_m": 1.5, "camera.sensor_width_mm": 100.0}

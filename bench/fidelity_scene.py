@@ -54,7 +54,18 @@ def exported_scene(session, spec: DatasetSpec, scene):
                    world_from_cam=world_from_cam, sigma_a=light.medium.a, sigma_s=light.medium.b, g=light.medium.g,
                    surface_z=light.medium.surface_z, sun_dir_world=light.sun_dir_world,
                    sun_irradiance_rgb=math.pi * light.sun_irradiance, sky_radiance_rgb=sky, lamps=lamps,
-                   sky_cone_deg=SNELL_CONE_DEG)
+                   sky_cone_deg=SNELL_CONE_DEG, lens=thin_lens(spec, view))
+
+
+def thin_lens(spec: DatasetSpec, view):
+    """The camera's thin lens for the path tracer (bench.pathtracer.PTLens), or None for a pinhole."""
+    from seasynth.bench.pathtracer import PTLens
+
+    cam = spec.camera
+    if cam.aperture_f is None:
+        return None
+    f = cam.focal_length_m(float(view.K[0, 0]), view.width)
+    return PTLens(aperture_radius_m=f / (2.0 * cam.aperture_f) * cam.focus_m / (cam.focus_m - f), focus_m=cam.focus_m)
 
 
 def port_slab(spec: DatasetSpec) -> np.ndarray | None:

@@ -74,6 +74,17 @@ class PTLamp:
 
 
 @dataclass(frozen=True)
+class PTLens:
+    """A thin lens in place of the pinhole: Mitsuba's `thinlens` sensor, its aperture's radius (world m) and the
+    distance to the plane in focus (z, world m). Mitsuba keeps the pinhole's field of view at every focus, so a
+    lens of focal length f and f-number N focused at S has radius f / (2 N) * S / (S - f) here: the circle of
+    confusion a real thin lens (whose image distance grows as it focuses closer) gives, in pixels."""
+
+    aperture_radius_m: float
+    focus_m: float
+
+
+@dataclass(frozen=True)
 class PTScene:
     """A scene to path-trace.
 
@@ -97,11 +108,11 @@ class PTScene:
     sky_radiance_rgb: np.ndarray
     lamps: tuple[PTLamp, ...] = ()
     sky_cone_deg: float = 48.6
-    # A flat port in front of the camera (seasynth.service.camera_model.Slab as (5,) float64: inner_m, outer_m,
-    # air_index, glass_index, water_index): the camera in air, a glass slab between the planes z = inner_m and
-    # z = outer_m of the camera frame, the water beyond. None: the camera in the water.
+    # A flat port (camera_model.Slab as (5,) float64: inner_m, outer_m, air_index, glass_index, water_index): the camera
+    # in air, glass between the camera frame's planes z = inner_m and z = outer_m, water beyond. None: no port.
     slab: np.ndarray | None = None
     spheres: PTSpheres | None = None
+    lens: PTLens | None = None  # None: a pinhole
 
 
 def find_libllvm() -> str:
@@ -233,10 +244,17 @@ def _sensor(scene: PTScene, far_clip: float, mi) -> dict:
     K = np.asarray(scene.K, dtype=np.float64)
     w, h = int(scene.width), int(scene.height)
     # Mitsuba maps the film's x extent to x_fov and shifts the principal point by a fraction of the film size.
+    offset = {"principal_point_offset_x": float(((w - 1) / 2.0 - K[0, 2]) / w),
+              "principal_point_offset_y": float(((h - 1) / 2.0 - K[1, 2]) / h)}
+    camera: dict = {"type": "perspective", **offset}
+    if scene.lens is not None:
+        if any(offset.values()):  # Mitsuba's thinlens has no principal point offset
+            raise ValueError(f"PTScene.lens: Mitsuba's thinlens sensor needs the principal point at the image centre; "
+                             f"K has cx={K[0, 2]}, cy={K[1, 2]} for {w}x{h}")
+        camera = {"type": "thinlens", "aperture_radius": float(scene.lens.aperture_radius_m),
+                  "focus_distance": float(scene.lens.focus_m)}
     return {
-        "type": "perspective", "fov_axis": "x", "fov": float(np.degrees(2.0 * np.arctan(w / (2.0 * K[0, 0])))),
-        "principal_point_offset_x": float(((w - 1) / 2.0 - K[0, 2]) / w),
-        "principal_point_offset_y": float(((h - 1) / 2.0 - K[1, 2]) / h),
+        **camera, "fov_axis": "x", "fov": float(np.degrees(2.0 * np.arctan(w / (2.0 * K[0, 0])))),
         "near_clip": NEAR_CLIP_M, "far_clip": far_clip,
         "to_world": mi.ScalarTransform4f(np.asarray(scene.world_from_cam, np.float64) @ KITTI_FROM_MITSUBA_CAM),
         **({"medium": {"type": "ref", "id": "water"}} if scene.slab is None else {}),

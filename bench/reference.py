@@ -26,7 +26,7 @@ from typing import BinaryIO
 import numpy as np
 
 from seasynth.bench import pathtracer
-from seasynth.bench.pathtracer import PTLamp, PTMesh, PTScene, PTSpheres
+from seasynth.bench.pathtracer import PTLamp, PTLens, PTMesh, PTScene, PTSpheres
 from seasynth.bench.pathtracer_textures import PTMaterial, procedural_image
 
 SCENE_SUFFIX = ".scene.npz"
@@ -51,6 +51,10 @@ def _scene_arrays(scene: PTScene) -> dict[str, np.ndarray]:
             if value is not None:
                 out.update({f"spheres_{g.name}": np.asarray(getattr(value, g.name), np.float32 if g.name == "albedo"
                                                             else np.float64) for g in dataclasses.fields(PTSpheres)})
+        elif f.name == "lens":  # absent for a pinhole, so the digests of scenes from before lenses stay
+            if value is not None:
+                out.update({f"lens_{g.name}": np.asarray(getattr(value, g.name), np.float64)
+                            for g in dataclasses.fields(PTLens)})
         elif f.name == "lamps":
             for i, lamp in enumerate(value):
                 for g in dataclasses.fields(PTLamp):
@@ -87,8 +91,10 @@ def load_scene(path: Path) -> PTScene:
     spheres = (PTSpheres(**{g.name: a[f"spheres_{g.name}"] for g in dataclasses.fields(PTSpheres)})
                if "spheres_centres" in a else None)
     rest = {f.name: (scalars[f.name](a[f.name]) if f.name in scalars else a[f.name])
-            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps", "spheres") and f.name in a}
-    return PTScene(meshes=meshes, lamps=lamps, spheres=spheres, **rest)
+            for f in dataclasses.fields(PTScene) if f.name not in ("meshes", "lamps", "spheres", "lens") and f.name in a}
+    lens = PTLens(**{g.name: float(a[f"lens_{g.name}"]) for g in dataclasses.fields(PTLens)}) \
+        if "lens_focus_m" in a else None
+    return PTScene(meshes=meshes, lamps=lamps, spheres=spheres, lens=lens, **rest)
 
 
 IMAGES = ("base", "normal")

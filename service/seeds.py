@@ -12,6 +12,8 @@ STREAM_NAV = 0x6E6176  # "nav": DVL, pressure and IMU noise, and the seabed dept
 STREAM_NAV_BIAS = 0x62696173  # "bias": IMU biases, drawn once per dataset (frame index 0 of this stream)
 # Optical effects' own streams (seasynth.worker.optics): switching one on changes no other draw.
 STREAM_SNOW = 0x736E6F77  # "snow": marine snow, the particle field of water.particles
+STREAM_MOTION = 0x6D6F7469  # "moti": a random frame's velocity and turn rate over the exposure (motion blur)
+STREAM_SENSOR = 0x73656E73  # "sens": photon and read noise (gaussian_sigma keeps STREAM_NOISE)
 
 
 def frame_rng(dataset_seed: int, frame_index: int, stream: int = STREAM_SCENE) -> np.random.Generator:

@@ -19,6 +19,7 @@ from pydantic import (
 )
 
 from seasynth.service.spec.optics import Distortion, Port, check_distortion, distortion_folds
+from seasynth.service.spec.lens import Lens, Noise  # noqa: F401 (Noise: the spec's sections are imported from here)
 from seasynth.service.spec.types import (
     MAX_CHOICES,
     MAX_MAGNITUDE,
@@ -91,7 +92,7 @@ class Intrinsics(SpecModel):
     cy: StrictFloat = Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)
 
 
-class Camera(SpecModel):
+class Camera(Lens):
     # The schema states half of _one_projection: not both hfov_deg and intrinsics.
     model_config = ConfigDict(json_schema_extra={"not": {
         "required": ["hfov_deg", "intrinsics"],
@@ -142,6 +143,12 @@ class Camera(SpecModel):
                 if 2 * math.degrees(math.atan(side / (2 * f))) >= 170.0:
                     raise ValueError(f"intrinsics.{name} {f} px gives a field of view of 170 deg or more over "
                                      f"{side} px; at least {side / (2 * math.tan(math.radians(85.0))):.4g}")
+        return self
+
+    @model_validator(mode="after")
+    def _focus_beyond_focal_length(self) -> Camera:
+        """With `aperture_f`, `focus_m` lies beyond the focal length, fx * sensor_width_mm / 1000 / width metres."""
+        self.check_focus(self.K()[0][0], self.width)
         return self
 
     def K(self) -> list[list[float]]:
@@ -287,9 +294,3 @@ class TextureRandomisation(SpecModel):
 
     scale: NonNegInterval = (0.75, 1.25)
     bias: Interval = (-0.04, 0.04)
-
-
-class Noise(SpecModel):
-    """Camera noise: off by default; recorded in meta when on."""
-
-    gaussian_sigma: StrictFloat = Field(0.0, ge=0, le=0.5)

@@ -18,7 +18,7 @@ Every effect that ran adds its record to meta (`Optics.record`); draws come from
 from __future__ import annotations
 
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.optics import forward_scatter, geometry, particles, sensor
+from seasynth.worker.optics import dof, forward_scatter, geometry, motion, particles, sensor, vignetting
 from seasynth.worker.optics.base import Effect, RenderFn, Shot
 from seasynth.worker.render import DrawItem, RenderResult, View
 from seasynth.worker.scene.sample import Scene
@@ -26,7 +26,8 @@ from seasynth.worker.scene.sample import Scene
 
 def effects() -> list[Effect]:
     """Every effect, in the order light meets it."""
-    return [particles.MarineSnow(), forward_scatter.ForwardScatter(), geometry.Geometry(), sensor.Sensor()]
+    return [particles.MarineSnow(), forward_scatter.ForwardScatter(), geometry.Geometry(), dof.DepthOfField(),
+            motion.MotionBlur(), vignetting.Vignetting(), sensor.Sensor()]
 
 
 class Optics:

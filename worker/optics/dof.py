@@ -1,0 +1,102 @@
+"""Depth of field: a thin lens's circle of confusion per pixel from its range, applied as a depth-aware gather blur in
+linear light (spec `camera.aperture_f`, `camera.focus_m`, `camera.sensor_width_mm`). Geometry does not move: range,
+depth, instance ids and labels are the pinhole's."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.service.spec.lens import Lens
+from seasynth.worker.light.volume import pixel_rays
+from seasynth.worker.optics.base import Plain, Shot
+from seasynth.worker.render import RenderResult, View
+
+# A larger circle of confusion is drawn at this radius: the gather's cost grows with its square (pi R^2 offsets).
+MAX_RADIUS_PX = 16
+
+
+def coc_radius_px(z_m: np.ndarray, fx_px: float, focal_m: float, f_number: float, focus_m: float) -> np.ndarray:
+    """(h, w) float32: radius in pixels of the thin lens's circle of confusion for points at z-depth z_m ((h, w)
+    metres, +inf where no surface), focused at focus_m. Its diameter on the sensor is A f |z - S| / (z (S - f)) with
+    aperture A = f / N; in pixels (pitch f / fx): A fx |1 - S / z| / (S - f), which tends to A fx / (S - f) far away."""
+    aperture_m = focal_m / f_number
+    with np.errstate(divide="ignore"):
+        inv_z = np.where(np.isfinite(z_m), 1.0 / z_m.astype(np.float64), 0.0)
+    diameter = aperture_m * fx_px * np.abs(1.0 - focus_m * inv_z) / (focus_m - focal_m)
+    return (0.5 * diameter).astype(np.float32)
+
+
+def gather_blur(images: list[np.ndarray], radius_px: np.ndarray, z_m: np.ndarray) -> list[np.ndarray]:
+    """Each (h, w, 3) float32 linear image blurred by the per-pixel discs of radius_px ((h, w) float32 pixels, at most
+    MAX_RADIUS_PX), scatter-as-gather: a neighbour s at distance d lends pixel p its light with weight
+    coverage(r_s - d) / r_s^2 (its disc's share per pixel; coverage(x) = clip(x + 1/2, 0, 1), an anti-aliased disc
+    edge), and a neighbour behind p (z_s > z_p) only inside p's own disc too, so an in-focus foreground edge keeps
+    the blurred background off it while a blurred foreground spreads over what lies behind it. Radii at or under
+    1/2 px reach no neighbour: where no neighbour lends anything, the pixel keeps its value exactly."""
+    r = np.minimum(radius_px, MAX_RADIUS_PX).astype(np.float32)
+    limit = float(r.max()) + 0.5 if r.size else 0.0  # a disc reaches the offsets d < r + 1/2
+    reach = math.ceil(limit) - 1
+    if reach <= 0:
+        return images
+    h, w = r.shape
+    pad = ((reach, reach), (reach, reach))
+    r_pad = np.pad(r, pad, constant_values=-1.0)  # outside the image: no sample
+    z = np.where(np.isfinite(z_m), z_m, np.inf).astype(np.float32)
+    z_pad = np.pad(z, pad, constant_values=np.inf)
+    padded = [np.pad(im, (*pad, (0, 0))) for im in images]
+    own = 1.0 / np.maximum(r, 0.5) ** 2
+    acc = [np.zeros_like(im) for im in images]
+    weight = np.zeros((h, w), np.float32)
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            d = math.hypot(dx, dy)
+            if d == 0 or d >= limit:
+                continue
+            window = (slice(reach + dy, reach + dy + h), slice(reach + dx, reach + dx + w))
+            r_s = r_pad[window]
+            lend = np.clip(r_s - d + 0.5, 0.0, 1.0)
+            behind = z_pad[window] > z
+            lend = np.where(behind, lend * np.clip(r - d + 0.5, 0.0, 1.0), lend) / np.maximum(r_s, 0.5) ** 2
+            weight += lend
+            for a, p in zip(acc, padded):
+                a += lend[..., None] * p[window]
+    lent = weight > 0
+    total = (own + weight)[..., None]
+    return [np.where(lent[..., None], (own[..., None] * im + a) / total, im).astype(np.float32)
+            for im, a in zip(images, acc)]
+
+
+class DepthOfField(Plain):
+    name = "depth_of_field"
+
+    def on(self, spec: DatasetSpec) -> bool:
+        return spec.camera.aperture_f is not None
+
+    def prepare(self, shot: Shot) -> None:
+        shot.float_image = True
+        shot.needs.add("range")
+
+    def develop(self, shot: Shot, result: RenderResult) -> RenderResult:
+        out, shot.record[self.name] = defocused(shot.spec.camera, shot.view, result)
+        return out
+
+
+def defocused(cam: Lens, view: View, result: RenderResult) -> tuple[RenderResult, dict]:
+    """The render (its image and clean image; range from its range pass) as the lens `cam` images it from `view`,
+    and meta's record of it."""
+    fx = float(view.K[0, 0])
+    focal_m = cam.focal_length_m(fx, view.width)
+    cos_field = pixel_rays(view.K, view.width, view.height, np.eye(4))[1][..., 2]
+    z = result.range_m * cos_field  # range along the pixel's ray -> depth along the optical axis
+    radius = coc_radius_px(z, fx, focal_m, cam.aperture_f, cam.focus_m)
+    images = [result.image] + ([] if result.clean is None else [result.clean])
+    blurred = gather_blur(images, radius, z)
+    record = {"aperture_f": cam.aperture_f, "focus_m": cam.focus_m, "focal_length_mm": focal_m * 1000.0,
+              "sensor_width_mm": cam.sensor_width_mm, "max_coc_radius_px": float(radius.max()),
+              "radius_cap_px": MAX_RADIUS_PX}
+    clean = None if result.clean is None else blurred[1]
+    return dataclasses.replace(result, image=blurred[0], clean=clean), record
