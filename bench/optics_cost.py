@@ -17,7 +17,18 @@ import tempfile
 from pathlib import Path
 
 # One typical setting per effect: what a user turning it on would write.
-EFFECTS: dict[str, dict] = {}
+EFFECTS: dict[str, dict] = {
+    "marine snow": {"water.particles": {"enabled": True}},  # the water type's default density
+    "forward scatter": {"water.forward_scatter": True},
+    "flat port": {"camera.port": {"kind": "flat"}},
+    "dome port": {"camera.port": {"kind": "dome", "pupil_offset_mm": [0.0, 0.0, 10.0]}},
+    "lens distortion": {"camera.distortion": [-0.25, 0.08, 0.0, 0.0, 0.0]},
+    "depth of field": {"camera.aperture_f": 1.4, "camera.focus_m": 2.0, "camera.sensor_width_mm": 36.0},
+    "motion blur": {"camera.exposure_s": 1.0 / 60.0, "camera.velocity_m_s": [0.5, 1.0]},
+    "vignetting": {"camera.vignetting": 1.0},
+    "sensor": {"noise.full_well_e": 10000.0, "noise.read_noise_e": 5.0, "noise.auto_exposure": 0.4,
+               "noise.white_balance": "gray_world"},
+}
 
 
 def run(spec_path: Path, *, width: int, height: int, frames: int, rounds: int, effects: list[str],
