@@ -15,7 +15,10 @@ from seasynth.service.spec.dataset import parse_spec
 from seasynth.worker.optics.particles import (
     ICO_FACES,
     ICO_VERTICES,
+    MAX_PARTICLES,
+    SIZE_BINS,
     VISIBLE,
+    bin_expectation,
     cut_depth,
     draw_field,
     frustum_tans,
@@ -25,7 +28,6 @@ from seasynth.worker.optics.particles import (
     power_law_quantile,
 )
 from seasynth.worker.render import View
-from seasynth.worker.scene.sample import SceneError
 
 
 @st.composite
@@ -95,11 +97,23 @@ def test_the_count_is_poisson_with_mean_density_times_the_visible_volume(view, p
     assert abs(total - lam) <= 5.0 * math.sqrt(lam) + 1e-3 * lam + 1.0, (total, lam)
 
 
-def test_a_field_over_the_particle_limit_is_refused_naming_the_spec_fields():
-    view = View(K=np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]]), width=320, height=240,
+@settings(max_examples=8, deadline=None)
+@given(density=st.floats(2e4, 1e6), f_px=st.floats(300.0, 3000.0), k=st.floats(0.0, 0.5))
+def test_a_field_past_the_particle_budget_raises_its_threshold_until_the_budget_holds(density, f_px, k):
+    view = View(K=np.array([[f_px, 0, 159.5], [0, f_px, 119.5], [0, 0, 1]]), width=320, height=240,
                 cam_from_world=np.eye(4), near=0.02, far=300.0)
-    with pytest.raises(SceneError, match=r"water\.particles: .* over the limit of 250,000; lower density_per_m3"):
-        draw_field(np.random.default_rng(0), view, 1e5, (5e-3, 10e-3), 4.0, (0.5, 0.5), 0.01)
+    args = (frustum_tans(view), f_px, power_law_quantile(np.linspace(0, 1, SIZE_BINS + 1), 5e-3, 10e-3, 4.0),
+            density, k, view)
+    assume(bin_expectation(*args, VISIBLE)[1].sum() > 1.01 * MAX_PARTICLES)
+    field = draw_field(np.random.default_rng(0), view, density, (5e-3, 10e-3), 4.0, (0.5, 0.5), k)
+    assert field.visible > VISIBLE and field.record((5, 10), 4.0)["visible"] == field.visible
+    # the least threshold that keeps the expectation within the budget, and the draw within its Poisson spread
+    assert bin_expectation(*args, field.visible)[1].sum() <= MAX_PARTICLES
+    assert bin_expectation(*args, field.visible * (1 - 1e-9))[1].sum() > MAX_PARTICLES
+    assert len(field.diameters) <= MAX_PARTICLES + 5.0 * math.sqrt(MAX_PARTICLES)
+    z = field.centres[:, 2]
+    share = math.pi / 4 * (field.diameters * f_px / z) ** 2 * np.exp(-k * z)
+    assert np.all(share >= field.visible * (1 - 1e-9))  # every particle drawn is above the threshold used
 
 
 def test_the_cut_is_where_a_particle_changes_its_pixel_by_the_visible_share():

@@ -8,7 +8,9 @@ diameter d is kept out to the depth z_cut(d) where, at full contrast, it would c
 VISIBLE (1/255 of full scale, linear): (pi/4) (d f / z)^2 exp(-k z) = VISIBLE, f the focal length in pixels and k
 the least attenuation the water puts on a surface's light (K of the physical model, beta_D of the paper's), so
 the cut is where a particle is both well below a pixel and attenuated. Beyond it, particles belong to the
-water's own scattering. Sub-pixel particles contribute through MSAA coverage: each low-poly sphere has the mean
+water's own scattering. Where that would draw more than MAX_PARTICLES (a dense field seen at a high resolution),
+the threshold rises above VISIBLE, nearest first kept, until the expected count is MAX_PARTICLES: the faintest
+particles go first, and meta records the threshold used. Sub-pixel particles contribute through MSAA coverage: each low-poly sphere has the mean
 projected area of its sphere, so its expected share of a pixel's samples is the sphere's share of the pixel.
 """
 
@@ -26,11 +28,11 @@ from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.water import MARINE_SNOW_PER_M3
 from seasynth.worker.optics.base import Plain, Shot
 from seasynth.worker.render import DrawItem, Mesh, View
-from seasynth.worker.scene.sample import Scene, SceneError
+from seasynth.worker.scene.sample import Scene
 
 VISIBLE = 1.0 / 255.0  # a particle's least visible share of a pixel at full contrast (linear)
 SIZE_BINS = 16  # diameter bins drawn each out to its largest diameter's cut, then thinned to each particle's own
-# The most particles a frame may draw (about 100 MB of mesh): past it the spec's density and sizes are refused.
+# The most particles a frame draws in expectation (about 100 MB of mesh): past it the visibility threshold rises.
 MAX_PARTICLES = 250_000
 
 
@@ -61,10 +63,11 @@ class Field:
     albedo: np.ndarray  # (n,) float32, linear, the same in R, G and B
     density_per_m3: float
     cut_m: tuple[float, float]  # z_cut of the smallest and the largest diameter, metres
+    visible: float = VISIBLE  # the threshold the cut used: VISIBLE, or higher where MAX_PARTICLES bound it
 
     def record(self, spec_diameter_mm: tuple[float, float], slope: float) -> dict:
         return {"density_per_m3": self.density_per_m3, "diameter_mm": list(spec_diameter_mm), "size_slope": slope,
-                "count": len(self.diameters), "cut_m": list(self.cut_m), "visible": VISIBLE}
+                "count": len(self.diameters), "cut_m": list(self.cut_m), "visible": self.visible}
 
 
 def frustum_tans(view: View) -> tuple[float, float, float, float]:
@@ -80,10 +83,10 @@ def frustum_volume(tans: tuple[float, float, float, float], z0: np.ndarray, z1: 
     return area * np.maximum(z1**3 - z0**3, 0.0) / 3.0
 
 
-def cut_depth(diameter_m: np.ndarray, f_px: float, k: float, far: float) -> np.ndarray:
-    """(n,) metres: the depth past which a particle of this diameter is invisible (module docstring), at most
-    `far`. k: attenuation (1/m) of a surface's light along the view ray."""
-    z0 = np.asarray(diameter_m, np.float64) * f_px * math.sqrt(math.pi / (4.0 * VISIBLE))
+def cut_depth(diameter_m: np.ndarray, f_px: float, k: float, far: float, visible: float = VISIBLE) -> np.ndarray:
+    """(n,) metres: the depth past which a particle of this diameter changes its pixel by less than `visible`
+    (module docstring), at most `far`. k: attenuation (1/m) of a surface's light along the view ray."""
+    z0 = np.asarray(diameter_m, np.float64) * f_px * math.sqrt(math.pi / (4.0 * visible))
     z = z0 if k <= 0 else (2.0 / k) * lambertw(k * z0 / 2.0).real  # z exp(k z / 2) = z0
     return np.minimum(z, far)
 
@@ -110,6 +113,28 @@ def power_law_cdf(d: np.ndarray, lo: float, hi: float, slope: float) -> np.ndarr
     return (np.asarray(d, np.float64) ** a - lo**a) / (hi**a - lo**a)
 
 
+def bin_expectation(tans, f_px: float, edges: np.ndarray, density: float, k: float, view: View,
+                    visible: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each size bin's depth reach (its largest diameter's cut) and expected count in the frustum out to it."""
+    z_bin = cut_depth(edges[1:], f_px, k, view.far, visible)
+    return z_bin, density / SIZE_BINS * frustum_volume(tans, view.near, z_bin)
+
+
+def threshold(tans, f_px: float, edges: np.ndarray, density: float, k: float, view: View) -> float:
+    """VISIBLE, or the least threshold (a share of a pixel; above 1, pixels) at which the bins' expected count is at
+    most MAX_PARTICLES (bisection in log, to 1e-12 relative)."""
+    if bin_expectation(tans, f_px, edges, density, k, view, VISIBLE)[1].sum() <= MAX_PARTICLES:
+        return VISIBLE
+    lo_v, hi_v = math.log(VISIBLE), math.log(VISIBLE)
+    while bin_expectation(tans, f_px, edges, density, k, view, math.exp(hi_v))[1].sum() > MAX_PARTICLES:
+        lo_v, hi_v = hi_v, hi_v + 4.0
+    while hi_v - lo_v > 1e-12:
+        mid = 0.5 * (lo_v + hi_v)
+        over = bin_expectation(tans, f_px, edges, density, k, view, math.exp(mid))[1].sum() > MAX_PARTICLES
+        lo_v, hi_v = (mid, hi_v) if over else (lo_v, mid)
+    return math.exp(hi_v)
+
+
 def draw_field(rng: np.random.Generator, view: View, density: float, diameter_m: tuple[float, float],
                slope: float, albedo: tuple[float, float], k: float) -> Field:
     """The particles of one frame in `view`'s frustum from its near plane out to each one's cut depth."""
@@ -117,11 +142,9 @@ def draw_field(rng: np.random.Generator, view: View, density: float, diameter_m:
     tans = frustum_tans(view)
     f_px = float(max(view.K[0, 0], view.K[1, 1]))
     edges = power_law_quantile(np.linspace(0.0, 1.0, SIZE_BINS + 1), lo, hi, slope)
-    z_bin = cut_depth(edges[1:], f_px, k, view.far)  # each bin drawn out to its largest diameter's cut
-    lam = density / SIZE_BINS * frustum_volume(tans, view.near, z_bin)
-    if lam.sum() > MAX_PARTICLES:
-        raise SceneError(f"water.particles: this view holds about {lam.sum():.3g} visible particles, over the limit "
-                         f"of {MAX_PARTICLES:,}; lower density_per_m3 or diameter_mm")
+
+    visible = threshold(tans, f_px, edges, density, k, view)
+    z_bin, lam = bin_expectation(tans, f_px, edges, density, k, view, visible)
     counts = rng.poisson(lam)
     n = int(counts.sum())
     bin_of = np.repeat(np.arange(SIZE_BINS), counts)
@@ -132,10 +155,10 @@ def draw_field(rng: np.random.Generator, view: View, density: float, diameter_m:
     x = z * (tans[0] + rng.random(n) * (tans[1] - tans[0]))
     y = z * (tans[2] + rng.random(n) * (tans[3] - tans[2]))
     a = rng.uniform(albedo[0], albedo[1], n).astype(np.float32)
-    keep = z <= cut_depth(d, f_px, k, view.far)
-    cuts = cut_depth(np.array([lo, hi]), f_px, k, view.far)
+    keep = z <= cut_depth(d, f_px, k, view.far, visible)
+    cuts = cut_depth(np.array([lo, hi]), f_px, k, view.far, visible)
     return Field(centres=np.stack([x, y, z], axis=1)[keep], diameters=d[keep], albedo=a[keep],
-                 density_per_m3=float(density), cut_m=(float(cuts[0]), float(cuts[1])))
+                 density_per_m3=float(density), cut_m=(float(cuts[0]), float(cuts[1])), visible=visible)
 
 
 def particle_mesh(field: Field) -> Mesh:
