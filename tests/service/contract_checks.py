@@ -28,6 +28,8 @@ def value_at(body: Any, where: str) -> Any:
     node = body
     for part in where.split("."):
         if isinstance(node, dict):
+            if part not in node and node.get("kind") == part:
+                continue  # a tagged union's tag (`placement.water.school`: the placement whose kind is water)
             node = node.get(part)
         elif isinstance(node, list) and part.isdigit() and int(part) < len(node):
             node = node[int(part)]

@@ -187,4 +187,7 @@ def test_a_refusal_may_name_a_rule_but_not_what_the_schema_states():
     assert not stated_by_the_schema("frames: Input should be a valid integer", body)  # 24.0
     assert stated_by_the_schema("spec.targets.assets.0.variants: Input should be a valid integer", body)
     assert stated_by_the_schema("spec.foo: Extra inputs are not permitted", body)
+    tagged = {"targets": [{"placement": {"kind": "water", "school": {"size": [3.0, 4]}}}]}
+    assert value_at(tagged, "targets.0.placement.water.school.size.0") == 3.0  # the union's tag is no key
+    assert not stated_by_the_schema("targets.0.placement.water.school.size.0: Input should be a valid integer", tagged)
     assert stated_by_the_schema("depth: Expected UploadFile, received: <class 'str'>", body)
