@@ -86,9 +86,9 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
             tile(driver, a) for a in listed]
         assert not driver.find_elements("id", tile(driver, png))
         want = keyed.get(f"/assets/{mesh}/thumbnail.png").content
-        assert wait(lambda: (p := picture(driver, mesh)) and p["state"] == "shown" and p["png"] and p, 20,
+        assert wait(lambda: (p := picture(driver, mesh)) and p["state"] == "shown" and p["png"] and p, 60,
                     "the mesh's picture") == {"state": "shown", "w": 128, "h": 96, "png": want}
-        assert wait(lambda: picture(driver, bare)["state"] == "none", 20, "the placeholder")
+        assert wait(lambda: picture(driver, bare)["state"] == "none", 60, "the placeholder")
         assert driver.find_element("id", tile(driver, bare)).get_attribute("title") == "pipe.stl"
         # tick the mesh: the spec names it
         driver.find_element("css selector", f"[id='{tile(driver, mesh)}'] input[type=checkbox]").click()
@@ -100,12 +100,12 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
         # a mesh uploaded from the page: a tile with its picture at once, and again after a reload
         driver.find_element("id", "upload-targets.0.assets").send_keys(str(upload))
         crate = wait(lambda: next((i["asset_id"] for i in every_asset(keyed) if i["filename"] == "crate.obj"), None),
-                     30, "the page's upload")
-        assert wait(lambda: (p := picture(driver, crate)) and p["png"], 20, "its picture") == keyed.get(
+                     90, "the page's upload")
+        assert wait(lambda: (p := picture(driver, crate)) and p["png"], 60, "its picture") == keyed.get(
             f"/assets/{crate}/thumbnail.png").content
         open_page(driver, url)  # a reload: the page lists them from GET /assets
         for asset_id in (mesh, crate):
-            assert wait(lambda a=asset_id: (p := picture(driver, a)) and p["png"], 20, "a picture after the reload") \
+            assert wait(lambda a=asset_id: (p := picture(driver, a)) and p["png"], 60, "a picture after the reload") \
                 == keyed.get(f"/assets/{asset_id}/thumbnail.png").content
         ids = [t.get_attribute("id") for t in driver.find_elements("css selector", "[id='f-targets.0.assets'] .kind")]
         assert len(ids) == len(set(ids)) and tile(driver, crate) in ids  # the key given twice: listed once
