@@ -27,7 +27,7 @@ WORLD_CONFIGS: dict[str, str] = {
     "long-turbid-sun": "III:sun@20 long textured",
     "long-turbid-sun-lamp": "III:sun+lamp@20 long textured",
     # The near view of ocean-sun-textured through a flat port (camera.port's defaults: 10 mm acrylic 20 mm in front
-    # of the lens): the path tracer traces the slab (seasynth.bench.pathtracer._slab), seasynth resamples a wider
+    # of the lens): the path tracer traces the slab (seasynth.bench.pathtracer_port), seasynth resamples a wider
     # pinhole (seasynth.worker.optics.geometry).
     "ocean-sun-port": "II:sun@10 textured port",
     # Marine snow (water.particles at the type's default density): spheres in the path tracer, lit by the sun and
@@ -38,9 +38,10 @@ WORLD_CONFIGS: dict[str, str] = {
 }
 # Configurations whose references are still to be path traced (on a GPU host: bench/reference.py) and stored in
 # bench/results/cpu/fidelity-references/; until then `seasynth bench fidelity --config NAME` renders one here.
-# ocean-sun-port: Mitsuba's render of the port scene on an H200 showed a bright, blurred disc over most of the frame
-# that neither the camera model nor seasynth's frame has (their rays agree: tests/test_pathtracer_export.py), so the
-# path tracer's slab (bench/pathtracer.py, _slab) is not yet a trustworthy reference; it was not stored.
+# ocean-sun-port: Mitsuba's render of the port scene on an H200 first showed a bright disc (the port's reflections
+# escaping through the air to the sky; the housing's black inside now ends them: bench/pathtracer_port.py). Rendered
+# again, it is about 2x darker than seasynth's frame and blurred, which the camera model's rays (they agree:
+# tests/test_pathtracer_export.py) do not explain; until that is understood no reference is stored.
 # turbid-lamps-particles: its first reference (1,747 samples a half, no lamp housing) had a noise floor of 18.9 dB,
 # below the row it would score; it needs the lamp housing and the samples turbid-lamps had.
 REFERENCES_PENDING = frozenset({"ocean-sun-port", "turbid-lamps-particles"})

@@ -264,28 +264,6 @@ def _sensor(scene: PTScene, far_clip: float, mi) -> dict:
     }
 
 
-def _slab(scene: PTScene, mi) -> dict[str, dict]:
-    """A flat port's two faces as dielectric rectangles across the camera's whole field: the inner one (normal
-    towards the camera) between air and glass, the outer one between glass and the water (its exterior medium).
-    Their Fresnel reflections are traced too (about 4% at air-acrylic), which seasynth's rasteriser leaves out."""
-    inner, outer, air, glass, water = (float(x) for x in scene.slab)
-    K = np.asarray(scene.K, dtype=np.float64)
-    slope = max(abs(-0.5 - K[0, 2]), abs(scene.width - 0.5 - K[0, 2]), abs(-0.5 - K[1, 2]),
-                abs(scene.height - 0.5 - K[1, 2])) / K[0, 0]
-    half = 2.0 * outer * slope * np.sqrt(2.0) + 0.01  # metres: past every camera ray
-    world = np.asarray(scene.world_from_cam, np.float64)
-
-    def face(z: float, flip: bool, ext_ior: float) -> dict:
-        to_world = world @ np.diag([half, half, 1.0, 1.0])
-        to_world[:3, 3] = world[:3, :3] @ [0.0, 0.0, z] + world[:3, 3]
-        return {"type": "rectangle", "to_world": mi.ScalarTransform4f(to_world), "flip_normals": flip,
-                "bsdf": {"type": "dielectric", "int_ior": glass, "ext_ior": ext_ior}}
-
-    out = {"port_inner": face(inner, True, air), "port_outer": face(outer, False, water)}
-    out["port_outer"]["exterior"] = {"type": "ref", "id": "water"}
-    return out
-
-
 def _lamp(lamp: PTLamp, mi, scene: PTScene, housing_m: float) -> dict[str, dict]:
     """The spot emitter, and with housing_m > 0 a water-free sphere of that radius around it (a null boundary):
     no scattering vertex can then lie closer to the lamp than housing_m, which bounds the inverse-square weight of
@@ -334,7 +312,9 @@ def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, varian
                     # the lat-long map's pole is local +y: turn it to world +z
                     "to_world": mi.ScalarTransform4f().rotate(axis=[1.0, 0.0, 0.0], angle=90.0)}
     if scene.slab is not None:
-        d.update(_slab(scene, mi))
+        from seasynth.bench.pathtracer_port import port_faces
+
+        d.update(port_faces(scene, mi))
     for i, lamp in enumerate(scene.lamps):
         for part, value in _lamp(lamp, mi, scene, lamp_housing_m).items():
             d[f"lamp_{i:04d}_{part}"] = value
