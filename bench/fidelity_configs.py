@@ -38,13 +38,9 @@ WORLD_CONFIGS: dict[str, str] = {
 }
 # Configurations whose references are still to be path traced (on a GPU host: bench/reference.py) and stored in
 # bench/results/cpu/fidelity-references/; until then `seasynth bench fidelity --config NAME` renders one here.
-# ocean-sun-port: Mitsuba's render of the port scene on an H200 first showed a bright disc (the port's reflections
-# escaping through the air to the sky; the housing's black inside now ends them: bench/pathtracer_port.py). Rendered
-# again, it is about 2x darker than seasynth's frame and blurred, which the camera model's rays (they agree:
-# tests/test_pathtracer_export.py) do not explain; until that is understood no reference is stored.
 # turbid-lamps-particles: its first reference (1,747 samples a half, no lamp housing) had a noise floor of 18.9 dB,
 # below the row it would score; it needs the lamp housing and the samples turbid-lamps had.
-REFERENCES_PENDING = frozenset({"ocean-sun-port", "turbid-lamps-particles"})
+REFERENCES_PENDING = frozenset({"turbid-lamps-particles"})
 PRESET_NAMES = ("draft", "fast", "default", "high")
 # The long view: the camera 1.2 m over the seabed looking at a point of it 7.7 m ahead (8.9 degrees down), so the
 # frame holds seabed from ~2 m out to where the water hides it and open water above.

@@ -124,6 +124,26 @@ class CameraModel:
             return dome_port(d, self.centre_m, self.radius_m, self.thickness_m, self.glass_index, self.water_index)
         return o, d
 
+    def transmittance(self, u, v) -> np.ndarray:
+        """(...) float64: the share of a water ray's radiance that reaches pixel (u, v) behind the port: the Fresnel
+        transmittance (unpolarised) at each of the port's surfaces times (n_air / n_water)^2, radiance's n^2 law
+        across the change of medium (the port's inner reflections left out); 1 without a port."""
+        d = self.air_directions(u, v)
+        if self.kind == "none":
+            return np.ones(d.shape[:-1])
+        if self.kind == "flat":
+            n1 = n2 = np.broadcast_to(np.array([0.0, 0.0, 1.0]), d.shape)
+            g = refract(d, -n1, AIR_INDEX, self.glass_index)
+        else:
+            n1 = (_exit_sphere(np.zeros_like(d), d, self.centre_m, self.radius_m - self.thickness_m) - self.centre_m)
+            n1 = n1 / (self.radius_m - self.thickness_m)
+            g = refract(d, -n1, AIR_INDEX, self.glass_index)
+            p1 = n1 * (self.radius_m - self.thickness_m) + self.centre_m
+            n2 = (_exit_sphere(p1, g, self.centre_m, self.radius_m) - self.centre_m) / self.radius_m
+        w = refract(g, -n2, self.glass_index, self.water_index)
+        t = fresnel_t(d, g, n1, AIR_INDEX, self.glass_index) * fresnel_t(g, w, n2, self.glass_index, self.water_index)
+        return t * (AIR_INDEX / self.water_index) ** 2
+
     # ---- points to pixels --------------------------------------------------------------------------------------
     def project(self, points: np.ndarray) -> np.ndarray:
         """(n, 2) float64 pixels (u, v) where points (n, 3) in water (camera frame, metres) are seen: the pixel
@@ -224,6 +244,15 @@ def refract(d: np.ndarray, n: np.ndarray, n1: float, n2: float) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         t = eta * d + (eta * cos_i - np.sqrt(k)) * n
     return np.where(k >= 0, t, np.nan)
+
+
+def fresnel_t(d: np.ndarray, t: np.ndarray, n: np.ndarray, n1: float, n2: float) -> np.ndarray:
+    """(...) unpolarised Fresnel transmittance of unit rays d refracted into t across surfaces of unit normal n
+    (either side), from index n1 into n2; NaN where t is (total reflection)."""
+    ci, ct = np.abs(np.sum(d * n, axis=-1)), np.abs(np.sum(t * n, axis=-1))
+    rs = ((n1 * ci - n2 * ct) / (n1 * ci + n2 * ct)) ** 2
+    rp = ((n1 * ct - n2 * ci) / (n1 * ct + n2 * ci)) ** 2
+    return 1.0 - 0.5 * (rs + rp)
 
 
 def flat_port(d: np.ndarray, distance: float, thickness: float, n_glass: float, n_water: float):

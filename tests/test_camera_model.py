@@ -189,3 +189,35 @@ def test_a_bad_port_or_distortion_is_refused_naming_the_field(camera, path, frag
     (line,) = refusal({"camera": camera})
     assert line.startswith(f"{path}: "), line
     assert fragment in line
+
+
+@given(st.data())
+def test_the_ports_transmittance_is_fresnels_at_each_surface_times_radiances_n_squared_law(data):
+    cam = data.draw(cameras())
+    m = model_of(cam)
+    u, v = pixels(data.draw, cam)
+    t = m.transmittance(u, v)
+    if m.kind == "none":
+        assert np.array_equal(t, np.ones_like(u))
+        return
+    ok = np.isfinite(t)
+    law = (1.0 / m.water_index) ** 2
+    assert np.all((t[ok] > 0) & (t[ok] <= law * (1 + 1e-12)))  # reflection only takes light away
+    # at normal incidence Fresnel is ((n1 - n2) / (n1 + n2))^2 at each surface
+    normal = 1 - ((1 - m.glass_index) / (1 + m.glass_index)) ** 2
+    normal *= 1 - ((m.glass_index - m.water_index) / (m.glass_index + m.water_index)) ** 2
+    if m.kind == "flat" or not np.any(m.centre_m):  # the axis pixel meets both surfaces head on
+        K = m.K
+        centre = m.transmittance(np.array([K[0, 2]]), np.array([K[1, 2]]))
+        if not np.any(m.distortion[2:4]):  # tangential distortion moves the axis off the principal point
+            assert np.allclose(centre, law * normal, rtol=1e-9)
+
+
+def test_a_flat_ports_transmittance_falls_with_the_field_angle_and_is_the_n_squared_law_without_fresnel():
+    m = model_of({"width": 64, "height": 48, "hfov_deg": 90.0, "port": {"kind": "flat"}})
+    u = np.linspace(m.K[0, 2], 63.5, 20)
+    t = m.transmittance(u, np.full_like(u, m.K[1, 2]))
+    assert np.all(np.diff(t) < 0)
+    same = model_of({"width": 64, "height": 48, "hfov_deg": 90.0,
+                     "port": {"kind": "flat", "glass_index": 1.0, "water_index": 1.0}})
+    assert np.allclose(same.transmittance(u, u * 0 + 20.0), 1.0, rtol=1e-12)

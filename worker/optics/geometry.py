@@ -42,6 +42,7 @@ class Rays:
     width: int
     height: int
     resolution: float  # the wide pinhole's finest output step, in wide pixels (>= 1 unless MAX_SIDE capped it)
+    transmittance: np.ndarray  # (h, w) float32: the port's Fresnel transmittance times (n_air / n_water)^2
 
 
 @functools.lru_cache(maxsize=8)
@@ -69,7 +70,9 @@ def camera_rays(camera: Camera) -> Rays:
     f *= scale
     size = np.ceil((hi - lo) * f + 2 * MARGIN_PX).astype(int) + 1
     K = np.array([[f, 0.0, MARGIN_PX - lo[0] * f], [0.0, f, MARGIN_PX - lo[1] * f], [0.0, 0.0, 1.0]])
-    return Rays(origins=o, directions=d, K=K, width=int(size[0]), height=int(size[1]), resolution=scale)
+    t = np.nan_to_num(model.transmittance(u, v)).astype(np.float32)
+    return Rays(origins=o, directions=d, K=K, width=int(size[0]), height=int(size[1]), resolution=scale,
+                transmittance=t)
 
 
 def _project(K: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,7 +138,10 @@ class Geometry(Plain):
         qx, qy, t, k, step = search(o, d, wide.K, inverse_depth(wide, result.range_m), result.instance)
         lost = np.isnan(d[..., 0])  # rays that never reach the water: black, no surface
         self.samples = (qx, qy, lost)
-        image = np.where(lost[..., None], 0.0, bilinear(result.image, qx, qy)).astype(np.float32)
+        # the camera behind the port records the water's radiance times the port's transmittance (radiance's n^2
+        # law across the change of medium, and Fresnel); clean is the frame without water, and keeps the radiance
+        image = np.where(lost[..., None], 0.0, bilinear(result.image, qx, qy) * rays.transmittance[..., None])
+        image = image.astype(np.float32)
         clean = None if result.clean is None else np.where(
             lost[..., None], 0.0, bilinear(result.clean, qx, qy)).astype(np.float32)
         instance = np.where(lost, 0, nearest(result.instance, qx, qy)).astype(result.instance.dtype)
