@@ -28,8 +28,10 @@ def value_at(body: Any, where: str) -> Any:
     node = body
     for part in where.split("."):
         if isinstance(node, dict):
-            if part not in node and node.get("kind") == part:
-                continue  # a tagged union's tag (`placement.water.school`: the placement whose kind is water)
+            if part not in node and (node.get("kind") == part or part == "0"):
+                # a tagged union's tag (`placement.water.school`: the placement whose kind is water), or a list's
+                # first item given as the one mapping the list form stands for (`targets.0.count` of `targets: {}`)
+                continue
             node = node.get(part)
         elif isinstance(node, list) and part.isdigit() and int(part) < len(node):
             node = node[int(part)]

@@ -190,4 +190,6 @@ def test_a_refusal_may_name_a_rule_but_not_what_the_schema_states():
     tagged = {"targets": [{"placement": {"kind": "water", "school": {"size": [3.0, 4]}}}]}
     assert value_at(tagged, "targets.0.placement.water.school.size.0") == 3.0  # the union's tag is no key
     assert not stated_by_the_schema("targets.0.placement.water.school.size.0: Input should be a valid integer", tagged)
+    single = {"targets": {"count": [2.0, 3], "assets": [{"variants": 4.0}]}}  # one class, as a mapping
+    assert value_at(single, "targets.0.count.0") == 2.0 and value_at(single, "targets.0.assets.0.variants") == 4.0
     assert stated_by_the_schema("depth: Expected UploadFile, received: <class 'str'>", body)
