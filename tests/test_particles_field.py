@@ -209,3 +209,13 @@ def test_particles_need_water_and_a_density_where_no_jerlov_type_gives_one():
         assert ok.water.particles.density_per_m3 == (5.0, 9.0)
     assert parse_spec({"water": {"particles": {"enabled": True}}}).water.particles.density_per_m3 is None
     assert not parse_spec({}).water.particles.enabled
+
+
+@given(k=st.sampled_from([0.0, 5e-324, 1e-300, 1e-12, 1e-3]))
+def test_the_cut_is_finite_and_continuous_as_the_attenuation_vanishes(k):
+    d = np.geomspace(1e-4, 1e-2, 20)
+    z = cut_depth(d, 1000.0, k, far=1e9)
+    clear = cut_depth(d, 1000.0, 0.0, far=1e9)
+    assert np.all(np.isfinite(z)) and np.all(z <= clear)
+    if k <= 1e-12:  # attenuation too small to matter: the clear water's cut, to rounding
+        assert np.allclose(z, clear, rtol=1e-9)

@@ -107,7 +107,9 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
         for asset_id in (mesh, crate):
             assert wait(lambda a=asset_id: (p := picture(driver, a)) and p["png"], 60, "a picture after the reload") \
                 == keyed.get(f"/assets/{asset_id}/thumbnail.png").content
-        ids = [t.get_attribute("id") for t in driver.find_elements("css selector", "[id='f-targets.0.assets'] .kind")]
+        # read in one script: the picker may redraw between a find and a read of its tiles
+        ids = driver.execute_script(
+            "return [...document.querySelectorAll(\"[id='f-targets.0.assets'] .kind\")].map((e) => e.id)")
         assert len(ids) == len(set(ids)) and tile(driver, crate) in ids  # the key given twice: listed once
         # the distractors' picker lists them too
         assert driver.find_elements("id", f"pick-distractors.assets-upload-{crate[:12]}")

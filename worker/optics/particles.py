@@ -87,7 +87,9 @@ def cut_depth(diameter_m: np.ndarray, f_px: float, k: float, far: float, visible
     """(n,) metres: the depth past which a particle of this diameter changes its pixel by less than `visible`
     (module docstring), at most `far`. k: attenuation (1/m) of a surface's light along the view ray."""
     z0 = np.asarray(diameter_m, np.float64) * f_px * math.sqrt(math.pi / (4.0 * visible))
-    z = z0 if k <= 0 else (2.0 / k) * lambertw(k * z0 / 2.0).real  # z exp(k z / 2) = z0
+    x = k * z0 / 2.0
+    with np.errstate(divide="ignore", invalid="ignore"):  # z exp(k z / 2) = z0: z = z0 W(x) / x, 1 as x -> 0
+        z = z0 * np.where(x > 0, lambertw(x).real / np.where(x > 0, x, 1.0), 1.0)
     return np.minimum(z, far)
 
 
