@@ -53,8 +53,8 @@ class PTMesh:
 
 @dataclass(frozen=True)
 class PTSpheres:
-    """Small Lambertian spheres (marine snow): centres (n, 3) float64 world m; radii (n,) float64 m; albedo (n, 3)
-    float32 linear RGB in [0, 1]."""
+    """Small Lambertian spheres (marine snow): centres (n, 3) world m (stored as float32, the precision the path
+    tracer takes them at); radii (n,) float64 m; albedo (n, 3) float32 linear RGB in [0, 1]."""
 
     centres: np.ndarray
     radii: np.ndarray

@@ -48,9 +48,10 @@ def _scene_arrays(scene: PTScene) -> dict[str, np.ndarray]:
         elif f.name == "slab" and value is None:  # no port: the scene's arrays (and digest) as before ports
             continue
         elif f.name == "spheres":  # none: no arrays, so scenes without them keep their digests
-            if value is not None:
-                out.update({f"spheres_{g.name}": np.asarray(getattr(value, g.name), np.float32 if g.name == "albedo"
-                                                            else np.float64) for g in dataclasses.fields(PTSpheres)})
+            if value is not None:  # centres as the path tracer takes them (float32, as mesh vertices): no digest
+                out.update({f"spheres_{g.name}": np.asarray(getattr(value, g.name),  # moves on a last-bit change
+                                                            np.float64 if g.name == "radii" else np.float32)
+                            for g in dataclasses.fields(PTSpheres)})
         elif f.name == "lens":  # absent for a pinhole, so the digests of scenes from before lenses stay
             if value is not None:
                 out.update({f"lens_{g.name}": np.asarray(getattr(value, g.name), np.float64)
