@@ -23,8 +23,10 @@ ENV PATH=/opt/venv/bin:$PATH \
     PYTHONDONTWRITEBYTECODE=1
 RUN groupadd --system --gid 10001 seasynth \
  && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
-COPY --from=build /opt/venv /opt/venv
 COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
+# The venv is the last layer with files: under Docker's vfs driver each layer holds a whole copy of the ones
+# before it, and a layer after the venv would copy it again.
+COPY --from=build /opt/venv /opt/venv
 WORKDIR /home/seasynth
 USER 10001:10001
 EXPOSE 8000

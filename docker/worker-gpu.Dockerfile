@@ -22,14 +22,18 @@ COPY worker ./worker
 RUN pip install -c constraints.txt ".[worker]"
 
 FROM python:3.11-slim
+# libglvnd; glvnd's EGL vendor file for the NVIDIA driver (the toolkit may mount the same file); the user the
+# worker runs as and its shader cache (below). One layer: under Docker's vfs driver each layer is a whole copy.
 RUN apt-get update \
  && apt-get install -y --no-install-recommends \
       libglvnd0 libegl1 libgl1 libglx0 libopengl0 libgles2 \
- && rm -rf /var/lib/apt/lists/*
-# glvnd's EGL vendor file for the NVIDIA driver (the toolkit may mount the same file).
-RUN mkdir -p /usr/share/glvnd/egl_vendor.d \
+ && rm -rf /var/lib/apt/lists/* \
+ && mkdir -p /usr/share/glvnd/egl_vendor.d \
  && printf '{"file_format_version": "1.0.0", "ICD": {"library_path": "libEGL_nvidia.so.0"}}\n' \
-      > /usr/share/glvnd/egl_vendor.d/10_nvidia.json
+      > /usr/share/glvnd/egl_vendor.d/10_nvidia.json \
+ && groupadd --system --gid 10001 seasynth \
+ && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth \
+ && mkdir -p /var/cache/seasynth/gl && chown 10001:10001 /var/cache/seasynth/gl
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
@@ -47,11 +51,10 @@ ENV PATH=/opt/venv/bin:$PATH \
 # process's first frame about 0.4 s slower (median 817-930 ms against 473-524; bench/results/gpu/shader-cache.md).
 # The driver keeps the cache under __GL_SHADER_DISK_CACHE_SIZE (128 MiB; the example's shaders took 3.6 MB),
 # below the Kubernetes volume's 256 MiB limit.
-RUN groupadd --system --gid 10001 seasynth \
- && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth \
- && mkdir -p /var/cache/seasynth/gl && chown 10001:10001 /var/cache/seasynth/gl
-COPY --from=build /opt/venv /opt/venv
 COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
+# The venv is the last layer with files: under Docker's vfs driver each layer holds a whole copy of the ones
+# before it, and a layer after the venv would copy it again.
+COPY --from=build /opt/venv /opt/venv
 WORKDIR /home/seasynth
 USER 10001:10001
 HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \

@@ -16,11 +16,14 @@ COPY worker ./worker
 RUN pip install -c constraints.txt ".[worker]"
 
 FROM python:3.11-slim
-# Mesa EGL (surfaceless llvmpipe) and the GL dispatch libraries PyOpenGL loads.
+# Mesa EGL (surfaceless llvmpipe) and the GL dispatch libraries PyOpenGL loads, and the user the worker runs as, in
+# one layer (under Docker's vfs driver each layer is a whole copy).
 RUN apt-get update \
  && apt-get install -y --no-install-recommends \
       libegl1 libgl1 libegl-mesa0 libgles2 libgl1-mesa-dri \
- && rm -rf /var/lib/apt/lists/*
+ && rm -rf /var/lib/apt/lists/* \
+ && groupadd --system --gid 10001 seasynth \
+ && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
 # PYGLET_HEADLESS: pyrender imports pyglet, which needs X libraries unless headless.
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
@@ -28,10 +31,10 @@ ENV PATH=/opt/venv/bin:$PATH \
     PYOPENGL_PLATFORM=egl \
     PYGLET_HEADLESS=1 \
     REMAP_SIGTERM=SIGQUIT
-RUN groupadd --system --gid 10001 seasynth \
- && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
-COPY --from=build /opt/venv /opt/venv
 COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
+# The venv is the last layer with files: under Docker's vfs driver each layer holds a whole copy of the ones
+# before it, and a layer after the venv would copy it again.
+COPY --from=build /opt/venv /opt/venv
 WORKDIR /home/seasynth
 USER 10001:10001
 # Alive with its prefork pool up (no broker round trip, unlike `celery inspect ping`).

@@ -5,7 +5,8 @@ posted to it come back byte-identical to a local `seasynth generate`, also acros
 and `down`/`up`; every container runs as non-root and turns healthy; Flower lists the workers; both /metrics answer.
 
 Full size, CI's (18 min on the 2-core machine, the image builds most of it): 3 shard workers, 24- and 120-frame
-datasets, a worker SIGKILLed and Redis restarted mid-run, the GPU worker image built (never run: no GPU here).
+datasets, a worker SIGKILLed and Redis restarted mid-run, the GPU worker image built and checked before the
+stack is up (never run on a GPU: none here).
 SEASYNTH_COMPOSE=reduced (14 min): one shard worker, an 8-frame dataset, no faults, no GPU image. With
 SEASYNTH_COMPOSE_REPORT=FILE the run writes its timings and results there (`bash docker/standins/full-run.sh`:
 bench/results/compose.md).
@@ -46,6 +47,7 @@ pytestmark = pytest.mark.timeout(3600)  # the stack fixture builds every image i
 full_only = pytest.mark.skipif(not FULL, reason="SEASYNTH_COMPOSE=reduced: the full size only (CI's)")
 
 REPORT = Report()
+GPU_IMAGE_CHECK: list[str] = []  # what gpu_image_check printed (full size only)
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +69,12 @@ def stack():
             compose = Compose(engine, "seasynth-test", FILES, profiles=["monitor"])
             REPORT.timed("api image (docker/api.Dockerfile)", lambda: compose("build", "api", timeout=1800))
             REPORT.timed("worker image (docker/worker.Dockerfile)", lambda: compose("build", "worker", timeout=1800))
+            if FULL:  # built and checked before the stack is up, then removed (test_gpu_worker_image_builds)
+                GPU_IMAGE_CHECK[:] = REPORT.timed("worker-gpu image (docker/worker-gpu.Dockerfile)",
+                                                  lambda: gpu_image_check(compose))
+            # Under vfs every layer is a whole copy and every container two more (its init and writable layers): the
+            # untagged build stages and the GPU image go before the containers come.
+            engine.docker("image", "prune", "--force")
             s = Stack(compose, tmp, WORKERS)
             try:
                 REPORT.timed(f"up --scale worker={WORKERS}, every container healthy", s.up)
@@ -211,15 +219,23 @@ def test_down_up_keeps_datasets(stack: Stack):
     REPORT.passed["down/up keeps datasets"] = f"{len(stack.finished)} listed as before; one fetched byte-identical"
 
 
+def gpu_image_check(compose: Compose) -> list[str]:
+    """Builds the GPU worker image, runs `id -u`, its EGL vendor file and the CLI in it (no network), removes it, and
+    returns the lines they printed."""
+    compose("--profile", "gpu", "build", "worker-gpu", timeout=1800)
+    image = "seasynth-worker-gpu:dev"
+    out = compose.engine.docker(
+        "run", "--rm", "--network", "none", image, "sh", "-c",
+        "id -u && cat $__EGL_VENDOR_LIBRARY_FILENAMES && seasynth --help >/dev/null && echo cli-ok").stdout.split("\n")
+    compose.engine.docker("rmi", image)
+    return out
+
+
 @full_only
 def test_gpu_worker_image_builds(stack: Stack):
     """docker/worker-gpu.Dockerfile builds unchanged on the stand-in base; its entry point and NVIDIA EGL vendor file
-    are in place and it runs as uid 10001. It cannot render here (no GPU, no NVIDIA container toolkit)."""
-    REPORT.timed("worker-gpu image (docker/worker-gpu.Dockerfile)",
-                 lambda: stack.compose("--profile", "gpu", "build", "worker-gpu", timeout=1800))
-    image = "seasynth-worker-gpu:dev"
-    out = stack.compose.engine.docker(
-        "run", "--rm", "--network", "none", image, "sh", "-c",
-        "id -u && cat $__EGL_VENDOR_LIBRARY_FILENAMES && seasynth --help >/dev/null && echo cli-ok").stdout.split("\n")
+    are in place and it runs as uid 10001. It cannot render here (no GPU, no NVIDIA container toolkit). The stack's
+    fixture builds and runs it before the stack is up (gpu_image_check)."""
+    out = GPU_IMAGE_CHECK
     assert out[0] == str(PROJECT_UID) and "libEGL_nvidia.so.0" in out[1] and out[2] == "cli-ok", out
     REPORT.passed["GPU worker image builds"] = "built; runs as uid 10001; not run on a GPU (none here)"
