@@ -16,7 +16,7 @@ from seasynth.worker.render import RenderResult, View
 
 # A larger circle of confusion is drawn at this radius: the gather's cost grows with its square (pi R^2 offsets).
 MAX_RADIUS_PX = 16
-BAND_ROWS = 32  # rows summed together: a band's arrays stay in cache, and each band reaches only its own discs
+BAND_PIXELS = 65536  # a band of rows summed together: its arrays stay in cache, and it reaches only its own discs
 
 
 def coc_radius_px(z_m: np.ndarray, fx_px: float, focal_m: float, f_number: float, focus_m: float) -> np.ndarray:
@@ -38,9 +38,9 @@ def gather_blur(images: list[np.ndarray], radius_px: np.ndarray, z_m: np.ndarray
     the blurred background off it while a blurred foreground spreads over what lies behind it. Radii at or under
     1/2 px reach no neighbour: where no neighbour lends anything, the pixel keeps its value exactly.
 
-    The sum runs over bands of BAND_ROWS rows, each over the offsets its neighbours' largest disc reaches and the
-    columns whose neighbours lend anything at that offset: the terms it leaves out are exactly 0, so the result is
-    the whole image's sum over every offset, term by term in the same order."""
+    The sum runs over bands of whole rows (about BAND_PIXELS pixels), each over the offsets its neighbours' largest
+    disc reaches and the columns whose neighbours lend anything at that offset: the terms it leaves out are exactly
+    0, so the result is the whole image's sum over every offset, term by term in the same order."""
     r = np.minimum(radius_px, MAX_RADIUS_PX).astype(np.float32)
     limit = float(r.max()) + 0.5 if r.size else 0.0  # a disc reaches the offsets d < r + 1/2
     reach = math.ceil(limit) - 1
@@ -52,31 +52,34 @@ def gather_blur(images: list[np.ndarray], radius_px: np.ndarray, z_m: np.ndarray
     area_pad = np.maximum(r_pad, 0.5) ** 2
     z = np.where(np.isfinite(z_m), z_m, np.inf).astype(np.float32)
     z_pad = np.pad(z, pad, constant_values=np.inf)
-    stacked = np.concatenate([im.astype(np.float32, copy=False) for im in images], axis=-1)  # (h, w, 3 n)
-    padded = np.pad(stacked, (*pad, (0, 0)))
-    acc = np.zeros_like(stacked)
+    # channel planes (3 n, h, w): per-offset products on contiguous rows (a trailing axis of 3 is slow to broadcast)
+    planes = np.concatenate([np.moveaxis(im.astype(np.float32, copy=False), -1, 0) for im in images])
+    padded = np.pad(planes, ((0, 0), *pad))
+    acc = np.zeros_like(planes)
     weight = np.zeros((h, w), np.float32)
     offsets = [(dy, dx, math.hypot(dx, dy)) for dy in range(-reach, reach + 1) for dx in range(-reach, reach + 1)]
     offsets = [(dy, dx, d) for dy, dx, d in offsets if 0 < d < limit]
-    for y0 in range(0, h, BAND_ROWS):
-        y1 = min(y0 + BAND_ROWS, h)
+    rows = max(16, BAND_PIXELS // w)
+    for y0 in range(0, h, rows):
+        y1 = min(y0 + rows, h)
         col_max = r_pad[y0:y1 + 2 * reach].max(axis=0)  # each padded column's largest radius near the band
         band_limit = float(col_max.max()) + 0.5
         _band(offsets, band_limit, col_max, reach, (y0, y1, w), r[y0:y1], z[y0:y1], r_pad, area_pad, z_pad, padded,
-              acc[y0:y1], weight[y0:y1])
+              acc[:, y0:y1], weight[y0:y1])
     lent = weight > 0
     own = 1.0 / np.maximum(r, 0.5) ** 2
-    total = (own + weight)[..., None]
-    out = np.where(lent[..., None], (own[..., None] * stacked + acc) / total, stacked).astype(np.float32)
-    return [out[..., 3 * k:3 * k + 3] for k in range(len(images))]
+    total = own + weight
+    out = np.where(lent, (own * planes + acc) / total, planes).astype(np.float32)
+    return [np.ascontiguousarray(np.moveaxis(out[3 * k:3 * k + 3], 0, -1)) for k in range(len(images))]
 
 
 def _band(offsets, band_limit, col_max, reach, rows, r, z, r_pad, area_pad, z_pad, padded, acc, weight) -> None:
-    """gather_blur's sum over one band of rows (y0, y1) of an image w wide, into acc and weight (views)."""
+    """gather_blur's sum over one band of rows (y0, y1) of an image w wide, into acc (planes) and weight (views)."""
     y0, y1, w = rows
     lend = np.empty(r.shape, np.float32)
     own = np.empty(r.shape, np.float32)
-    term = np.empty(acc.shape, np.float32)
+    ahead = np.empty(r.shape, np.float32)
+    term = np.empty(r.shape, np.float32)
     for dy, dx, d in offsets:
         if d >= band_limit:
             continue
@@ -89,19 +92,22 @@ def _band(offsets, band_limit, col_max, reach, rows, r, z, r_pad, area_pad, z_pa
             continue
         src = (slice(reach + y0 + dy, reach + y1 + dy), slice(reach + x0 + dx, reach + x1 + dx))
         n = x1 - x0
-        ln, ow = lend[:, :n], own[:, :n]
+        ln, ow, nb, t = lend[:, :n], own[:, :n], ahead[:, :n], term[:, :n]
         np.subtract(r_pad[src], d, out=ln)
         ln += 0.5
         np.clip(ln, 0.0, 1.0, out=ln)
         np.subtract(r[:, x0:x1], d, out=ow)
         ow += 0.5
         np.clip(ow, 0.0, 1.0, out=ow)
-        np.multiply(ln, ow, out=ln, where=z_pad[src] > z[:, x0:x1])
+        # a neighbour behind lends only inside p's own disc: times own coverage there, times max(own, 1) = 1 elsewhere
+        np.less_equal(z_pad[src], z[:, x0:x1], out=nb)
+        np.maximum(ow, nb, out=ow)
+        ln *= ow
         np.divide(ln, area_pad[src], out=ln)
         weight[:, x0:x1] += ln
-        t = term[:, :n]
-        np.multiply(ln[..., None], padded[src], out=t)
-        acc[:, x0:x1] += t
+        for plane, source in zip(acc, padded):
+            np.multiply(ln, source[src], out=t)
+            plane[:, x0:x1] += t
 
 
 class DepthOfField(Plain):
