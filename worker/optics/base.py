@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -9,6 +10,7 @@ from typing import Protocol
 import numpy as np
 
 from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.light.volume import pixel_rays
 from seasynth.worker.render import DrawItem, RenderResult, View
 from seasynth.worker.scene.sample import Scene
 
@@ -72,3 +74,17 @@ class Plain:
 
     def develop(self, shot: Shot, result: RenderResult) -> RenderResult:
         return result
+
+
+def field_cosine(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(h, w) float64, read-only: the cosine of the angle between each pixel centre's ray and the optical axis (the
+    z of its unit direction). Cached per intrinsics and size (a few cameras' worth: 16 MB each at 1920x1080)."""
+    return _field_cosine(np.asarray(K, np.float64).tobytes(), width, height)
+
+
+@functools.lru_cache(maxsize=4)
+def _field_cosine(K_bytes: bytes, width: int, height: int) -> np.ndarray:
+    K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
+    out = np.ascontiguousarray(pixel_rays(K, width, height, np.eye(4))[1][..., 2])
+    out.flags.writeable = False
+    return out

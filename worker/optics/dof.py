@@ -11,12 +11,12 @@ import numpy as np
 
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.spec.lens import Lens
-from seasynth.worker.light.volume import pixel_rays
-from seasynth.worker.optics.base import Plain, Shot
+from seasynth.worker.optics.base import Plain, Shot, field_cosine
 from seasynth.worker.render import RenderResult, View
 
 # A larger circle of confusion is drawn at this radius: the gather's cost grows with its square (pi R^2 offsets).
 MAX_RADIUS_PX = 16
+BAND_PIXELS = 65536  # a band of rows summed together: its arrays stay in cache, and it reaches only its own discs
 
 
 def coc_radius_px(z_m: np.ndarray, fx_px: float, focal_m: float, f_number: float, focus_m: float) -> np.ndarray:
@@ -36,7 +36,11 @@ def gather_blur(images: list[np.ndarray], radius_px: np.ndarray, z_m: np.ndarray
     coverage(r_s - d) / r_s^2 (its disc's share per pixel; coverage(x) = clip(x + 1/2, 0, 1), an anti-aliased disc
     edge), and a neighbour behind p (z_s > z_p) only inside p's own disc too, so an in-focus foreground edge keeps
     the blurred background off it while a blurred foreground spreads over what lies behind it. Radii at or under
-    1/2 px reach no neighbour: where no neighbour lends anything, the pixel keeps its value exactly."""
+    1/2 px reach no neighbour: where no neighbour lends anything, the pixel keeps its value exactly.
+
+    The sum runs over bands of whole rows (about BAND_PIXELS pixels), each over the offsets its neighbours' largest
+    disc reaches and the columns whose neighbours lend anything at that offset: the terms it leaves out are exactly
+    0, so the result is the whole image's sum over every offset, term by term in the same order."""
     r = np.minimum(radius_px, MAX_RADIUS_PX).astype(np.float32)
     limit = float(r.max()) + 0.5 if r.size else 0.0  # a disc reaches the offsets d < r + 1/2
     reach = math.ceil(limit) - 1
@@ -45,29 +49,65 @@ def gather_blur(images: list[np.ndarray], radius_px: np.ndarray, z_m: np.ndarray
     h, w = r.shape
     pad = ((reach, reach), (reach, reach))
     r_pad = np.pad(r, pad, constant_values=-1.0)  # outside the image: no sample
+    area_pad = np.maximum(r_pad, 0.5) ** 2
     z = np.where(np.isfinite(z_m), z_m, np.inf).astype(np.float32)
     z_pad = np.pad(z, pad, constant_values=np.inf)
-    padded = [np.pad(im, (*pad, (0, 0))) for im in images]
-    own = 1.0 / np.maximum(r, 0.5) ** 2
-    acc = [np.zeros_like(im) for im in images]
+    # channel planes (3 n, h, w): per-offset products on contiguous rows (a trailing axis of 3 is slow to broadcast)
+    planes = np.concatenate([np.moveaxis(im.astype(np.float32, copy=False), -1, 0) for im in images])
+    padded = np.pad(planes, ((0, 0), *pad))
+    acc = np.zeros_like(planes)
     weight = np.zeros((h, w), np.float32)
-    for dy in range(-reach, reach + 1):
-        for dx in range(-reach, reach + 1):
-            d = math.hypot(dx, dy)
-            if d == 0 or d >= limit:
-                continue
-            window = (slice(reach + dy, reach + dy + h), slice(reach + dx, reach + dx + w))
-            r_s = r_pad[window]
-            lend = np.clip(r_s - d + 0.5, 0.0, 1.0)
-            behind = z_pad[window] > z
-            lend = np.where(behind, lend * np.clip(r - d + 0.5, 0.0, 1.0), lend) / np.maximum(r_s, 0.5) ** 2
-            weight += lend
-            for a, p in zip(acc, padded):
-                a += lend[..., None] * p[window]
+    offsets = [(dy, dx, math.hypot(dx, dy)) for dy in range(-reach, reach + 1) for dx in range(-reach, reach + 1)]
+    offsets = [(dy, dx, d) for dy, dx, d in offsets if 0 < d < limit]
+    rows = max(16, BAND_PIXELS // w)
+    for y0 in range(0, h, rows):
+        y1 = min(y0 + rows, h)
+        col_max = r_pad[y0:y1 + 2 * reach].max(axis=0)  # each padded column's largest radius near the band
+        band_limit = float(col_max.max()) + 0.5
+        _band(offsets, band_limit, col_max, reach, (y0, y1, w), r[y0:y1], z[y0:y1], r_pad, area_pad, z_pad, padded,
+              acc[:, y0:y1], weight[y0:y1])
     lent = weight > 0
-    total = (own + weight)[..., None]
-    return [np.where(lent[..., None], (own[..., None] * im + a) / total, im).astype(np.float32)
-            for im, a in zip(images, acc)]
+    own = 1.0 / np.maximum(r, 0.5) ** 2
+    total = own + weight
+    out = np.where(lent, (own * planes + acc) / total, planes).astype(np.float32)
+    return [np.ascontiguousarray(np.moveaxis(out[3 * k:3 * k + 3], 0, -1)) for k in range(len(images))]
+
+
+def _band(offsets, band_limit, col_max, reach, rows, r, z, r_pad, area_pad, z_pad, padded, acc, weight) -> None:
+    """gather_blur's sum over one band of rows (y0, y1) of an image w wide, into acc (planes) and weight (views)."""
+    y0, y1, w = rows
+    lend = np.empty(r.shape, np.float32)
+    own = np.empty(r.shape, np.float32)
+    ahead = np.empty(r.shape, np.float32)
+    term = np.empty(r.shape, np.float32)
+    for dy, dx, d in offsets:
+        if d >= band_limit:
+            continue
+        # padded columns whose radius reaches offset d (the same float32 sum the terms use: rounding is monotone)
+        cols = np.flatnonzero(col_max - d + 0.5 > 0)
+        if cols.size == 0:
+            continue
+        x0, x1 = max(int(cols[0]) - reach - dx, 0), min(int(cols[-1]) + 1 - reach - dx, w)
+        if x1 <= x0:
+            continue
+        src = (slice(reach + y0 + dy, reach + y1 + dy), slice(reach + x0 + dx, reach + x1 + dx))
+        n = x1 - x0
+        ln, ow, nb, t = lend[:, :n], own[:, :n], ahead[:, :n], term[:, :n]
+        np.subtract(r_pad[src], d, out=ln)
+        ln += 0.5
+        np.clip(ln, 0.0, 1.0, out=ln)
+        np.subtract(r[:, x0:x1], d, out=ow)
+        ow += 0.5
+        np.clip(ow, 0.0, 1.0, out=ow)
+        # a neighbour behind lends only inside p's own disc: times own coverage there, times max(own, 1) = 1 elsewhere
+        np.less_equal(z_pad[src], z[:, x0:x1], out=nb)
+        np.maximum(ow, nb, out=ow)
+        ln *= ow
+        np.divide(ln, area_pad[src], out=ln)
+        weight[:, x0:x1] += ln
+        for plane, source in zip(acc, padded):
+            np.multiply(ln, source[src], out=t)
+            plane[:, x0:x1] += t
 
 
 class DepthOfField(Plain):
@@ -90,7 +130,7 @@ def defocused(cam: Lens, view: View, result: RenderResult) -> tuple[RenderResult
     and meta's record of it."""
     fx = float(view.K[0, 0])
     focal_m = cam.focal_length_m(fx, view.width)
-    cos_field = pixel_rays(view.K, view.width, view.height, np.eye(4))[1][..., 2]
+    cos_field = field_cosine(view.K, view.width, view.height)
     z = result.range_m * cos_field  # range along the pixel's ray -> depth along the optical axis
     radius = coc_radius_px(z, fx, focal_m, cam.aperture_f, cam.focus_m)
     images = [result.image] + ([] if result.clean is None else [result.clean])

@@ -98,26 +98,34 @@ def spread(light: np.ndarray, variance_px: np.ndarray, aspect: float = 1.0) -> t
     level_var = sigmas**2
     lo = np.clip(np.searchsorted(level_var, var, side="right") - 1, 0, len(sigmas) - 2).ravel()
     t = np.clip((var.ravel() - level_var[lo]) / (level_var[lo + 1] - level_var[lo]), 0.0, 1.0)
-    upper = t.astype(np.float32)  # the upper level's share; the lower one has the rest
-    lower = 1.0 - upper
+    upper = t.astype(np.float32).reshape(light.shape)  # the upper level's share; the lower one has the rest
+    lower_light, upper_light = (light * (1.0 - upper)).ravel(), (light * upper).ravel()
+    # the pixels and channels by lower level: those of level k are order[first[k]:first[k + 1]]
+    lo = lo.astype(np.int16)  # levels_px's levels number far fewer than 2^15; a radix sort's small integers
+    order = np.argsort(lo, kind="stable")
+    first = np.searchsorted(lo[order], np.arange(len(sigmas) + 1))
+    # the squared angular frequency's Gaussian, exp(-sigma^2 (aspect^2 wy^2 + wx^2) / 2), is separable
     wy = (np.pi * np.arange(h) / h) ** 2
     wx = (np.pi * np.arange(w) / w) ** 2
-    omega2 = (aspect**2 * wy[:, None] + wx[None, :])[..., None]  # (h, w, 1) squared angular frequency, px^-2
     total = None
     used = []
-    for k in np.flatnonzero(np.bincount(np.concatenate([lo, lo + 1]), minlength=len(sigmas))):
-        sigma = sigmas[k]
-        weight = np.zeros(light.size, np.float32)  # this level's share of each pixel and channel
-        at = lo == k
-        weight[at] = lower[at]
-        at = lo == k - 1
-        weight[at] += upper[at]
-        part = light * weight.reshape(light.shape)
+    for k in range(len(sigmas)):
+        below, above = order[first[k]:first[k + 1]], order[first[k - 1]:first[k]] if k > 0 else order[:0]
+        if below.size == 0 and above.size == 0:
+            continue
+        # this level's share of each pixel and channel's light: the lower share of those whose lower level is k,
+        # the upper share of those whose upper level it is
+        part = np.zeros(light.size, np.float32)
+        part[below] = lower_light[below]
+        part[above] = upper_light[above]
+        part = part.reshape(light.shape)
         if not part.any():
             continue
         spectrum = fft.dctn(part, type=2, axes=(0, 1), norm="ortho")
+        sigma = sigmas[k]
         if sigma > 0:
-            spectrum *= np.exp(-0.5 * sigma**2 * omega2).astype(np.float32)
+            gain = np.exp(-0.5 * sigma**2 * aspect**2 * wy)[:, None] * np.exp(-0.5 * sigma**2 * wx)[None, :]
+            spectrum *= gain.astype(np.float32)[..., None]
         total = spectrum if total is None else total + spectrum
         used.append(float(sigma))
     out = fft.idctn(total, type=2, axes=(0, 1), norm="ortho")

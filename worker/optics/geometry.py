@@ -81,39 +81,51 @@ def _project(K: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return K[0, 0] * p[..., 0] / p[..., 2] + K[0, 2], K[1, 1] * p[..., 1] / p[..., 2] + K[1, 2]
 
 
-def _corners(qx: np.ndarray, qy: np.ndarray, w: int, h: int):
-    """Top-left integer tap (x0, y0) of each sample clamped so both taps lie inside, and weights (fx, fy)."""
-    qx, qy = np.clip(np.nan_to_num(qx, nan=-1.0), 0, w - 1), np.clip(np.nan_to_num(qy, nan=-1.0), 0, h - 1)
-    x0, y0 = np.minimum(np.floor(qx).astype(np.intp), w - 2), np.minimum(np.floor(qy).astype(np.intp), h - 2)
-    return x0, y0, qx - x0, qy - y0
+@dataclasses.dataclass(frozen=True)
+class Taps:
+    """Where samples at fractional pixels (qx, qy) read an (H, W) image: flat indices into its H * W pixels of each
+    sample's top-left tap (clamped so that all four taps lie inside), its weights (fx, fy), (..., 1) float64, and
+    the nearest pixel's flat index. NaN positions read pixel 0; positions outside clamp to the edge."""
+
+    corner: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    near: np.ndarray
+    width: int
+
+    @classmethod
+    def at(cls, qx: np.ndarray, qy: np.ndarray, w: int, h: int) -> Taps:
+        qx, qy = np.clip(np.nan_to_num(qx, nan=-1.0), 0, w - 1), np.clip(np.nan_to_num(qy, nan=-1.0), 0, h - 1)
+        x0, y0 = np.minimum(np.floor(qx).astype(np.intp), w - 2), np.minimum(np.floor(qy).astype(np.intp), h - 2)
+        near = np.rint(qy).astype(np.intp) * w + np.rint(qx).astype(np.intp)
+        return cls(corner=y0 * w + x0, fx=(qx - x0)[..., None], fy=(qy - y0)[..., None], near=near, width=w)
+
+    def four(self, image: np.ndarray) -> list[np.ndarray]:
+        """image (H, W, ...) at the four taps (top-left, top-right, bottom-left, bottom-right), each (..., C)."""
+        flat = image.reshape(image.shape[0] * image.shape[1], -1)
+        c, w = self.corner, self.width
+        return [flat.take(c + k, axis=0).reshape(*c.shape, -1) for k in (0, 1, w, w + 1)]
+
+    def bilinear(self, image: np.ndarray, four: list[np.ndarray] | None = None) -> np.ndarray:
+        """image (H, W, ...) sampled bilinearly, (..., ...) in image's dtype (its taps `four` if already read)."""
+        a, b, c, d = self.four(image) if four is None else four
+        fx, fy = self.fx, self.fy
+        top = a * (1 - fx) + b * fx
+        bottom = c * (1 - fx) + d * fx
+        return (top * (1 - fy) + bottom * fy).astype(image.dtype).reshape(self.near.shape + image.shape[2:])
+
+    def nearest(self, image: np.ndarray) -> np.ndarray:
+        flat = image.reshape(image.shape[0] * image.shape[1], *image.shape[2:])
+        return flat.take(self.near, axis=0)
 
 
-def bilinear(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
-    """image (H, W, ...) sampled at fractional pixels (qx, qy) (clamped to the image), bilinearly."""
-    h, w = image.shape[:2]
-    x0, y0, fx, fy = _corners(qx, qy, w, h)
-    fx, fy = fx.reshape(fx.shape + (1,) * (image.ndim - 2)), fy.reshape(fy.shape + (1,) * (image.ndim - 2))
-    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
-    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
-    return (top * (1 - fy) + bottom * fy).astype(image.dtype)
-
-
-def nearest(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
-    h, w = image.shape[:2]
-    x = np.clip(np.rint(np.nan_to_num(qx, nan=0.0)), 0, w - 1).astype(np.intp)
-    y = np.clip(np.rint(np.nan_to_num(qy, nan=0.0)), 0, h - 1).astype(np.intp)
-    return image[y, x]
-
-
-def surface_depth(inv_z: np.ndarray, ids: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
-    """z-depth (metres, +inf where no surface) at fractional wide pixels: inverse depth interpolated bilinearly
-    where the four neighbours show one instance and all hit a surface, else the nearest pixel's."""
-    h, w = inv_z.shape
-    x0, y0, _, _ = _corners(qx, qy, w, h)
-    taps = [(y0, x0), (y0, x0 + 1), (y0 + 1, x0), (y0 + 1, x0 + 1)]
-    near_id = nearest(ids, qx, qy)
-    same = np.logical_and.reduce([(ids[t] == near_id) & (inv_z[t] > 0) for t in taps])
-    iz = np.where(same, bilinear(inv_z, qx, qy), nearest(inv_z, qx, qy))
+def surface_depth(inv_z: np.ndarray, ids: np.ndarray, taps: Taps) -> np.ndarray:
+    """z-depth (metres, +inf where no surface) at fractional wide pixels (their taps): inverse depth interpolated
+    bilinearly where the four neighbours show one instance and all hit a surface, else the nearest pixel's."""
+    iz4 = taps.four(inv_z)
+    near_id = taps.nearest(ids)[..., None]
+    same = np.logical_and.reduce([(i == near_id) & (z > 0) for i, z in zip(taps.four(ids), iz4)])[..., 0]
+    iz = np.where(same, taps.bilinear(inv_z, iz4), taps.nearest(inv_z))
     with np.errstate(divide="ignore"):
         return 1.0 / iz
 
@@ -130,21 +142,22 @@ class Geometry(Plain):
         shot.render_view = dataclasses.replace(shot.view, K=rays.K, width=rays.width, height=rays.height)
         shot.needs |= {"ids", "range"}
         shot.float_image = True
-        self.samples = None  # (qx, qy, lost): each output pixel's position in the wide render, once developed
+        self.samples = None  # (taps, lost): where each output pixel reads the wide render, once developed
 
     def develop(self, shot: Shot, result: RenderResult) -> RenderResult:
         rays, wide = camera_rays(shot.spec.camera), shot.render_view
         o, d = rays.origins, rays.directions
         qx, qy, t, k, step = search(o, d, wide.K, inverse_depth(wide, result.range_m), result.instance)
         lost = np.isnan(d[..., 0])  # rays that never reach the water: black, no surface
-        self.samples = (qx, qy, lost)
+        taps = Taps.at(qx, qy, wide.width, wide.height)
+        self.samples = (taps, lost)
         # the camera behind the port records the water's radiance times the port's transmittance (radiance's n^2
         # law across the change of medium, and Fresnel); clean is the frame without water, and keeps the radiance
-        image = np.where(lost[..., None], 0.0, bilinear(result.image, qx, qy) * rays.transmittance[..., None])
+        image = np.where(lost[..., None], 0.0, taps.bilinear(result.image) * rays.transmittance[..., None])
         image = image.astype(np.float32)
         clean = None if result.clean is None else np.where(
-            lost[..., None], 0.0, bilinear(result.clean, qx, qy)).astype(np.float32)
-        instance = np.where(lost, 0, nearest(result.instance, qx, qy)).astype(result.instance.dtype)
+            lost[..., None], 0.0, taps.bilinear(result.clean)).astype(np.float32)
+        instance = np.where(lost, 0, taps.nearest(result.instance)).astype(result.instance.dtype)
         range_m = np.where(lost, np.inf, t).astype(np.float32)
         with np.errstate(invalid="ignore", divide="ignore"):
             z_out = np.where(np.isfinite(t), o[..., 2] + t * d[..., 2], np.inf)
@@ -165,11 +178,11 @@ class Geometry(Plain):
         and a hidden one at least them. Where something hides it, its hidden pixels are sampled where the rays met
         the occluder: a ray through a flat port meets the item a little elsewhere (parallax; a pixel of its outline
         may count otherwise)."""
-        qx, qy, lost = self.samples
+        taps, lost = self.samples
         counts = []
         for item in items:
             ids, _ = renderer.geometry(shot.render_view, [item])
-            counts.append(int(np.count_nonzero((nearest(ids, qx, qy) == item.instance_id) & ~lost)))
+            counts.append(int(np.count_nonzero((taps.nearest(ids) == item.instance_id) & ~lost)))
         return counts
 
 
@@ -183,16 +196,20 @@ def search(o: np.ndarray, d: np.ndarray, K: np.ndarray, inv_z: np.ndarray, ids: 
     """Where water rays (origins o, unit directions d, (..., 3)) meet the surfaces of a wide render (intrinsics K,
     inverse depth inv_z, instance ids): the fixed point (module docstring). Returns the wide pixel coordinates
     (qx, qy), the distance t along each ray (+inf where it meets nothing), the iterations and the last step (px)."""
+    (ox, oy, oz), (dx, dy, dz) = np.moveaxis(o, -1, 0).copy(), np.moveaxis(d, -1, 0).copy()
     qx, qy = _project(K, d)
     step, k = np.zeros(0), 0
     while True:
-        z = surface_depth(inv_z, ids, qx, qy)
+        z = surface_depth(inv_z, ids, Taps.at(qx, qy, inv_z.shape[1], inv_z.shape[0]))
         with np.errstate(invalid="ignore"):
-            t = np.maximum((z - o[..., 2]) / d[..., 2], 0.0)  # along the water ray to the surface's depth
+            t = np.maximum((z - oz) / dz, 0.0)  # along the water ray to the surface's depth
         if k == PARALLAX_ITERATIONS or (k > 0 and not np.nanmax(step, initial=0.0) > CONVERGED_PX):
             return qx, qy, t, k, step
         far = ~np.isfinite(t)
-        p = np.where(far[..., None], d, o + np.where(far, 0.0, t)[..., None] * d)
-        nx, ny = _project(K, p)
+        t_near = np.where(far, 0.0, t)
+        # the ray's point at that distance (its direction where it meets nothing), projected
+        px, py, pz = (np.where(far, di, oi + t_near * di) for oi, di in ((ox, dx), (oy, dy), (oz, dz)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            nx, ny = K[0, 0] * px / pz + K[0, 2], K[1, 1] * py / pz + K[1, 2]
         step = np.hypot(nx - qx, ny - qy)
         qx, qy, k = nx, ny, k + 1

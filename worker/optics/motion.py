@@ -106,22 +106,23 @@ def nearest_instant(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
 def streak_px(view: View, range_m: np.ndarray, start: np.ndarray, end: np.ndarray) -> float:
     """The longest image-plane path, pixels, of a static point seen by the frame's view (range_m (h, w) metres,
     +inf: a direction) between the camera poses start and end (4, 4 world_from_cam): its endpoints' distance."""
-    d = pixel_rays(view.K, view.width, view.height, np.eye(4))[1].reshape(-1, 3)
-    r = range_m.reshape(-1).astype(np.float64)
+    d = pixel_rays(view.K, view.width, view.height, np.eye(4))[1]
+    r = range_m.astype(np.float64)
     finite = np.isfinite(r)
-    points = np.concatenate([d * np.where(finite, r, 1.0)[:, None], finite[:, None].astype(np.float64)], axis=1)
-    world = points @ np.linalg.inv(view.cam_from_world).T
+    w = finite.astype(np.float64)  # homogeneous: a point, or a direction where no surface
+    x, y, z = (np.where(finite, r, 1.0) * d[..., i] for i in range(3))
+    world_from_view = np.linalg.inv(view.cam_from_world)
     uv = []
     for pose in (start, end):
-        cam = world @ np.linalg.inv(pose).T
-        z = cam[:, 2]
+        a = np.linalg.inv(pose) @ world_from_view  # the frame's camera -> the pose's camera
+        cx, cy, cz = (a[i, 0] * x + a[i, 1] * y + a[i, 2] * z + a[i, 3] * w for i in range(3))
         with np.errstate(divide="ignore", invalid="ignore"):
-            uv.append(np.stack([cam[:, 0] / z, cam[:, 1] / z], axis=1) * view.K[[0, 1], [0, 1]])
-        uv.append(z)
-    ok = (uv[1] > 0) & (uv[3] > 0)
+            uv.append((cx / cz * view.K[0, 0], cy / cz * view.K[1, 1], cz))
+    (u0, v0, z0), (u1, v1, z1) = uv
+    ok = (z0 > 0) & (z1 > 0)
     if not ok.any():
         return 0.0
-    return float(np.linalg.norm(uv[0][ok] - uv[2][ok], axis=1).max())
+    return float(np.sqrt(((u0 - u1)[ok] ** 2 + (v0 - v1)[ok] ** 2).max()))
 
 
 def instant_count(streak: float) -> int:

@@ -42,7 +42,8 @@ def metered_scale(values: np.ndarray, target: float) -> float:
     linear in s: with the k smallest values unclipped it is (s C_k + n - k) / n, C_k their sum. When the target is
     out of reach (at least as many values are 0 as the target leaves dark), s saturates every nonzero value (a
     margin over the smallest's reciprocal so that float32 products reach 1 too)."""
-    v = np.sort(np.maximum(values.reshape(-1).astype(np.float64), 0.0))
+    # sorted in the values' own precision (float32 sorts much faster), then widened: the same numbers as float64's
+    v = np.sort(np.maximum(values.reshape(-1), 0)).astype(np.float64)
     n = v.size
     c = np.cumsum(v)
     k = np.arange(1, n + 1)

@@ -12,15 +12,14 @@ import dataclasses
 import numpy as np
 
 from seasynth.service.spec.dataset import DatasetSpec
-from seasynth.worker.light.volume import pixel_rays
-from seasynth.worker.optics.base import Plain, Shot
+from seasynth.worker.optics.base import Plain, Shot, field_cosine
 from seasynth.worker.render import RenderResult
 
 
 def vignetting_gain(K: np.ndarray, width: int, height: int, strength: float) -> np.ndarray:
     """(h, w) float32: cos(theta)^(4 strength), theta the angle between a pixel centre's ray and the optical axis
     (exactly 1 on the axis)."""
-    cos_field = pixel_rays(K, width, height, np.eye(4))[1][..., 2]
+    cos_field = field_cosine(K, width, height)
     return (cos_field ** (4.0 * strength)).astype(np.float32)
 
 
