@@ -135,6 +135,29 @@ def test_power_law_quantile_inverts_its_cdf(lo, ratio, slope):
     assert np.allclose(power_law_cdf(d, lo, lo * ratio, slope), u, atol=1e-9)
 
 
+# The least diameter a spec may give is any float > 0 (mm): 5e-324 mm is 0 m, 1e-100 mm makes lo^-3 overflow.
+TINY_DIAMETERS = st.one_of(st.sampled_from([0.0, 5e-324, 1e-300, 1e-103]), st.floats(0.0, 1e-3))
+
+
+@given(lo=TINY_DIAMETERS, hi=st.floats(1e-3, 0.1), slope=st.floats(0.0, 8.0))
+def test_power_law_quantile_is_exact_at_its_ends_and_monotone_down_to_a_zero_diameter(lo, hi, slope):
+    u = np.linspace(0.0, 1.0, 101)
+    d = power_law_quantile(u, lo, hi, slope)
+    assert np.all(np.isfinite(d)) and np.all(np.diff(d) >= 0)
+    assert d[0] == lo and d[-1] == hi and np.all((d >= lo) & (d <= hi))
+    if hi > lo > 1e-300:  # diameters as floats with all their bits (subnormal ones round to a few)
+        assert np.allclose(power_law_cdf(d, lo, hi, slope), u, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(view=views(), lo=TINY_DIAMETERS, slope=st.floats(0.0, 8.0), seed=st.integers(0, 2**32 - 1))
+def test_a_field_of_vanishing_least_diameter_is_drawn_finite_within_its_bounds(view, lo, slope, seed):
+    hi = 2e-3
+    f = draw_field(np.random.default_rng(seed), view, 500.0, (lo, hi), slope, (0.3, 0.8), 0.2)
+    assert np.all(np.isfinite(f.centres)) and np.all((f.diameters >= lo) & (f.diameters <= hi))
+    assert np.all(f.centres[:, 2] >= view.near) and all(math.isfinite(c) for c in f.cut_m)
+
+
 def test_diameters_follow_the_power_law_where_no_cut_binds():
     """Inside the smallest diameter's cut every size is kept: there the diameters' CDF values are uniform."""
     view = View(K=np.array([[200.0, 0, 79.5], [0, 200.0, 59.5], [0, 0, 1]]), width=160, height=120,
