@@ -16,6 +16,7 @@ projected area of its sphere, so its expected share of a pixel's samples is the 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import lambertw
 
+from seasynth.service.camera_model import CameraModel
 from seasynth.service.seeds import STREAM_SNOW, frame_rng
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.water import MARINE_SNOW_PER_M3
@@ -207,13 +209,20 @@ def surface_attenuation(scene: Scene) -> float:
 
 
 def frame_field(spec: DatasetSpec, index: int, scene: Scene, view: View) -> Field:
-    """Frame `index`'s particles in `view` (spec water.particles on), from the frame's own marine snow stream."""
+    """Frame `index`'s particles in `view` (spec water.particles on), from the frame's own marine snow stream: those
+    wholly in the water, none inside the housing of a camera behind a port (between its pupil and its window)."""
     p = spec.water.particles
     rng = frame_rng(spec.seed, index, STREAM_SNOW)
     density = float(rng.uniform(*(p.density_per_m3 if p.density_per_m3 is not None
                                   else MARINE_SNOW_PER_M3[scene.water_type])))
-    return draw_field(rng, view, density, (p.diameter_mm[0] / 1e3, p.diameter_mm[1] / 1e3), p.size_slope, p.albedo,
-                      surface_attenuation(scene))
+    field = draw_field(rng, view, density, (p.diameter_mm[0] / 1e3, p.diameter_mm[1] / 1e3), p.size_slope,
+                       p.albedo, surface_attenuation(scene))
+    model = CameraModel.from_spec(spec.camera)
+    if model.kind == "none":
+        return field
+    wet = model.water_clearance(field.centres) >= field.diameters / 2.0
+    return dataclasses.replace(field, centres=field.centres[wet], diameters=field.diameters[wet],
+                               albedo=field.albedo[wet])
 
 
 class MarineSnow(Plain):
