@@ -86,6 +86,11 @@ AT_THE_CAPS = {
         "fx": 1.41, "fy": 1.06, "cx": 1e6, "cy": -1e6}}}),
     "clip": ("urchins", {"camera.clip": [1e-6, 1e6]}),
     "look-at-jitter": ("urchins", {"camera.look_at_jitter_m": 100.0}),
+    # and at the least floats above 0 the spec takes
+    "least-target-scale": ("urchins", {"targets.scale": [5e-324, 1e-154], "targets.count": [2, 2]}),
+    "least-terrain-size": ("urchins", {"terrain.size_m": 5e-324}),
+    "least-particle-diameter": ("urchins", {"water.particles": {"enabled": True, "diameter_mm": [5e-324, 1.0]}}),
+    "least-sensor-gain": ("urchins", {"noise.full_well_e": 1e7, "noise.gain": 5e-324}),
 }
 
 
