@@ -124,6 +124,16 @@ class CameraModel:
             return dome_port(d, self.centre_m, self.radius_m, self.thickness_m, self.glass_index, self.water_index)
         return o, d
 
+    def water_clearance(self, points: np.ndarray) -> np.ndarray:
+        """(...) float64 metres: how far points (..., 3) (camera frame) lie beyond the port's outer surface, in the
+        water (negative: inside the housing or its glass); +inf without a port (the water starts at the pupil)."""
+        p = np.asarray(points, np.float64)
+        if self.kind == "flat":
+            return p[..., 2] - (self.distance_m + self.thickness_m)
+        if self.kind == "dome":
+            return np.linalg.norm(p - self.centre_m, axis=-1) - self.radius_m
+        return np.full(p.shape[:-1], np.inf)
+
     def transmittance(self, u, v) -> np.ndarray:
         """(...) float64: the share of a water ray's radiance that reaches pixel (u, v) behind the port: the Fresnel
         transmittance (unpolarised) at each of the port's surfaces times (n_air / n_water)^2, radiance's n^2 law

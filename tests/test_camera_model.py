@@ -133,6 +133,21 @@ def test_pixel_to_water_ray_to_pixel_round_trips(data):
     np.testing.assert_allclose(uv, np.stack([u, v], axis=1)[ok], atol=1e-5)
 
 
+@settings(max_examples=100, deadline=None)
+@given(st.data())
+def test_water_clearance_is_zero_where_each_water_ray_starts_and_positive_along_it(data):
+    """Every water ray starts on the port's outer surface (clearance 0) and runs out into the water; the pupil lies
+    inside the housing."""
+    cam = data.draw(cameras(kind=data.draw(st.sampled_from(["flat", "dome"]))))
+    m = model_of(cam)
+    u, v = pixels(data.draw, cam)
+    o, w = m.pixel_rays(u, v)
+    ok = np.isfinite(w[:, 0])
+    np.testing.assert_allclose(m.water_clearance(o[ok]), 0.0, atol=1e-12)
+    assert np.all(m.water_clearance(o[ok] + 0.01 * w[ok]) > 0) and m.water_clearance(np.zeros(3)) < 0
+    assert np.all(np.isinf(model_of({**cam, "port": {"kind": "none"}}).water_clearance(o)))
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.data())
 def test_undistortion_inverts_brown_conrady_to_its_tolerance(data):

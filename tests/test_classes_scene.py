@@ -32,7 +32,7 @@ def placement():
     water = st.fixed_dictionaries(
         {"kind": st.just("water"), "height_m": interval(0.0, 1.0, 0.5), "pitch_deg": interval(-40, 40, 30),
          "roll_deg": interval(-40, 40, 30)},
-        optional={"school": st.fixed_dictionaries({"size": st.tuples(st.integers(1, 2), st.integers(0, 3)).map(
+        optional={"school": st.fixed_dictionaries({"size": st.tuples(st.integers(0, 2), st.integers(0, 3)).map(
             lambda t: [t[0], t[0] + t[1]]), "spacing_m": interval(0.01, 0.2, 0.1)})})
     buried = st.fixed_dictionaries({"kind": st.just("buried"), "sunk_fraction": interval(0.0, 1.0, 0.5)})
     return st.one_of(st.just("seabed"), buried, water)

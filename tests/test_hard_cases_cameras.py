@@ -74,6 +74,17 @@ def test_a_camera_workspace_wholly_inside_geometry_is_refused_naming_it(render_s
         sample_scene(spec, rng, render_session.asset_for, render_session.terrain_for)
 
 
+@pytest.mark.parametrize("x", [0.0, 1.7, -2.5])
+def test_a_camera_workspace_on_its_look_at_point_is_refused_saying_so(render_session, x):
+    point = {"min": [x, 0.5, 1.2], "max": [x, 0.5, 1.2]}
+    spec = parse_spec({**SMALL_WORLD, "targets": {"count": [0, 0]}, "camera": {"width": 16, "height": 12,
+                                                                               "look_at_jitter_m": 0.0},
+                       "workspaces": {"camera": point, "look_at": point}})
+    with pytest.raises(SceneError, match=rf"^workspaces\.camera: all {CAMERA_TRIES} positions drawn lie within 1 mm "
+                                         r"of the point the camera looks at .*no direction to look in"):
+        sample_scene(spec, np.random.default_rng(0), render_session.asset_for, render_session.terrain_for)
+
+
 # Values at the spec's caps (seasynth.service.spec.types.MAX_MAGNITUDE and the per-field bounds): beyond them the spec refuses
 # (tests/test_spec_refusals.py); at them a frame renders, its float32 light never overflowing to inf or NaN.
 AT_THE_CAPS = {
@@ -86,6 +97,11 @@ AT_THE_CAPS = {
         "fx": 1.41, "fy": 1.06, "cx": 1e6, "cy": -1e6}}}),
     "clip": ("urchins", {"camera.clip": [1e-6, 1e6]}),
     "look-at-jitter": ("urchins", {"camera.look_at_jitter_m": 100.0}),
+    # and at the least floats above 0 the spec takes
+    "least-target-scale": ("urchins", {"targets.scale": [5e-324, 1e-154], "targets.count": [2, 2]}),
+    "least-terrain-size": ("urchins", {"terrain.size_m": 5e-324}),
+    "least-particle-diameter": ("urchins", {"water.particles": {"enabled": True, "diameter_mm": [5e-324, 1.0]}}),
+    "least-sensor-gain": ("urchins", {"noise.full_well_e": 1e7, "noise.gain": 5e-324}),
 }
 
 

@@ -107,6 +107,34 @@ def test_gaussian_sigma_alone_is_what_it_was(sigma, seed, index):
     assert record == {"noise": {"gaussian_sigma_linear": sigma}}
 
 
+def at_the_bounds(lo: float, hi: float):
+    """Floats in [lo, hi], its ends and the least float above 0 drawn often."""
+    return st.one_of(st.sampled_from([lo, hi]), st.floats(lo, hi))
+
+
+@settings(max_examples=150, deadline=None)
+@given(noise=st.fixed_dictionaries({}, optional={
+    "gaussian_sigma": at_the_bounds(0.0, 0.5), "full_well_e": at_the_bounds(1.0, 1e7),
+    "gain": at_the_bounds(5e-324, 1000.0), "auto_exposure": at_the_bounds(5e-324, 0.9999999),
+    "white_balance": st.one_of(st.just("gray_world"), st.lists(at_the_bounds(5e-324, 100.0), min_size=3,
+                                                                max_size=3))}),
+    read=at_the_bounds(0.0, 1e4), level=st.sampled_from([0.0, 1e-40, 1e-3, 1.0, 1e12]), dark=st.booleans(),
+    seed=seeds)
+def test_any_sensor_at_its_bounds_records_finite_values_in_range(noise, read, level, dark, seed):
+    """Gains, white balances and exposure targets down to 5e-324 and light from 1e-40 to 1e12 (the spec's caps):
+    the recorded image is finite and within [0, 1], and meta's record is finite."""
+    if "full_well_e" in noise:
+        noise["read_noise_e"] = read
+    image = (np.random.default_rng(seed).random((6, 8, 3)) * level).astype(np.float32)
+    if dark:
+        image[..., 1] = 0.0
+    out, record = develop(noise, image, seed)
+    assert out.dtype == np.float32 and np.all(np.isfinite(out))
+    if parse_spec({"noise": noise}).noise.sensor_on:
+        assert out.min() >= 0.0 and out.max() <= 1.0
+    json.dumps(record, allow_nan=False)
+
+
 MEMBERS = ("tuple[constrained-float, constrained-float, constrained-float].1", "literal['gray_world']")
 REFUSED = [
     ({"noise": {"read_noise_e": 3.0}}, "noise", "read_noise_e is in electrons: give full_well_e too"),

@@ -4,6 +4,7 @@ sizes and their mesh; and the spec's water.particles."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,7 +12,10 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from spec_helpers import refusal
 
+from seasynth.service.camera_model import CameraModel
+from seasynth.service.seeds import STREAM_SNOW, frame_rng
 from seasynth.service.spec.dataset import parse_spec
+from seasynth.service.spec.optics import Port
 from seasynth.worker.optics.particles import (
     ICO_FACES,
     ICO_VERTICES,
@@ -21,6 +25,7 @@ from seasynth.worker.optics.particles import (
     bin_expectation,
     cut_depth,
     draw_field,
+    frame_field,
     frustum_tans,
     frustum_volume,
     particle_mesh,
@@ -133,6 +138,57 @@ def test_power_law_quantile_inverts_its_cdf(lo, ratio, slope):
     d = power_law_quantile(u, lo, lo * ratio, slope)
     assert np.all(np.diff(d) >= 0) and d[0] == pytest.approx(lo) and d[-1] == pytest.approx(lo * ratio)
     assert np.allclose(power_law_cdf(d, lo, lo * ratio, slope), u, atol=1e-9)
+
+
+# The least diameter a spec may give is any float > 0 (mm): 5e-324 mm is 0 m, 1e-100 mm makes lo^-3 overflow.
+TINY_DIAMETERS = st.one_of(st.sampled_from([0.0, 5e-324, 1e-300, 1e-103]), st.floats(0.0, 1e-3))
+
+
+@given(lo=TINY_DIAMETERS, hi=st.floats(1e-3, 0.1), slope=st.floats(0.0, 8.0))
+def test_power_law_quantile_is_exact_at_its_ends_and_monotone_down_to_a_zero_diameter(lo, hi, slope):
+    u = np.linspace(0.0, 1.0, 101)
+    d = power_law_quantile(u, lo, hi, slope)
+    assert np.all(np.isfinite(d)) and np.all(np.diff(d) >= 0)
+    assert d[0] == lo and d[-1] == hi and np.all((d >= lo) & (d <= hi))
+    if hi > lo > 1e-300:  # diameters as floats with all their bits (subnormal ones round to a few)
+        assert np.allclose(power_law_cdf(d, lo, hi, slope), u, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(view=views(), lo=TINY_DIAMETERS, slope=st.floats(0.0, 8.0), seed=st.integers(0, 2**32 - 1))
+def test_a_field_of_vanishing_least_diameter_is_drawn_finite_within_its_bounds(view, lo, slope, seed):
+    hi = 2e-3
+    f = draw_field(np.random.default_rng(seed), view, 500.0, (lo, hi), slope, (0.3, 0.8), 0.2)
+    assert np.all(np.isfinite(f.centres)) and np.all((f.diameters >= lo) & (f.diameters <= hi))
+    assert np.all(f.centres[:, 2] >= view.near) and all(math.isfinite(c) for c in f.cut_m)
+
+
+@settings(max_examples=40, deadline=None)
+@given(port=st.one_of(
+    st.fixed_dictionaries({"kind": st.just("flat"), "distance_mm": st.floats(1.0, 1000.0),
+                           "thickness_mm": st.floats(1.0, 200.0)}),
+    st.fixed_dictionaries({"kind": st.just("dome"), "radius_mm": st.floats(30.0, 1000.0),
+                           "thickness_mm": st.floats(1.0, 29.0)})),
+       big=st.booleans(), seed=st.integers(0, 2**32 - 1))
+def test_no_particle_lies_inside_the_housing_of_a_camera_behind_a_port(port, big, seed):
+    """The housing holds air: every particle's sphere lies beyond the port's outer surface, and without a port the
+    field is draw_field's own."""
+    particles = {"enabled": True, "density_per_m3": [3e4, 3e4], "diameter_mm": [1.0, 40.0 if big else 5.0]}
+    spec = parse_spec({"seed": seed, "camera": {"width": 32, "height": 24, "port": port},
+                       "water": {"jerlov": ["1C"], "particles": particles}})
+    view = View(K=np.asarray(spec.camera.K()), width=32, height=24, cam_from_world=np.eye(4), near=0.02, far=20.0)
+    water = SimpleNamespace(light=None, water=SimpleNamespace(beta_D=np.array([0.5, 0.5, 0.5])), water_type="1C")
+    f = frame_field(spec, 3, water, view)
+    model = CameraModel.from_spec(spec.camera)
+    assert np.all(model.water_clearance(f.centres) >= f.diameters / 2)
+    # The same draws as without a port (draw_field's, from the frame's stream), less those not wholly in the water.
+    rng = frame_rng(seed, 3, STREAM_SNOW)
+    density = rng.uniform(3e4, 3e4)
+    bare = draw_field(rng, view, density, (1e-3, 40e-3 if big else 5e-3), 4.0, (0.4, 0.7), 0.5)
+    wet = model.water_clearance(bare.centres) >= bare.diameters / 2
+    assert np.array_equal(f.centres, bare.centres[wet]) and np.array_equal(f.diameters, bare.diameters[wet])
+    no_port = spec.model_copy(update={"camera": spec.camera.model_copy(update={"port": Port()})})
+    assert np.array_equal(frame_field(no_port, 3, water, view).centres, bare.centres)
 
 
 def test_diameters_follow_the_power_law_where_no_cut_binds():

@@ -78,6 +78,27 @@ def test_range_is_the_distance_along_the_water_ray_to_a_plane_and_depth_its_z(re
     assert np.all(np.abs(depth - z) <= 0.5 / DEPTH_SCALE + 1e-4 * z)  # PNG rounding and the range's own error
 
 
+@SETTINGS
+@given(distance=st.floats(0.05, 0.6), tilt=st.tuples(st.floats(-0.2, 0.2), st.floats(-0.2, 0.2)),
+       port_mm=st.floats(950.0, 1000.0))
+def test_a_surface_inside_a_long_ports_housing_has_range_0_and_no_depth(renderer, distance, tilt, port_mm):
+    """camera.port.distance_mm may be up to 1 m: a surface nearer than the window clamps to range 0 (it touches
+    the port), and its depth is no measurement (0), not 0 / 0."""
+    spec = parse_spec({"camera": {"width": 32, "height": 24, "hfov_deg": 60.0,
+                                  "port": {"kind": "flat", "distance_mm": port_mm}}})
+    normal = np.array([tilt[0], tilt[1], 1.0]) / np.linalg.norm([tilt[0], tilt[1], 1.0])
+    item = plane_item(normal, distance)
+    view = View(K=np.asarray(spec.camera.K()), width=32, height=24, cam_from_world=np.eye(4), near=0.02, far=300.0)
+    shot = Shot(spec=spec, index=0, scene=None, view=view, render_view=view, items=[item])
+    effect = Geometry()
+    effect.prepare(shot)
+    wide = renderer.render(shot.render_view, [item], Lighting(np.array([0.0, -1.0, 0.0]), 1.0, 0.3), None,
+                           PRESETS["fast"], Passes(ids=True, range=True))
+    out = effect.develop(shot, wide)
+    assert np.all(out.range_m == 0.0) and np.all(np.isfinite(shot.range_norms))
+    assert not depth_png16(out.range_m, shot.range_norms).any()
+
+
 def port_spec(port: dict, distortion: list[float], seed: int) -> dict:
     return {**MAPPING, "seed": seed, "frames": 1, "targets": {**MAPPING["targets"], "count": [4, 8]},
             "camera": {**MAPPING["camera"], "width": 96, "height": 72, "port": port, "distortion": distortion},

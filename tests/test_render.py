@@ -5,10 +5,12 @@ import io
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame.function import DEPTH_SCALE, PRESETS, depth_png16, ray_norms, to_render_mesh
-from seasynth.worker.render import DrawItem, Lighting, Passes, Sampling, View, WaterParams
+from seasynth.worker.render import DrawItem, Lighting, Passes, Sampling, View, WaterParams, normal_matrix
 from seasynth.worker.scene.poses import rotation_between
 
 EXAMPLE = "examples/urchins.yaml"
@@ -342,3 +344,27 @@ def test_gl_backscatter_matches_float64_expm1_on_the_samples_it_used(renderer, b
     x = beta_b * R.astype(np.float64)  # (k, h, w): the float32 ranges the shader read, in float64
     expected = b_inf * (-np.expm1(-x)).mean(axis=0)[..., None]
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(axis=st.tuples(*[st.floats(-1.0, 1.0)] * 3), angle=st.floats(-np.pi, np.pi), mirror=st.booleans(),
+       scale=st.one_of(st.sampled_from([5e-324, 1e-310, 1e-300, 1e-154, 2.0**-50, 2.0**50, 1e154, 1e300]),
+                       st.floats(1e-300, 1e300)))
+def test_the_normal_matrix_turns_normals_as_the_inverse_transpose_at_any_object_scale(axis, angle, mirror, scale):
+    """targets.scale may be any float > 0: the normal matrix stays finite in float32 and turns normals as the
+    rotation does; between 2^-50 and 2^50 it is the plain inverse transpose, bit for bit."""
+    a = np.asarray(axis) if np.linalg.norm(axis) > 1e-3 else np.array([0.0, 0.0, 1.0])
+    R = rotation_between(np.array([0.0, 0.0, 1.0]), a / np.linalg.norm(a)) @ np.array(
+        [[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    if mirror:
+        R = R @ np.diag([-1.0, 1.0, 1.0])
+    nrm = normal_matrix(R * scale)
+    assert nrm.dtype == np.float32 and np.all(np.isfinite(nrm))
+    if scale >= 1e-300:  # a normal float: the map keeps its rotation's every bit
+        n = np.random.default_rng(0).normal(size=(16, 3))
+        got = n @ nrm.T.astype(np.float64)
+        want = n @ R.T
+        np.testing.assert_allclose(got / np.linalg.norm(got, axis=1, keepdims=True),
+                                   want / np.linalg.norm(want, axis=1, keepdims=True), atol=1e-6)
+    if 2.0**-50 <= scale <= 2.0**50:
+        assert np.array_equal(nrm, np.linalg.inv(R * scale).T.astype(np.float32))

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from local_datasets import seasynth, tree
 from PIL import Image
 
@@ -263,6 +265,25 @@ def test_speckle_and_noise_match_their_stated_distributions(renderer):
     assert dark.mean() == pytest.approx(sigma / math.sqrt(2 * math.pi), rel=0.05)
     assert np.array_equal(to_uint16(np.array([-1.0, 0.0, 0.5, 1.0, 2.0])),
                           np.array([0, 0, 32768, FULL_SCALE, FULL_SCALE], np.uint16))
+
+
+@settings(max_examples=60, deadline=None)
+@given(looks=st.one_of(st.sampled_from([5e-324, 1e-310, 5.6e-309, 1e-300, 1.0, 1e6]), st.floats(5e-324, 1e6)),
+       noise=st.sampled_from([0.0, 0.01]), seed=st.integers(0, 2**32 - 1))
+def test_speckle_of_any_looks_is_finite_keeps_no_echo_dark_and_draws_numpys_gamma(looks, noise, seed):
+    """speckle_looks may be any float > 0: below 5.6e-309, 1 / L is inf and the speckle saturates the cells it
+    lights; the codes stay finite, a cell with no echo gets no speckle, and elsewhere the draw is Gamma(L, 1/L)
+    exactly as numpy's gamma gives it (the sonar examples keep their bytes)."""
+    intensity = np.random.default_rng(seed).uniform(0.0, 2.0, (8, 6)) * (np.arange(6) % 3 > 0)
+    fls = FLS(enabled=True, speckle_looks=looks, noise_sigma=noise)
+    got = speckle_and_noise(intensity, fls, np.random.default_rng(seed))
+    assert not np.isnan(got).any() and np.all(got >= 0)
+    assert np.array_equal(to_uint16(got) == FULL_SCALE, got >= 1.0 - 0.5 / FULL_SCALE)  # inf: full scale
+    if noise == 0:
+        assert np.all(got[intensity == 0] == 0) and np.all(np.isfinite(got) | (intensity > 0))
+    if 1.0 / looks < math.inf and noise == 0:
+        want = np.maximum(intensity * np.random.default_rng(seed).gamma(looks, 1.0 / looks, intensity.shape), 0.0)
+        assert np.array_equal(got, want)
 
 
 # ---- end to end: generate, labels, determinism -------------------------------------------------------------------

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
@@ -95,6 +97,21 @@ def test_height_at_matches_vertices_and_is_bilinear() -> None:
     # Outside the extent: clamped to the nearest edge; shape follows the input's leading axes.
     np.testing.assert_allclose(t.height_at(np.array([[-10.0, -10.0], [10.0, 10.0]])), [h[0, 0], h[-1, -1]])
     assert t.height_at(np.zeros((3, 4, 2))).shape == (3, 4)
+
+
+@settings(max_examples=60, deadline=None)
+@given(style=st.sampled_from(STYLES), size=st.one_of(st.sampled_from([5e-324, 1e-323, 1e-310, 1e-300, 1000.0]),
+                                                     st.floats(5e-324, 1000.0)),
+       cells=st.integers(1, 12), relief=st.floats(0.0, 100.0), seed=st.integers(0, 2**32 - 1),
+       xy=st.lists(st.floats(-1e6, 1e6), min_size=2, max_size=2))
+def test_a_heightfield_of_any_size_is_finite_and_height_at_stays_within_it(style, size, cells, relief, seed, xy):
+    """terrain.size_m may be any float > 0 (a subnormal one halves to an extent of no width)."""
+    t = heightfield(np.random.default_rng(seed), style, size, cells, relief)
+    h = t.heights.astype(np.float64)
+    assert np.all(np.isfinite(h)) and h.min() == 0.0 and np.all(np.isfinite(t.mesh.vertices))
+    points = np.array([xy, [0.0, 0.0], [t.extent[0], t.extent[2]], [t.extent[1], t.extent[3]]])
+    at = t.height_at(points)
+    assert np.all(np.isfinite(at)) and np.all((at >= h.min()) & (at <= h.max()))
 
 
 def roughness(h: np.ndarray) -> float:

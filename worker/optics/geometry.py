@@ -159,9 +159,12 @@ class Geometry(Plain):
             lost[..., None], 0.0, taps.bilinear(result.clean)).astype(np.float32)
         instance = np.where(lost, 0, taps.nearest(result.instance)).astype(result.instance.dtype)
         range_m = np.where(lost, np.inf, t).astype(np.float32)
+        # range / z-depth where the range is a distance (> 0); a surface the port's window touches or the housing
+        # would hold (range clamped to 0) takes the pupil ray's norm, so its depth reads 0 (no measurement), not 0/0
+        measured = np.isfinite(t) & (t > 0)
         with np.errstate(invalid="ignore", divide="ignore"):
-            z_out = np.where(np.isfinite(t), o[..., 2] + t * d[..., 2], np.inf)
-            shot.range_norms = np.where(np.isfinite(t), t / z_out, 1.0 / d[..., 2]).astype(np.float32)
+            z_out = np.where(measured, o[..., 2] + t * d[..., 2], np.inf)
+            shot.range_norms = np.where(measured, t / z_out, 1.0 / d[..., 2]).astype(np.float32)
         finite = step[np.isfinite(step)]
         shot.record[self.name] = {
             "render": {"K": wide.K.tolist(), "width": wide.width, "height": wide.height,

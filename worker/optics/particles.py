@@ -16,6 +16,7 @@ projected area of its sphere, so its expected share of a pixel's samples is the 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import lambertw
 
+from seasynth.service.camera_model import CameraModel
 from seasynth.service.seeds import STREAM_SNOW, frame_rng
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.water import MARINE_SNOW_PER_M3
@@ -94,25 +96,42 @@ def cut_depth(diameter_m: np.ndarray, f_px: float, k: float, far: float, visible
 
 
 def power_law_quantile(u: np.ndarray, lo: float, hi: float, slope: float) -> np.ndarray:
-    """Diameters with density ~ d^-slope on [lo, hi] at cumulative probabilities u."""
+    """Diameters with density ~ d^-slope on [lo, hi] at cumulative probabilities u.
+
+    Computed as log(d / hi) from the ratio lo / hi, never from lo^(1 - slope) itself: that power overflows (or
+    divides by zero) for a diameter far below a metre, as a spec's least diameter may be (lo 5e-327 m, or 0)."""
+    u = np.asarray(u, np.float64)
     if hi <= lo:
-        return np.full(np.shape(u), lo)
-    if abs(slope - 1.0) < 1e-9:
-        return lo * (hi / lo) ** u
+        return np.full(u.shape, lo)
     a = 1.0 - slope
-    if a < 0:  # from the top, where d^a is smallest: exact at both ends however steep the law
-        return (hi**a + (1.0 - np.asarray(u)) * (lo**a - hi**a)) ** (1.0 / a)
-    return (lo**a + u * (hi**a - lo**a)) ** (1.0 / a)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        log_r = math.log(lo / hi) if lo > 0 else -math.inf  # <= 0
+        if abs(a) < 1e-9:  # log-uniform: d = hi (lo / hi)^(1 - u)
+            log_d = np.where(u < 1.0, (1.0 - u) * log_r, 0.0)
+        elif a > 0:  # d^a = lo^a + u (hi^a - lo^a): (d / hi)^a = 1 - (1 - u) (1 - (lo / hi)^a)
+            log_d = np.log1p(-(1.0 - u) * -np.expm1(a * log_r)) / a
+        else:  # (d / hi)^a = u + (1 - u) e^L with L = a log(lo / hi) >= 0, in logs where e^L would overflow
+            big = a * log_r
+            tail = np.where(u < 1.0, np.log1p(-u) + big, -math.inf)
+            log_d = np.where(big < 1.0, np.log1p((1.0 - u) * math.expm1(min(big, 1.0))),
+                             np.logaddexp(np.log(u), tail)) / a
+    return np.where(u <= 0.0, lo, np.clip(hi * np.exp(log_d), lo, hi))  # lo exactly, not hi (lo / hi)
 
 
 def power_law_cdf(d: np.ndarray, lo: float, hi: float, slope: float) -> np.ndarray:
-    """The cumulative probability of power_law_quantile's distribution at d."""
+    """The cumulative probability of power_law_quantile's distribution at d (from ratios, as there)."""
+    d = np.asarray(d, np.float64)
     if hi <= lo:
-        return np.where(np.asarray(d) >= lo, 1.0, 0.0)
-    if abs(slope - 1.0) < 1e-9:
-        return np.log(d / lo) / math.log(hi / lo)
+        return np.where(d >= lo, 1.0, 0.0)
     a = 1.0 - slope
-    return (np.asarray(d, np.float64) ** a - lo**a) / (hi**a - lo**a)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if abs(a) < 1e-9:
+            return 1.0 - (math.log(hi) - np.log(d)) / (math.log(hi) - math.log(lo)) if lo > 0 else np.ones(d.shape)
+        # F = (d^a - lo^a) / (hi^a - lo^a), as ratios to hi^a (a > 0) or lo^a (a < 0), through expm1
+        if a > 0:
+            r = math.expm1(a * math.log(lo / hi)) if lo > 0 else -1.0
+            return (np.expm1(a * np.log(d / hi)) - r) / -r
+        return np.expm1(-a * np.log(lo / d)) / math.expm1(-a * math.log(lo / hi)) if lo > 0 else np.ones(d.shape)
 
 
 def bin_expectation(tans, f_px: float, edges: np.ndarray, density: float, k: float, view: View,
@@ -190,13 +209,20 @@ def surface_attenuation(scene: Scene) -> float:
 
 
 def frame_field(spec: DatasetSpec, index: int, scene: Scene, view: View) -> Field:
-    """Frame `index`'s particles in `view` (spec water.particles on), from the frame's own marine snow stream."""
+    """Frame `index`'s particles in `view` (spec water.particles on), from the frame's own marine snow stream: those
+    wholly in the water, none inside the housing of a camera behind a port (between its pupil and its window)."""
     p = spec.water.particles
     rng = frame_rng(spec.seed, index, STREAM_SNOW)
     density = float(rng.uniform(*(p.density_per_m3 if p.density_per_m3 is not None
                                   else MARINE_SNOW_PER_M3[scene.water_type])))
-    return draw_field(rng, view, density, (p.diameter_mm[0] / 1e3, p.diameter_mm[1] / 1e3), p.size_slope, p.albedo,
-                      surface_attenuation(scene))
+    field = draw_field(rng, view, density, (p.diameter_mm[0] / 1e3, p.diameter_mm[1] / 1e3), p.size_slope,
+                       p.albedo, surface_attenuation(scene))
+    model = CameraModel.from_spec(spec.camera)
+    if model.kind == "none":
+        return field
+    wet = model.water_clearance(field.centres) >= field.diameters / 2.0
+    return dataclasses.replace(field, centres=field.centres[wet], diameters=field.diameters[wet],
+                               albedo=field.albedo[wet])
 
 
 class MarineSnow(Plain):

@@ -27,6 +27,10 @@ from seasynth.worker.optics.base import Plain, Shot
 from seasynth.worker.render import RenderResult
 
 SATURATE = 1.0 + 1e-6
+# The most an exposure scales the light: times float32's largest value and the largest gain it is still finite in
+# float64, so no exposed pixel is inf (which a zero pixel or white balance would make NaN).
+MAX_SCALE = 1e200
+POISSON_EXACT = 2.0**50  # electrons: sqrt(n) / n = 3e-8 there, under float32's 6e-8 steps
 
 
 def gray_world(image: np.ndarray) -> np.ndarray:
@@ -41,20 +45,22 @@ def metered_scale(values: np.ndarray, target: float) -> float:
     """The s >= 0 with mean(clip(s * values, 0, 1)) == target, values >= 0 (any shape); the mean is piecewise
     linear in s: with the k smallest values unclipped it is (s C_k + n - k) / n, C_k their sum. When the target is
     out of reach (at least as many values are 0 as the target leaves dark), s saturates every nonzero value (a
-    margin over the smallest's reciprocal so that float32 products reach 1 too)."""
+    margin over the smallest's reciprocal so that float32 products reach 1 too). At most MAX_SCALE: a value metered
+    below 1 / MAX_SCALE (a white balance of 5e-324 on one channel) is left short of its target rather than the
+    scale made inf."""
     # sorted in the values' own precision (float32 sorts much faster), then widened: the same numbers as float64's
     v = np.sort(np.maximum(values.reshape(-1), 0)).astype(np.float64)
     n = v.size
     c = np.cumsum(v)
     k = np.arange(1, n + 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # c may be subnormal: s inf, never ok
         s = (n * target - (n - k)) / c
         above = np.append(v[1:], np.inf)  # the smallest clipped value for each k
         ok = (c > 0) & (s >= 0) & (s * v <= 1.0 + 1e-12) & (s * above >= 1.0 - 1e-12)
     if ok.any():
-        return float(s[np.argmax(ok)])
+        return min(float(s[np.argmax(ok)]), MAX_SCALE)
     nonzero = v[v > 0]
-    return SATURATE / float(nonzero.min()) if nonzero.size else 1.0
+    return min(SATURATE / float(nonzero.min()), MAX_SCALE) if nonzero.size else 1.0
 
 
 def wb_multipliers(noise: Noise, image: np.ndarray) -> np.ndarray:
@@ -68,13 +74,20 @@ def wb_multipliers(noise: Noise, image: np.ndarray) -> np.ndarray:
 
 def photon_read_noise(signal: np.ndarray, full_well_e: float, read_noise_e: float, gain: float,
                       rng: np.random.Generator) -> np.ndarray:
-    """(h, w, 3) float32: the exposed signal ((h, w, 3) linear, >= 0 expected) as the sensor counts it: Poisson
-    electrons (full_well_e / gain per unit), plus Gaussian read noise in electrons, back in linear units."""
-    per_unit = full_well_e / gain
-    electrons = rng.poisson(np.maximum(signal.astype(np.float64), 0.0) * per_unit).astype(np.float64)
+    """(h, w, 3) float64: the exposed signal ((h, w, 3) linear, >= 0 expected) as the sensor counts it: Poisson
+    electrons (full_well_e / gain per unit), plus Gaussian read noise in electrons, back in linear units.
+
+    The electrons are counted from the signal before the gain (signal / gain * full_well_e), never through
+    full_well_e / gain, which overflows to inf for a gain as small as 5e-324 (and 0 signal times inf is NaN). Past
+    POISSON_EXACT electrons a pixel counts its mean: Poisson's relative spread there is below float32's resolution,
+    and numpy refuses means past about 9.2e18 (a pixel 1e12 times its full well, as lighting at its caps gives)."""
+    mean = np.maximum(signal.astype(np.float64), 0.0) / gain * full_well_e
+    exact = mean > POISSON_EXACT
+    electrons = rng.poisson(np.where(exact, 0.0, mean)).astype(np.float64)
+    electrons[exact] = mean[exact]
     if read_noise_e > 0:
         electrons += rng.normal(0.0, read_noise_e, signal.shape)
-    return (electrons / per_unit).astype(np.float32)
+    return electrons * gain / full_well_e
 
 
 class Sensor(Plain):
@@ -93,8 +106,11 @@ class Sensor(Plain):
             wb = wb_multipliers(noise, image)
             scale = 2.0 ** noise.exposure_ev
             if noise.auto_exposure is not None:
-                scale = metered_scale(image * (wb * noise.gain).astype(np.float32), noise.auto_exposure)
-            image = image * np.float32(scale * noise.gain)
+                scale = metered_scale(image.astype(np.float64) * (wb * noise.gain), noise.auto_exposure)
+            # float64 until the clip: an exposure that lifts a dark frame (auto_exposure over values near float32's
+            # least, scale up to 1e45) or a bright one times the gain overflows float32 to inf, and inf times a
+            # zero pixel or a white balance of 5e-324 (0 in float32) is NaN.
+            image = image.astype(np.float64) * (scale * noise.gain)
             if noise.full_well_e is not None:
                 image = photon_read_noise(image, noise.full_well_e, noise.read_noise_e, noise.gain,
                                           frame_rng(shot.spec.seed, shot.index, STREAM_SENSOR))
@@ -108,5 +124,6 @@ class Sensor(Plain):
             image = image + rng.normal(0.0, sigma, result.image.shape).astype(np.float32)
             shot.record[self.name] = {"gaussian_sigma_linear": sigma}
         if noise.sensor_on:
-            image = np.clip(image * wb.astype(np.float32), 0.0, 1.0)
+            with np.errstate(over="ignore"):  # a pixel past float64's range is past the full well: the clip's 1
+                image = np.clip(image * wb, 0.0, 1.0).astype(np.float32)
         return dataclasses.replace(result, image=image)

@@ -30,6 +30,26 @@ def ray_norms(K: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2).astype(np.float32)
 
 
+def normal_matrix(linear: np.ndarray) -> np.ndarray:
+    """(3, 3) float32: the inverse transpose of an object's (3, 3) linear map (its rotation times its scale), which
+    takes its normals to the camera's, up to the positive factor the shader normalises away. The map and its inverse
+    are scaled by a power of two (exact: the shaded normal keeps every bit) into float32's range where an object's
+    scale (targets.scale down to 5e-324) takes them out of it; a map scaled to nothing (singular) takes the identity,
+    as its object covers no pixel."""
+    try:
+        nrm = np.linalg.inv(_near_one(np.asarray(linear, np.float64))).T
+    except np.linalg.LinAlgError:
+        return np.eye(3, dtype=np.float32)
+    return _near_one(nrm).astype(np.float32) if np.all(np.isfinite(nrm)) else np.eye(3, dtype=np.float32)
+
+
+def _near_one(m: np.ndarray) -> np.ndarray:
+    """m, or m times the power of two that brings its largest entry to [0.5, 1) where that lies outside 2^+-60."""
+    top = float(np.max(np.abs(m)))
+    exponent = int(np.frexp(top)[1]) if np.isfinite(top) and top > 0 else 0
+    return np.ldexp(m, -exponent) if abs(exponent) > 60 else m
+
+
 @dataclass(frozen=True, eq=False)
 class Image:
     """A texture image, uploaded once per process under `key` (with its mipmaps)."""

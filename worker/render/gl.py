@@ -28,6 +28,7 @@ from seasynth.worker.render import (
     Sampling,
     View,
     WaterParams,
+    normal_matrix,
     shaders,
 )
 from seasynth.worker.render.buffers import GpuMesh, upload_mesh
@@ -216,8 +217,7 @@ class GLRenderer:
                 GL.glUniform2f(locs["u_range_bounds"], max(dist - radius, 0.0), dist + radius)
             GL.glUniformMatrix4fv(locs["u_cam_from_obj"], 1, GL.GL_TRUE, cam_from_obj.astype(np.float32))
             if lit and "u_nrm_cam" in locs:  # a frame with no light at all (sun down, no lamps) shades nothing
-                nrm = np.linalg.inv(cam_from_obj[:3, :3]).T
-                GL.glUniformMatrix3fv(locs["u_nrm_cam"], 1, GL.GL_TRUE, nrm.astype(np.float32))
+                GL.glUniformMatrix3fv(locs["u_nrm_cam"], 1, GL.GL_TRUE, normal_matrix(cam_from_obj[:3, :3]))
                 GL.glUniform3fv(locs["u_scale"], 1, item.albedo_scale.astype(np.float32))
                 GL.glUniform3fv(locs["u_bias"], 1, item.albedo_bias.astype(np.float32))
             if lit and "u_material" in locs:

@@ -220,7 +220,10 @@ def place_school(rng: np.random.Generator, terrain: Terrain, box: Box, members: 
     """Poses of a school's members ((asset, scale) each), None for each left out: the first is placed as one
     object in the water; the others line up abreast of it, each spacing_m (drawn per school) beyond its
     neighbour's footprint, at the school's height above the seabed, heading the school's way within
-    heading_jitter_deg, and each clear of every object placed before it."""
+    heading_jitter_deg, and each clear of every object placed before it. A school of none (school.size's min may
+    be 0) places nothing and draws nothing."""
+    if not members:
+        return []
     school = placement.school
     spacing = float(rng.uniform(*school.spacing_m))
     cands = candidates(terrain, box)

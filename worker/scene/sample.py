@@ -246,12 +246,18 @@ def _draw_camera(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, 
         look_at[2] = min(max(ground, ws.look_at.min[2]), ws.look_at.max[2])
     look_at = look_at + rng.normal(0.0, spec.camera.look_at_jitter_m, size=3)
 
+    on_look_at = 0  # draws refused only for lying on the look-at point (a camera there has no direction)
     for tries in range(1, CAMERA_TRIES + 1):
         eye = uniform3(rng, ws.camera.min, ws.camera.max)
         if _camera_clear(eye, look_at, terrain, spheres, spec.camera.clip[0]):
             T = look_at_pose(eye, look_at)
             if _sensor_inside(T, spec, terrain, spheres) is None:
                 return T, look_at, look_id, tries
+        on_look_at += bool(np.linalg.norm(look_at - eye) < 1e-3)
+    if on_look_at == CAMERA_TRIES:
+        raise SceneError(f"workspaces.camera: all {CAMERA_TRIES} positions drawn lie within 1 mm of the point the "
+                         f"camera looks at (workspaces.look_at {look_at.round(6).tolist()}, camera.look_at_jitter_m "
+                         f"{spec.camera.look_at_jitter_m}): the camera has no direction to look in")
     also = " with every enabled sensor (sensors.*.pose) outside them too" if spec.sensors.enabled_poses() else ""
     raise SceneError(f"workspaces.camera: no camera position outside the terrain and objects{also} after "
                      f"{CAMERA_TRIES} draws")

@@ -291,7 +291,14 @@ def speckle_and_noise(intensity: np.ndarray, fls: FLS | SSS, rng: np.random.Gene
     noise_sigma) when noise_sigma > 0. Draws: speckle first (every cell), then noise (every cell)."""
     out = intensity
     if fls.speckle:
-        out = out * rng.gamma(fls.speckle_looks, 1.0 / fls.speckle_looks, size=intensity.shape)
+        # Gamma(L, 1/L) as numpy draws it, G (1 / L) with G ~ Gamma(L, 1); below L = 5.6e-309 (speckle_looks may be
+        # any float > 0) 1 / L is inf: there G / L, which saturates the few cells where G > 0, and a cell with no
+        # echo stays 0 (not 0 x inf)
+        looks = fls.speckle_looks
+        g = rng.standard_gamma(looks, size=intensity.shape)
+        with np.errstate(over="ignore"):
+            speckle = g * (1.0 / looks) if 1.0 / looks < math.inf else g / looks
+        out = np.multiply(out, speckle, out=np.zeros(np.shape(intensity)), where=np.asarray(out) > 0)
     if fls.noise_sigma > 0:
         out = out + rng.normal(0.0, fls.noise_sigma, size=intensity.shape)
     return np.maximum(out, 0.0)

@@ -52,13 +52,14 @@ class Terrain:
 def bilinear(grid: np.ndarray, extent: tuple[float, float, float, float], xy: np.ndarray) -> np.ndarray:
     """Bilinear interpolation of `grid: (ny, nx)` (grid[iy, ix], corners on `extent`) at `xy: (..., 2)`.
 
-    Points outside `extent` take the value at the nearest edge. Returns (...,) float64.
+    Points outside `extent` take the value at the nearest edge (all of them, where the extent has no width: a
+    terrain.size_m of 5e-324 halves to 0). Returns (...,) float64.
     """
     xy = np.asarray(xy, dtype=np.float64)
     xmin, xmax, ymin, ymax = extent
     ny, nx = grid.shape
-    fx = np.clip((xy[..., 0] - xmin) / (xmax - xmin) * (nx - 1), 0.0, nx - 1)
-    fy = np.clip((xy[..., 1] - ymin) / (ymax - ymin) * (ny - 1), 0.0, ny - 1)
+    fx = _grid_coordinate(xy[..., 0], xmin, xmax, nx)
+    fy = _grid_coordinate(xy[..., 1], ymin, ymax, ny)
     ix = np.minimum(fx.astype(np.int64), nx - 2)
     iy = np.minimum(fy.astype(np.int64), ny - 2)
     tx, ty = fx - ix, fy - iy
@@ -66,6 +67,14 @@ def bilinear(grid: np.ndarray, extent: tuple[float, float, float, float], xy: np
     bottom = g[iy, ix] * (1 - tx) + g[iy, ix + 1] * tx
     top = g[iy + 1, ix] * (1 - tx) + g[iy + 1, ix + 1] * tx
     return bottom * (1 - ty) + top * ty
+
+
+def _grid_coordinate(v: np.ndarray, lo: float, hi: float, n: int) -> np.ndarray:
+    """(...,) float64: where v lies on n grid points spanning [lo, hi], in grid steps, clipped to the grid."""
+    if not hi > lo:
+        return np.zeros(np.shape(v))
+    with np.errstate(over="ignore"):  # a tiny span: far points overflow to +-inf, which the clip takes to an edge
+        return np.clip((v - lo) / (hi - lo) * (n - 1), 0.0, n - 1)
 
 
 def grid_faces(nx: int, ny: int) -> np.ndarray:
@@ -110,7 +119,10 @@ def fbm(rng: np.random.Generator, xy: np.ndarray, frequency: float, octaves: int
 
 
 def octaves_below_nyquist(frequency: float, spacing_m: float, most: int) -> int:
-    """How many doubling octaves from `frequency` (1/m) stay below half the grid rate (at least 1)."""
+    """How many doubling octaves from `frequency` (1/m) stay below half the grid rate (at least 1, at most `most`).
+    A spacing of 0 (terrain.size_m / cells below the smallest float, as size_m 5e-324 gives) resolves every one."""
+    if spacing_m <= 0:
+        return most
     limit = 0.5 / spacing_m
     return int(np.clip(np.floor(np.log2(limit / frequency)) + 1, 1, most))
 
