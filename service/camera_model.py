@@ -124,6 +124,18 @@ class CameraModel:
             return dome_port(d, self.centre_m, self.radius_m, self.thickness_m, self.glass_index, self.water_index)
         return o, d
 
+    def housing_points(self, grid: int = 17) -> np.ndarray:
+        """(n, 3) float64 metres, camera frame: points of the housing the image looks through, on the rays of a
+        grid x grid lattice of the image (edges and corners included) at a quarter, half, three quarters and all of
+        their way from the pupil to where they enter the water; (0, 3) without a port."""
+        if self.kind == "none":
+            return np.zeros((0, 3))
+        u, v = np.meshgrid(np.linspace(0.0, self.width, grid), np.linspace(0.0, self.height, grid))
+        o, _ = self.pixel_rays(u, v)
+        o = o.reshape(-1, 3)
+        o = o[np.isfinite(o).all(axis=1)]
+        return (np.array([0.25, 0.5, 0.75, 1.0])[:, None, None] * o[None]).reshape(-1, 3)
+
     def water_clearance(self, points: np.ndarray) -> np.ndarray:
         """(...) float64 metres: how far points (..., 3) (camera frame) lie beyond the port's outer surface, in the
         water (negative: inside the housing or its glass); +inf without a port (the water starts at the pupil)."""

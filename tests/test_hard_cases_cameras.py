@@ -3,7 +3,10 @@ the workspace, and values at the spec's caps render."""
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+from seasynth.service.camera_model import CameraModel
 from seasynth.service.spec.dataset import load_spec, parse_spec
 from seasynth.worker.scene.sample import CAMERA_CLEARANCE_M, CAMERA_TRIES, Placed, SceneError, sample_scene
 
@@ -83,6 +86,40 @@ def test_a_camera_workspace_on_its_look_at_point_is_refused_saying_so(render_ses
     with pytest.raises(SceneError, match=rf"^workspaces\.camera: all {CAMERA_TRIES} positions drawn lie within 1 mm "
                                          r"of the point the camera looks at .*no direction to look in"):
         sample_scene(spec, np.random.default_rng(0), render_session.asset_for, render_session.terrain_for)
+
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(flat=st.booleans(), length_mm=st.floats(5.0, 600.0), thickness_mm=st.floats(1.0, 40.0),
+       offset=st.tuples(*[st.floats(-0.3, 0.3)] * 3), low=st.floats(0.0, 0.5), index=st.integers(0, 10**6))
+def test_nothing_lies_inside_a_ports_housing(render_session, flat, length_mm, thickness_mm, offset, low, index):
+    """The housing a port's rays cross before they reach the water stays CAMERA_CLEARANCE_M clear of the terrain
+    and every object's bounding sphere, on every ray of the image, however long the port; a workspace that leaves
+    no room for it is refused naming the housing."""
+    if flat:
+        port = {"kind": "flat", "distance_mm": length_mm, "thickness_mm": thickness_mm}
+    else:
+        inner = length_mm - min(thickness_mm, length_mm / 2)
+        port = {"kind": "dome", "radius_mm": length_mm, "thickness_mm": length_mm - inner,
+                "pupil_offset_mm": [c * inner for c in offset]}
+    spec = parse_spec({**SMALL_WORLD, "camera": {"width": 16, "height": 12, "port": port},
+                       "targets": {"count": [1, 1], "scale": [3.0, 3.0]},
+                       "workspaces": {"camera": {"min": [-4.0, -4.0, low], "max": [4.0, 4.0, low + 0.6]},
+                                      "targets": TARGET_AT_ORIGIN, "look_at": TARGET_AT_ORIGIN}})
+    housing = CameraModel.from_spec(spec.camera).housing_points()
+    reach = np.linalg.norm(housing, axis=1).max()
+    assert reach >= (length_mm + thickness_mm if flat else 0.0) * 1e-3 * (1 - 1e-9)
+    try:
+        scene = render_session.scene(spec, index)
+    except SceneError as e:
+        assert "camera.port's housing" in str(e)
+        return
+    T = scene.world_from_cam
+    p = housing @ T[:3, :3].T + T[:3, 3]
+    assert np.all(p[:, 2] >= scene.terrain.height_at(p[:, :2]) + CAMERA_CLEARANCE_M)
+    [target] = scene.objects
+    centre, radius = bounding_sphere(target)
+    assert np.all(np.linalg.norm(p - centre, axis=1) > radius + CAMERA_CLEARANCE_M)
 
 
 # Values at the spec's caps (seasynth.service.spec.types.MAX_MAGNITUDE and the per-field bounds): beyond them the spec refuses

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from seasynth.service.camera_model import CameraModel
 from seasynth.service.errors import AssetError, SeasynthError, SpecError
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.service.spec.scene import AssetRef, Distractors
@@ -247,9 +248,10 @@ def _draw_camera(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, 
     look_at = look_at + rng.normal(0.0, spec.camera.look_at_jitter_m, size=3)
 
     on_look_at = 0  # draws refused only for lying on the look-at point (a camera there has no direction)
+    housing = CameraModel.from_spec(spec.camera).housing_points()
     for tries in range(1, CAMERA_TRIES + 1):
         eye = uniform3(rng, ws.camera.min, ws.camera.max)
-        if _camera_clear(eye, look_at, terrain, spheres, spec.camera.clip[0]):
+        if _camera_clear(eye, look_at, terrain, spheres, spec.camera.clip[0], housing):
             T = look_at_pose(eye, look_at)
             if _sensor_inside(T, spec, terrain, spheres) is None:
                 return T, look_at, look_id, tries
@@ -259,8 +261,9 @@ def _draw_camera(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, 
                          f"camera looks at (workspaces.look_at {look_at.round(6).tolist()}, camera.look_at_jitter_m "
                          f"{spec.camera.look_at_jitter_m}): the camera has no direction to look in")
     also = " with every enabled sensor (sensors.*.pose) outside them too" if spec.sensors.enabled_poses() else ""
+    port = " with camera.port's housing clear of them" if housing.size else ""
     raise SceneError(f"workspaces.camera: no camera position outside the terrain and objects{also} after "
-                     f"{CAMERA_TRIES} draws")
+                     f"{CAMERA_TRIES} draws{port}")
 
 
 def _bounding_sphere(p: Placed) -> tuple[np.ndarray, float]:
@@ -271,9 +274,24 @@ def _bounding_sphere(p: Placed) -> tuple[np.ndarray, float]:
     return p.world_from_obj[:3, :3] @ centre_obj + p.world_from_obj[:3, 3], radius
 
 
-def _camera_clear(eye, look_at, terrain: Terrain, spheres, near: float) -> bool:
-    """The camera is above the terrain, outside every object's bounding sphere and not on its look-at point."""
-    return bool(np.linalg.norm(look_at - eye) >= 1e-3) and _clear(eye, terrain, spheres, near)
+def _camera_clear(eye, look_at, terrain: Terrain, spheres, near: float, housing: np.ndarray) -> bool:
+    """The camera is above the terrain, outside every object's bounding sphere and not on its look-at point, and
+    so is its port's housing (housing: CameraModel.housing_points, camera frame)."""
+    if not (np.linalg.norm(look_at - eye) >= 1e-3 and _clear(eye, terrain, spheres, near)):
+        return False
+    return _housing_clear(look_at_pose(eye, look_at), housing, terrain, spheres)
+
+
+def _housing_clear(world_from_cam: np.ndarray, housing: np.ndarray, terrain: Terrain, spheres) -> bool:
+    """Every housing point (camera frame) is CAMERA_CLEARANCE_M above the terrain and outside every object's
+    bounding sphere by as much, with the camera at world_from_cam: nothing lies inside the housing."""
+    if not housing.size:
+        return True
+    p = housing @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+    ground = terrain.height_at(p[:, :2])
+    if np.any(np.isfinite(ground) & (p[:, 2] < ground + CAMERA_CLEARANCE_M)):
+        return False
+    return all(bool(np.all(np.linalg.norm(p - c, axis=1) > r + CAMERA_CLEARANCE_M)) for c, r in spheres)
 
 
 def _sensor_inside(world_from_vehicle: np.ndarray, spec: DatasetSpec, terrain: Terrain,
@@ -304,9 +322,12 @@ def on_trajectory(scene: Scene, spec: DatasetSpec, index: int) -> Scene:
     T = state.world_from_vehicle
     eye = T[:3, 3]
     spheres = [_bounding_sphere(p) for p in scene.objects]
-    if not _camera_clear(eye, eye + T[:3, 2], scene.terrain, spheres, spec.camera.clip[0]):
+    housing = CameraModel.from_spec(spec.camera).housing_points()
+    if not (_camera_clear(eye, eye + T[:3, 2], scene.terrain, spheres, spec.camera.clip[0], housing[:0])
+            and _housing_clear(T, housing, scene.terrain, spheres)):
+        port = " (or camera.port's housing reaches them)" if housing.size else ""
         raise SceneError(f"trajectory: frame {index}'s vehicle position {eye.round(3).tolist()} is inside the terrain "
-                         "or an object; raise trajectory.altitude_m")
+                         f"or an object{port}; raise trajectory.altitude_m")
     inside = _sensor_inside(T, spec, scene.terrain, spheres)
     if inside is not None:
         name, p = inside
