@@ -23,9 +23,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL_HINT = "bash .ci/setup installs it (apt-get install docker.io docker-compose debootstrap)"
 TOOLS = ("dockerd", "docker", "docker-compose", "debootstrap", "unshare")
-# vfs copies every layer whole: the stand-ins, the api, worker and GPU worker images and their build stages took
-# 14 GiB here.
-DISK_NEEDED_GIB = 20
+# vfs copies every layer whole, and each container's init and writable layers are two more whole copies of its
+# image. The engine's folder peaked at 17.8 GB (16.6 GiB) with 3 shard workers (2026-11-29; the GPU image and the
+# build stages removed before the containers start), each worker container 2 GB of it: 2 workers need ~15 GiB.
+DISK_NEEDED_GIB = 16
 
 
 class DockerUnavailable(Exception):

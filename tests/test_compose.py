@@ -4,7 +4,7 @@ tests/compose.recovery.yml's one-minute task limit) on a private Docker engine (
 posted to it come back byte-identical to a local `seasynth generate`, also across a worker crash, a Redis restart
 and `down`/`up`; every container runs as non-root and turns healthy; Flower lists the workers; both /metrics answer.
 
-Full size, CI's (18 min on the 2-core machine, the image builds most of it): 3 shard workers, 24- and 120-frame
+Full size, CI's (18 min on the 2-core machine, the image builds most of it): 2 shard workers, 24- and 120-frame
 datasets, a worker SIGKILLed and Redis restarted mid-run, the GPU worker image built and checked before the
 stack is up (never run on a GPU: none here).
 SEASYNTH_COMPOSE=reduced (14 min): one shard worker, an 8-frame dataset, no faults, no GPU image. With
@@ -35,7 +35,7 @@ from tests.compose_stack import HEIGHT, PORTS, WIDTH, Stack, ports_in_use, sampl
 
 FULL = os.environ.get("SEASYNTH_COMPOSE", "full") != "reduced"
 REPORT_FILE = os.environ.get("SEASYNTH_COMPOSE_REPORT")
-WORKERS = 3 if FULL else 1
+WORKERS = 2 if FULL else 1  # each worker container holds two whole copies of its 1 GB image (vfs)
 FRAMES = 24 if FULL else 8  # the first dataset; the fault datasets have FAULT_FRAMES
 FAULT_FRAMES = 120
 FILES = ["docker-compose.yml", "docker/compose.standins.yml", "tests/compose.recovery.yml"]
