@@ -91,7 +91,7 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
         assert wait(lambda: picture(driver, bare)["state"] == "none", 60, "the placeholder")
         assert driver.find_element("id", tile(driver, bare)).get_attribute("title") == "pipe.stl"
         # tick the mesh: the spec names it
-        driver.find_element("css selector", f"[id='{tile(driver, mesh)}'] input[type=checkbox]").click()
+        tick(driver, f"[id='{tile(driver, mesh)}'] input[type=checkbox]")
         (target,) = page_spec(driver)["targets"]
         assert target["assets"][-1] == {"asset_id": mesh}
         # the preview is the spec's with the mesh: a worker renders what the page sends
@@ -115,13 +115,20 @@ def test_uploaded_meshes_show_with_their_pictures_after_a_reload(keyed, services
         assert driver.find_elements("id", f"pick-distractors.assets-upload-{crate[:12]}")
         # the crates alone in the class: the preview shows them (a worker renders it)
         for asset in ("urchin", f"upload-{crate[:12]}"):
-            driver.find_element("css selector", f"[id='pick-targets.0.assets-{asset}'] input[type=checkbox]").click()
+            tick(driver, f"[id='pick-targets.0.assets-{asset}'] input[type=checkbox]")
         expected = server_preview(url, page_spec(driver), 0, {"X-API-Key": KEY})
         wait(lambda: preview_src(driver) == expected["images"]["image"], 90, "the preview of the crates")
         driver.execute_script("window.scrollTo(0, 0); const c = document.getElementById('controls');"
                               "c.scrollTop = document.getElementById('f-targets.0.assets').offsetTop - c.offsetTop;")
         shot(driver, "playground-uploads")
 
+
+
+def tick(driver, selector: str) -> None:
+    """Click the checkbox at `selector` in one script: the picker redraws its tiles as pictures and previews arrive,
+    so an element found in one call may be stale by the next."""
+    assert driver.execute_script("const e = document.querySelector(arguments[0]); if (!e) return false; e.click(); "
+                                 "return true;", selector), f"no {selector} on the page"
 
 
 def _png() -> bytes:
