@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import platform as host
 import shutil
 import subprocess
@@ -65,9 +66,10 @@ def make_export(recipe: Recipe, row, replicate: int, work: Path, platform: str, 
 
 
 def score(recipe_json: str, coco: str, testset: str, replicate: int, run_path: str, device: str | None,
-          keep: bool) -> dict:
-    """Train replicate `replicate` on `coco`, detect on the test set, score; writes run_path (detections and
-    scores) and returns the scores. device None: the process's pinned device."""
+          keep: bool, ready=None) -> dict:
+    """Train replicate `replicate` on `coco`, detect on the test set (once `ready`, an event, is set: the test set
+    may still be rendering while the detector trains), score; writes run_path (detections and scores) and returns
+    the scores. device None: the process's pinned device."""
     import torch
     import torchvision
 
@@ -80,6 +82,8 @@ def score(recipe_json: str, coco: str, testset: str, replicate: int, run_path: s
     name = Path(run_path).stem
     model, info = train(Path(coco), t, t.detector_seeds[replicate], device,
                         log=lambda line: print(f"{name} {line}", flush=True))
+    if ready is not None:
+        ready.wait()
     detections = detect(model, Path(testset), "test", device)
     gt = json.loads((Path(testset) / "annotations" / "instances_test.json").read_text())
     result = {**evaluate(gt, detections), **info, "replicate": replicate,
@@ -92,15 +96,50 @@ def score(recipe_json: str, coco: str, testset: str, replicate: int, run_path: s
     return result
 
 
-def _pin(devices) -> None:
+def _pin(devices, threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)  # the processes share the host's cores
     _device.append(devices.get())
 
 
+def _gpus() -> int:
+    import torch
+
+    return max(torch.cuda.device_count(), 1)
+
+
+def start_testset(recipe_path: Path, work: Path, variant: str, platform: str, procs: int,
+                  device: str) -> list[subprocess.Popen]:
+    """`procs` path tracers of the test set at once, each its own `seasynth bench transfer --testset-shard k/procs`
+    process (with device cuda, process k on GPU k mod the GPUs torch finds); their output goes to
+    WORK/testset-k.log."""
+    gpus = _gpus() if device.startswith("cuda") else 0
+    started = []
+    for k in range(procs):
+        env = dict(os.environ) | ({"CUDA_VISIBLE_DEVICES": str(k % gpus)} if gpus else {})
+        log = (work / f"testset-{k}.log").open("w")
+        started.append(subprocess.Popen(
+            [sys.executable, "-m", "seasynth.cli", "bench", "transfer", "--work", str(work), "--recipe",
+             str(recipe_path), "--path-tracer", variant, "--gl", platform, "--testset-shard", f"{k}/{procs}"],
+            env=env, stdout=log, stderr=subprocess.STDOUT))
+    return started
+
+
+def _finish(started: list[subprocess.Popen], work: Path) -> None:
+    for k, proc in enumerate(started):
+        if proc.wait() != 0:
+            raise RuntimeError(f"test set shard {k}/{len(started)} exited {proc.returncode}: see "
+                               f"{work / f'testset-{k}.log'}")
+
+
 def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", variant: str = "cuda_ad_rgb",
-        jobs: int = 1, platform: str = "egl", workers: str = "auto", rows: list[str] | None = None,
-        keep: bool = False, machine: str | None = None, log=print) -> dict:
+        jobs: int = 1, testset_jobs: int = 0, platform: str = "egl", workers: str = "auto",
+        rows: list[str] | None = None, keep: bool = False, machine: str | None = None, log=print) -> dict:
     """The whole bench (see the module's docstring); jobs: detectors trained at once, each in its own process (with
-    device cuda, process k on GPU cuda:k); rows: only these rows' names (all when None)."""
+    device cuda, process k on GPU k mod the GPUs); testset_jobs: with jobs > 1, path tracers rendering the test set
+    in processes of their own while datasets generate and detectors train (0: the test set is rendered first, here);
+    rows: only these rows' names (all when None)."""
     from seasynth.bench.accuracy import write_results
     from seasynth.bench.transfer_report import format_table, picture, summarise
     from seasynth.bench.transfer_testset import build
@@ -111,24 +150,39 @@ def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", varia
         raise ValueError(f"unknown row(s) {sorted(set(rows) - {r.name for r in recipe.rows})}; recipe rows: "
                          f"{', '.join(r.name for r in recipe.rows)}")
     testset_dir = work / "testset"
-    testset = build(recipe, testset_dir, variant, platform, log=log)
-    log(json.dumps({k: v for k, v in testset.items() if k != "records"}))
+    work.mkdir(parents=True, exist_ok=True)
+    background = start_testset(recipe_path, work, variant, platform, testset_jobs, device) if jobs > 1 else []
+    testset = None if background else build(recipe, testset_dir, variant, platform, log=log)
+    if testset is not None:
+        log(json.dumps({k: v for k, v in testset.items() if k != "records"}))
     (work / "runs").mkdir(parents=True, exist_ok=True)
     replicates = range(len(recipe.training.dataset_seeds))
     todo = [(row, r) for row in chosen for r in replicates if not (work / "runs" / f"{row.name}-{r}.json").exists()]
     spread = "auto" if device.startswith("cuda") else None  # datasets render over every GPU EGL finds
     args = {"recipe_json": recipe.model_dump_json(), "testset": str(testset_dir), "keep": keep}
-    if jobs > 1:  # a process per detector trained at once; on cuda, process k keeps GPU cuda:k
+    if jobs > 1:  # a process per detector trained at once; on cuda, process k keeps GPU k mod the GPUs
         ctx = multiprocessing.get_context("spawn")
-        queue = ctx.Manager().Queue()
+        manager = ctx.Manager()
+        queue, ready = manager.Queue(), manager.Event()
+        gpus = _gpus() if device == "cuda" else 1
         for k in range(jobs):
-            queue.put(f"cuda:{k}" if device == "cuda" else device)
-        with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_pin, initargs=(queue,)) as pool:
+            queue.put(f"cuda:{k % gpus}" if device == "cuda" else device)
+        threads = max((os.cpu_count() or 1) // jobs, 1)
+        with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_pin, initargs=(queue, threads)) as pool:
             futures = []
-            for row, r in todo:  # exports are made here, one after another, while earlier ones train
-                coco = make_export(recipe, row, r, work, platform, workers, spread)
-                futures.append(pool.submit(score, coco=str(coco), replicate=r, device=None,
-                                           run_path=str(work / "runs" / f"{row.name}-{r}.json"), **args))
+            try:
+                for row, r in todo:  # exports are made here, one after another, while earlier ones train
+                    coco = make_export(recipe, row, r, work, platform, workers, spread)
+                    futures.append(pool.submit(score, coco=str(coco), replicate=r, device=None, ready=ready,
+                                               run_path=str(work / "runs" / f"{row.name}-{r}.json"), **args))
+                if testset is None:  # the shards' images, assembled
+                    _finish(background, work)
+                    testset = build(recipe, testset_dir, variant, platform, log=log)
+                    log(json.dumps({k: v for k, v in testset.items() if k != "records"}))
+            finally:  # the detectors go on (or fail on a missing test set) rather than wait forever
+                ready.set()
+                for proc in background:
+                    proc.kill()
             for (row, r), f in zip(todo, futures):
                 log(json.dumps({"row": row.name, "replicate": r} | _short(f.result())))
     else:

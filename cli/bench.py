@@ -239,6 +239,10 @@ def bench_transfer(
     jobs: Annotated[int, typer.Option("--jobs", min=1, help="Detectors trained at once, each in its own process; "
                                       "with --device cuda, process k on GPU cuda:k (datasets render over every GPU "
                                       "EGL finds).")] = 1,
+    testset_jobs: Annotated[int, typer.Option("--testset-jobs", min=0, help="With --jobs above 1: path tracers "
+                                              "rendering the test set at once, each its own process (process k on "
+                                              "GPU k mod the GPUs), while datasets generate and detectors train; "
+                                              "0: the test set first.")] = 0,
     row: Annotated[Optional[list[str]], typer.Option("--row", help="Only this row of the recipe (repeatable).")]
     = None,
     testset_shard: Annotated[Optional[str], typer.Option(
@@ -263,7 +267,8 @@ def bench_transfer(
         return
     if out is None:
         raise typer.BadParameter("give --out (or --testset-shard)", param_hint="--out")
-    run(recipe, out, work, device=device, variant=path_tracer, jobs=jobs, platform=gl, workers="auto",
+    run(recipe, out, work, device=device, variant=path_tracer, jobs=jobs, testset_jobs=testset_jobs, platform=gl,
+        workers="auto",
         rows=row, keep=keep, machine=machine)
 
 

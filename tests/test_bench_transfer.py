@@ -196,7 +196,8 @@ def test_a_tiny_transfer_bench_runs_end_to_end_on_the_cpu(tmp_path, mitsuba):
         pytest.skip("torch and torchvision are not installed (pip install -c constraints.txt -e '.[transfer]'; "
                     "bash .ci/setup installs them)")
     args = ["bench", "transfer", "--recipe", TINY, "--work", tmp_path / "work", "--out", tmp_path / "out",
-            "--device", "cpu", "--path-tracer", "llvm_ad_rgb", "--machine", "ci", "--jobs", "2"]
+            "--device", "cpu", "--path-tracer", "llvm_ad_rgb", "--machine", "ci", "--jobs", "2",
+            "--testset-jobs", "2"]  # the test set renders in two processes of its own while the detectors train
     done = subprocess.run([sys.executable, "-m", "seasynth.cli", *map(str, args)], capture_output=True, text=True,
                           check=False, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -206,6 +207,8 @@ def test_a_tiny_transfer_bench_runs_end_to_end_on_the_cpu(tmp_path, mitsuba):
     assert result["testset"]["images"] == recipe.test.frames and result["testset"]["boxes"] > 0
     coco = json.loads((tmp_path / "work" / "testset" / "annotations" / "instances_test.json").read_text())
     assert len(coco["annotations"]) == result["testset"]["boxes"]
+    shards = [(tmp_path / "work" / f"testset-{k}.log").read_text() for k in (0, 1)]
+    assert sum(log.count('"file_name"') for log in shards) == recipe.test.frames  # the shards made every image
     for row in result["rows"]:
         for k in ("precision", "recall", "map50", "map50_95"):
             assert 0.0 <= row[k]["mean"] <= 1.0 and row[k]["n"] == 1
