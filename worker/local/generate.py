@@ -23,6 +23,7 @@ from seasynth.worker.local.folder import (
 from seasynth.worker.local.pool import run_pool
 from seasynth.worker.render.devices import platform_for_worker
 from seasynth.worker.scene.assets.user import check_assets
+from seasynth.worker.scene.disk_cache import cache_folder
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,7 @@ def reproduce(spec: DatasetSpec, index: int, out: Path, platform: str = "egl") -
     if not 0 <= index < spec.frames:
         raise OutputError(f"frame {index} is outside the dataset (frames 0..{spec.frames - 1})")
     check_assets(spec)
-    with RenderSession(platform=platform) as session:
+    with RenderSession(platform=platform, variant_folder=cache_folder()) as session:
         files = session.frame_files(spec, index)
     for rel in files:
         try:
@@ -119,7 +120,7 @@ def _run(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, timel
     if not todo:
         return ""
     if workers == 1:
-        with RenderSession(platform=platform_for_worker(platform, gpus, 0)) as session:
+        with RenderSession(platform=platform_for_worker(platform, gpus, 0), variant_folder=cache_folder()) as session:
             pin(session.renderer_name)
             for i in todo:
                 write_frame(out, session.frame_files(spec, i))

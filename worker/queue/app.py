@@ -12,6 +12,7 @@ failure escape uncounted (seasynth.worker.queue.shard.run_shard), so no message 
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import tempfile
 import uuid
@@ -21,6 +22,7 @@ from celery import Celery
 from seasynth.service import __version__
 from seasynth.service.queues import broker_options, frame_queue, shard_queue
 from seasynth.service.settings import Settings
+from seasynth.worker.scene.disk_cache import cache_folder
 
 QUEUE_KINDS = ("shards", "frames")
 
@@ -106,9 +108,12 @@ def _run(settings: Settings, concurrency: int, queues: list[str], loglevel: str)
     app, resources = _build(settings)
     resources.takes_shards = "shards" in queues  # before the pool forks: its processes inherit it
     try:
-        # The pool processes share terrain variants through this folder (seasynth.worker.scene.variant_cache); only this process
-        # removes it (they leave through os._exit).
-        with tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True) as variants:
+        # The pool processes share terrain variants and texture sets through the cache folder that outlives runs
+        # (seasynth.worker.scene.disk_cache), else through a temporary one that only this process removes (they
+        # leave through os._exit).
+        lasting = cache_folder()
+        with (contextlib.nullcontext(str(lasting)) if lasting is not None else
+              tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True)) as variants:
             resources.variant_folder = variants
             app.worker_main(worker_argv(concurrency, queues, loglevel))
     finally:

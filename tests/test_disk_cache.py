@@ -1,0 +1,107 @@
+"""The cache of built terrain variants and texture sets that outlives runs (seasynth.worker.scene.disk_cache): where
+it is, when it is off, what names its folder, what is pruned, and that frames are the same bytes with it, without
+it and on a second run that builds nothing."""
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from seasynth.service.spec.dataset import load_spec
+from seasynth.worker.local.generate import generate
+from seasynth.worker.scene.disk_cache import ENV, KEEP_DAYS, cache_folder, code_digest, source_digest
+from seasynth.worker.scene.materials import procedural_material
+from seasynth.worker.scene.texture_cache import shared_texture_set
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
+
+
+@pytest.mark.parametrize("value", ["", "off", "OFF", " none ", "0", "false"])
+def test_off_keeps_it_to_the_run(monkeypatch, value):
+    monkeypatch.setenv(ENV, value)
+    assert cache_folder() is None
+
+
+def test_the_folder_is_named_by_this_code_and_made(monkeypatch, tmp_path):
+    monkeypatch.setenv(ENV, str(tmp_path / "c"))
+    folder = cache_folder()
+    assert folder == tmp_path / "c" / f"variants-{code_digest()}" and folder.is_dir()
+    assert cache_folder() == folder and len(code_digest()) == 20
+
+
+def test_without_the_variable_it_is_the_users_cache(monkeypatch, tmp_path):
+    monkeypatch.delenv(ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_folder() == tmp_path / "xdg" / "seasynth" / f"variants-{code_digest()}"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert cache_folder() == tmp_path / "home" / ".cache" / "seasynth" / f"variants-{code_digest()}"
+
+
+def test_a_folder_that_cannot_be_made_keeps_it_to_the_run(monkeypatch, tmp_path):
+    (tmp_path / "file").write_text("in the way")
+    monkeypatch.setenv(ENV, str(tmp_path / "file"))
+    assert cache_folder() is None
+
+
+def test_other_codes_folders_unused_for_keep_days_are_removed_and_the_rest_kept(monkeypatch, tmp_path):
+    monkeypatch.setenv(ENV, str(tmp_path))
+    now = time.time()
+    for name, age_days in (("variants-old", KEEP_DAYS + 0.01), ("variants-recent", KEEP_DAYS - 0.01)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "terrain-x.npz").write_bytes(b"x")
+        os.utime(tmp_path / name, (now - age_days * 86400, now - age_days * 86400))
+    (tmp_path / "other").mkdir()
+    os.utime(tmp_path / "other", (now - 1e8, now - 1e8))
+    folder = cache_folder()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["other", "variants-recent", folder.name])
+
+
+@settings(max_examples=30, deadline=None)
+@given(files=st.dictionaries(st.sampled_from(["a.py", "b.py", "sub/c.py", "d.txt"]), st.binary(max_size=8),
+                             min_size=1),
+       change=st.sampled_from(["bytes", "name", "version", "txt"]))
+def test_the_digest_follows_every_module_and_the_version(tmp_path_factory, files, change):
+    root = tmp_path_factory.mktemp("src")
+    for name, data in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_bytes(data)
+    before = source_digest("1.0", [root])
+    assert source_digest("1.0", [root]) == before
+    py = sorted(n for n in files if n.endswith(".py"))
+    if change == "version":
+        assert source_digest("1.1", [root]) != before
+    elif change == "txt" or not py:  # what is not a module is not code
+        (root / "notes.txt").write_bytes(b"anything")
+        assert source_digest("1.0", [root]) == before
+    elif change == "bytes":
+        (root / py[0]).write_bytes(files[py[0]] + b"#")
+        assert source_digest("1.0", [root]) != before
+    else:
+        (root / py[0]).rename(root / "renamed.py")
+        assert source_digest("1.0", [root]) != before
+
+
+def _frames(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.suffix in (".png", ".json", ".txt") and p.name != "run.json"}
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_second_run_builds_nothing_and_every_run_writes_the_same_bytes(monkeypatch, tmp_path, workers):
+    spec = load_spec(EXAMPLE, {"camera.width": 64, "camera.height": 48, "frames": 3})
+    monkeypatch.setenv(ENV, "off")
+    generate(spec, tmp_path / "off", workers=workers)
+    monkeypatch.setenv(ENV, str(tmp_path / "cache"))
+    for kept in (procedural_material, shared_texture_set):  # workers=1 renders in this process, which kept them
+        kept.cache_clear()
+    generate(spec, tmp_path / "first", workers=workers)
+    stored = {p.name: p.stat().st_mtime_ns for p in cache_folder().iterdir()}
+    assert any(n.startswith("terrain-") for n in stored) and any(n.startswith("texture-") for n in stored)
+    generate(spec, tmp_path / "second", workers=workers)
+    assert {p.name: p.stat().st_mtime_ns for p in cache_folder().iterdir()} == stored  # read, not built again
+    off = _frames(tmp_path / "off")
+    assert off and _frames(tmp_path / "first") == off and _frames(tmp_path / "second") == off

@@ -1,0 +1,69 @@
+"""The folder where procedural terrain variants and texture sets outlive a run.
+
+Within a run the render processes already share what they build through a folder (variant_cache, texture_cache);
+this puts that folder where the next run finds it: `$SEASYNTH_CACHE_DIR` (default `$XDG_CACHE_HOME/seasynth`, else
+`~/.cache/seasynth`), in a subfolder named by a digest of this code (the package version and the bytes of every
+module of `seasynth.service` and `seasynth.worker`), so no run reads arrays an older code built. The stored
+arrays are the built ones, so frames are byte-identical with or without it. `SEASYNTH_CACHE_DIR` set to `off` (or
+empty) keeps it to the run; a folder that cannot be made does the same. Subfolders of other code not used for
+KEEP_DAYS are removed.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import shutil
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+from seasynth import service, worker
+
+ENV = "SEASYNTH_CACHE_DIR"
+OFF = {"", "0", "off", "none", "false"}
+KEEP_DAYS = 7.0
+
+
+def cache_folder() -> Path | None:
+    """This code's folder of built variants and texture sets, made if absent; None where caching across runs is off
+    or the folder cannot be made."""
+    raw = os.environ.get(ENV)
+    if raw is not None and raw.strip().lower() in OFF:
+        return None
+    try:
+        base = Path(raw) if raw else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "seasynth"
+        folder = base / f"variants-{code_digest()}"
+        folder.mkdir(parents=True, exist_ok=True)
+        os.utime(folder)  # in use: pruning goes by when a folder was last used
+    except (OSError, RuntimeError):  # RuntimeError: no home folder to be found
+        return None
+    _prune(base, folder)
+    return folder
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """The digest of this code: source_digest of the version and the `seasynth.service` and `seasynth.worker`
+    packages (every module that builds or describes what the cache holds)."""
+    return source_digest(service.__version__, [Path(p) for pkg in (service, worker) for p in pkg.__path__])
+
+
+def source_digest(version: str, roots: Iterable[Path]) -> str:
+    """sha256 (20 hex digits) of `version` and of every .py file under `roots`, each with its path in its root."""
+    h = hashlib.sha256(version.encode() + b"\0")
+    for k, root in enumerate(roots):
+        for path in sorted(root.rglob("*.py")):
+            h.update(f"{k}:{path.relative_to(root).as_posix()}".encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()[:20]
+
+
+def _prune(base: Path, keep: Path) -> None:
+    cutoff = time.time() - KEEP_DAYS * 86400.0
+    for other in base.glob("variants-*"):
+        try:
+            if other != keep and other.is_dir() and other.stat().st_mtime < cutoff:
+                shutil.rmtree(other, ignore_errors=True)
+        except OSError:
+            continue
