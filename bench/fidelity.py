@@ -111,6 +111,7 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int,
     """(preset, terms, linear float image, ms per frame) for each row of a configuration; forward_scatter: one more
     row, `default` with the forward-scatter blur (seasynth.worker.optics.forward_scatter; terms `+forward_scatter`)."""
     from seasynth.worker.frame.function import PRESETS
+    from seasynth.worker.light.build import for_preset
     from seasynth.worker.optics import Optics
     from seasynth.worker.render import Passes
 
@@ -118,12 +119,14 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int,
     view = session.view(spec, scene)
     items = Optics(spec, FRAME, scene, view, session.draw_items(scene)).shot.items  # with any particles
     light = scene.light
-    variants = [(p, "full", light, None) for p in PRESET_NAMES]
+    variants = [(p, "full", for_preset(light, p), None) for p in PRESET_NAMES]
     variants.append(("default", "paper", scene.lighting, paper_water(scene, view)))
     for term in ("sun_shadows", "sky", "scattering", "lamp_spread"):
         if getattr(light.terms, term):
             variants.append(("default", f"-{term}", dataclasses.replace(
                 light, terms=dataclasses.replace(light.terms, **{term: False})), None))
+    if light.terms.solved:
+        variants.append(("default", "-solved", for_preset(light, "draft"), None))
     if light.terms.lamps:
         variants.append(("default", "-lamps", dataclasses.replace(
             light, terms=dataclasses.replace(light.terms, lamps=0)), None))

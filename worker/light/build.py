@@ -10,8 +10,18 @@ from seasynth.service.water import jerlov_absorption, jerlov_scattering
 from seasynth.worker.light import Medium, PhysicalLight, Terms
 from seasynth.worker.light.caustics import sample_caustics
 from seasynth.worker.light.lamps import lamp_from_spec, spread_worthwhile
+from seasynth.worker.light.solved import with_column
 from seasynth.worker.light.sun import shadow_worthwhile, sun_in_water
 from seasynth.worker.render import Lighting
+
+# Quality presets whose frames take the sun's and the sky's light along view rays from the solved water column
+# (docs/light.md): `draft` keeps the closed form through K, which needs no solve.
+SOLVED_PRESETS = frozenset({"fast", "default", "high"})
+
+
+def for_preset(light: PhysicalLight, quality: str) -> PhysicalLight:
+    """The light a frame of this quality preset renders with: the solved column on where the preset takes it."""
+    return with_column(light, quality in SOLVED_PRESETS and (light.terms.sun or light.terms.sky))
 
 
 def sample_physical(
@@ -61,4 +71,4 @@ def sample_physical(
     light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
                           lamps=lamps, terms=terms, caustics=caustics)
     used = w.absorption is None or w.scattering is None
-    return light, kind if used else None
+    return for_preset(light, spec.quality), kind if used else None
