@@ -12,7 +12,7 @@ from seasynth.worker.light.lamps import (
                                 REACH_MARGIN_RAD,
 )
 from seasynth.worker.light.sky import SKY_PHASE_NODES
-from seasynth.worker.light.solved import ED_NODES, NODES_PHI, NODES_THETA
+from seasynth.worker.light.solved import ED_NODES, VIEW_TABLE_GLSL
 from seasynth.worker.light.volume import MU_SKY
 from seasynth.worker.render import materials
 from seasynth.worker.render.shaders import SURFACE_BEGIN
@@ -249,10 +249,7 @@ uniform float u_sky_phase[{SKY_PHASE_NODES}];   // sky.sky_phase_table
 #endif
 #if defined(WITH_SOLVED) && defined(WITH_SCATTER) && (defined(WITH_SUN) || defined(WITH_SKY))
 #define WITH_JMS
-const int NODES_THETA = {NODES_THETA}, NODES_PHI = {NODES_PHI};
-uniform vec3 u_jms[{NODES_THETA * NODES_PHI}];   // solved.ViewTable.j, row-major (polar angle, azimuth)
-uniform vec3 u_kj[{NODES_THETA * NODES_PHI}];    // solved.ViewTable.k
-uniform vec2 u_sun_azimuth;                     // solved.view_azimuth_frame
+{VIEW_TABLE_GLSL}
 #endif
 #if LAMPS > 0
 uniform vec3 u_lamp_pos[LAMPS];
@@ -296,16 +293,8 @@ Inscatter g_ms;
 void water_pixel(vec3 w) {{
     g_to_surface = w.z > 0.0 ? u_cam_depth / w.z : uintBitsToFloat(0x7F800000u);
 #ifdef WITH_JMS
-    // solved.lookup: bilinear in (polar angle, azimuth to the sun) on the table's nodes
-    float hn = length(w.xy);
-    float cp = hn > 1e-9 ? dot(w.xy, u_sun_azimuth) / hn : 1.0;
-    float xt = acos(clamp(w.z, -1.0, 1.0)) * {(NODES_THETA - 1) / 3.141592653589793!r};
-    float yp = acos(clamp(cp, -1.0, 1.0)) * {(NODES_PHI - 1) / 3.141592653589793!r};
-    int it = clamp(int(floor(xt)), 0, NODES_THETA - 2), kp = clamp(int(floor(yp)), 0, NODES_PHI - 2);
-    float fi = xt - float(it), fk = yp - float(kp);
-    int n0 = it * NODES_PHI + kp, n1 = n0 + NODES_PHI;
-    vec3 jms = mix(mix(u_jms[n0], u_jms[n0 + 1], fk), mix(u_jms[n1], u_jms[n1 + 1], fk), fi);
-    vec3 kj = mix(mix(u_kj[n0], u_kj[n0 + 1], fk), mix(u_kj[n1], u_kj[n1 + 1], fk), fi);
+    vec3 jms, kj;
+    view_table(w, jms, kj);
     g_ms = Inscatter(jms, vec3(0.0), vec3(1.0), u_c - kj * w.z);
 #endif
 #if defined(WITH_SCATTER) && defined(WITH_SUN)

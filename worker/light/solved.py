@@ -225,6 +225,26 @@ def irradiance(table: DepthTable, depth: np.ndarray) -> tuple[np.ndarray, np.nda
     return tuple(np.exp(t[i] * (1.0 - f) + t[i + 1] * f) for t in (table.sun, table.sky))
 
 
+# The resolve shader's `lookup` (glsl.VOLUME includes it): J_ms and K_J along the unit world direction w.
+VIEW_TABLE_GLSL = f"""
+const int NODES_THETA = {NODES_THETA}, NODES_PHI = {NODES_PHI};
+uniform vec3 u_jms[{NODES_THETA * NODES_PHI}];   // ViewTable.j, row-major (polar angle, azimuth)
+uniform vec3 u_kj[{NODES_THETA * NODES_PHI}];    // ViewTable.k
+uniform vec2 u_sun_azimuth;                     // view_azimuth_frame
+void view_table(vec3 w, out vec3 jms, out vec3 kj) {{
+    float hn = length(w.xy);
+    float cp = hn > 1e-9 ? dot(w.xy, u_sun_azimuth) / hn : 1.0;
+    float xt = acos(clamp(w.z, -1.0, 1.0)) * {(NODES_THETA - 1) / math.pi!r};
+    float yp = acos(clamp(cp, -1.0, 1.0)) * {(NODES_PHI - 1) / math.pi!r};
+    int it = clamp(int(floor(xt)), 0, NODES_THETA - 2), kp = clamp(int(floor(yp)), 0, NODES_PHI - 2);
+    float fi = xt - float(it), fk = yp - float(kp);
+    int n0 = it * NODES_PHI + kp, n1 = n0 + NODES_PHI;
+    jms = mix(mix(u_jms[n0], u_jms[n0 + 1], fk), mix(u_jms[n1], u_jms[n1 + 1], fk), fi);
+    kj = mix(mix(u_kj[n0], u_kj[n0 + 1], fk), mix(u_kj[n1], u_kj[n1 + 1], fk), fi);
+}}
+"""
+
+
 def view_azimuth_frame(sun_dir_world: np.ndarray) -> np.ndarray:
     """(2,) unit horizontal direction of the sun's azimuth ((1, 0) for a sun at the zenith): the table's azimuth 0."""
     h = math.hypot(float(sun_dir_world[0]), float(sun_dir_world[1]))
