@@ -24,7 +24,7 @@ def measure(session, name: str, repeats: int) -> dict:
     from seasynth.bench.fidelity import FRAME, config_spec
     from seasynth.bench.fidelity_configs import WORLD_CONFIGS
     from seasynth.worker.frame.function import PRESETS
-    from seasynth.worker.light.build import for_preset
+    from seasynth.worker.light.build import for_spec
     from seasynth.worker.light.solved import unit_column
     from seasynth.worker.render import Passes
 
@@ -32,15 +32,15 @@ def measure(session, name: str, repeats: int) -> dict:
     scene = session.scene(spec, FRAME)
     view = session.view(spec, scene)
     items = session.draw_items(scene)
-    light = for_preset(scene.light, "draft")
+    light = for_spec(scene.light, False)
     unit_column.cache_clear()
     t0 = time.perf_counter()
-    for_preset(light, "default").column.view_table(1.0)  # the solves, and one table
+    for_spec(light, True).column.view_table(1.0)  # the solves, and one table
     solve_s = time.perf_counter() - t0
 
     def frame(on: bool) -> float:
         t = time.perf_counter()
-        lt = for_preset(light, "default" if on else "draft")
+        lt = for_spec(light, on)
         session.renderer.render(view, items, lt, None, PRESETS["default"], Passes())
         return time.perf_counter() - t
 

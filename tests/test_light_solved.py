@@ -13,11 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_long_view import RANGES, down_or_level, radiance_along, waters
 from test_render import draw
-from test_render_light import CASES, CLEAR, LAMP_CASES, ONE, SCATTERING, camera, frame_and_twin, lamp, light, quad
+from test_render_light import CASES, CLEAR, LAMP_CASES, ONE, SCATTERING, camera, frame_and_twin, light, quad
 
 from seasynth.worker.frame.srgb import encode_srgb8
 from seasynth.worker.light import Medium
-from seasynth.worker.light.build import SOLVED_PRESETS, for_preset
+from seasynth.worker.light.build import for_spec
 from seasynth.worker.light.column import path_radiance, to_sun_frame
 from seasynth.worker.light.solved import (
     NODES_PHI,
@@ -145,16 +145,31 @@ def test_without_scattering_the_table_is_empty_and_only_c_changes_the_view():
     assert isinstance(m, Medium)
 
 
-@pytest.mark.parametrize("quality", ["draft", "fast", "default", "high"])
-def test_the_presets_that_take_the_solved_column_and_lamp_only_frames_never_do(quality):
-    sunlit = for_preset(CASES["sun-sky-scattering"], quality)
-    lamps_only = for_preset(light(CLEAR, SCATTERING, sun=False, sky=False, lamps=(lamp((0, 0, 0), (0, 0, 1)),)),
-                            quality)
-    assert sunlit.terms.solved == (quality in SOLVED_PRESETS) == (sunlit.column is not None)
-    assert "solved_column" in sunlit.terms.names() if quality in SOLVED_PRESETS else "solved_column" not in \
-        sunlit.terms.names()
-    assert lamps_only.column is None and not lamps_only.terms.solved
-    assert for_preset(sunlit, "draft").terms == CASES["sun-sky-scattering"].terms
+@pytest.mark.parametrize("solved", [False, True])
+@pytest.mark.parametrize("lit", ["sun", "lamps"])
+def test_a_frame_takes_the_solved_column_where_its_spec_asks_and_the_sun_or_sky_lights_it(solved, lit):
+    """water.solved_column on: frames lit by the sun or the sky take the column, lamp-only frames (nothing to solve)
+    do not; off (the default), no frame does, and every other draw of the frame is the same."""
+    from seasynth.service.spec.dataset import DatasetSpec
+    from seasynth.worker.light.build import sample_physical
+    from seasynth.worker.render import Lighting
+
+    lighting = Lighting(np.array([0.3, 0.2, 0.93]), 1.0, 0.3) if lit == "sun" else Lighting(
+        np.array([0.0, 0.0, -1.0]), 0.0, 0.0)
+    lamps = [{"offset_m": [0.3, 0.0, 0.0], "direction": [0.0, 0.0, 1.0], "intensity": [2.0, 2.0]}]
+    out = []
+    for on in (False, solved):
+        spec = DatasetSpec.model_validate({"water": {"model": "physical", "jerlov": ["II"], "solved_column": on},
+                                           "lighting": {"lamps": lamps}})
+        out.append(sample_physical(spec, np.random.default_rng(3), lighting, top_z=0.0)[0])
+    off, lt = out
+    takes = solved and lit == "sun"
+    assert lt.terms.solved is takes and (lt.column is not None) is takes
+    assert ("solved_column" in lt.terms.names()) is takes and ("solved_column" in lt.coefficients()) is takes
+    assert dataclasses.replace(lt.terms, solved=False) == off.terms
+    np.testing.assert_array_equal(lt.medium.a, off.medium.a)
+    np.testing.assert_array_equal([lp.intensity for lp in lt.lamps], [lp.intensity for lp in off.lamps])
+    assert for_spec(lt, False).terms == off.terms and for_spec(lt, False).column is None
 
 
 @pytest.mark.parametrize("floor_z", [0.0, -20.0])  # 6 m deep, and 26 m: past the E_d table's last node
@@ -191,3 +206,11 @@ def test_the_solved_downwelling_is_todays_where_nothing_scatters_and_positive_wh
     np.testing.assert_allclose(sky[:, 0], np.exp(-lt.medium.c[0] * depth / MU_SKY), rtol=1e-12)
     assert (sun_diffuse[:, 0] <= 1e-29).all() and (sun_diffuse[1:, 1:] > 0).all() and (sky[:, 1:] > 0).all()
     assert (sky[-1, 1:] < 0.05 * sky[0, 1:]).all()  # 40 m down, the water has taken most of the sky's light
+
+
+def test_meta_records_the_solved_columns_only_where_a_frame_takes_them():
+    lt = CASES["sun-sky-scattering"]
+    assert "solved_column" not in lt.coefficients() and "solved_column" not in for_spec(lt, False).coefficients()
+    record = for_spec(lt, True).coefficients()["solved_column"]
+    assert record["columns"] == [list(q) for q in quantised(lt.medium, float(lt.sun_dir_world[2]))]
+    assert set(record) == {"columns", "photons", "seed"}

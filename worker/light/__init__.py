@@ -100,6 +100,7 @@ class PhysicalLight:
     def coefficients(self) -> dict:
         """Every derived coefficient a frame uses, for meta."""
         m = self.medium
+        solved = {"solved_column": self.column.record()} if self.terms.solved else {}
         return {
             "a": m.a.tolist(),
             "b": m.b.tolist(),
@@ -122,7 +123,7 @@ class PhysicalLight:
             ],
             "terms": self.terms.names(),
             "caustics": self.caustics.record() if self.terms.caustics else None,
-        }
+        } | solved
 
 
 def hg(cos_theta: np.ndarray, g: float) -> np.ndarray:

@@ -14,14 +14,11 @@ from seasynth.worker.light.solved import with_column
 from seasynth.worker.light.sun import shadow_worthwhile, sun_in_water
 from seasynth.worker.render import Lighting
 
-# Quality presets whose frames take the sun's and the sky's light along view rays from the solved water column
-# (docs/light.md): `draft` keeps the closed form through K, which needs no solve.
-SOLVED_PRESETS = frozenset({"fast", "default", "high"})
 
-
-def for_preset(light: PhysicalLight, quality: str) -> PhysicalLight:
-    """The light a frame of this quality preset renders with: the solved column on where the preset takes it."""
-    return with_column(light, quality in SOLVED_PRESETS and (light.terms.sun or light.terms.sky))
+def for_spec(light: PhysicalLight, solved_column: bool) -> PhysicalLight:
+    """The light a frame renders with: the solved column on where the spec asks for it (water.solved_column) and the
+    sun or the sky lights the frame (lamp-only frames have no column to solve)."""
+    return with_column(light, solved_column and (light.terms.sun or light.terms.sky))
 
 
 def sample_physical(
@@ -71,4 +68,4 @@ def sample_physical(
     light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
                           lamps=lamps, terms=terms, caustics=caustics)
     used = w.absorption is None or w.scattering is None
-    return for_preset(light, spec.quality), kind if used else None
+    return for_spec(light, w.solved_column), kind if used else None

@@ -131,6 +131,12 @@ class SolvedWater:
     sky: np.ndarray  # (3,) the window's radiance in the renderer's units (`sky.window_radiance`)
     tables: dict = field(default_factory=dict, compare=False, repr=False)  # camera depth -> ViewTable
 
+    def record(self) -> dict:
+        """What meta records: each channel's unit columns (b / c, g, the sun's cosine as solved) and the solve's
+        photons and seed."""
+        return {"columns": [list(q) for q in quantised(self.medium, float(self.sun_dir_world[2]))],
+                "photons": PHOTONS, "seed": SEED}
+
     def depth_table(self) -> DepthTable:
         """The frame's E_d table (one per frame: it spans the seabed's reference depth and ED_REACH_M below)."""
         if "depth" not in self.tables:
