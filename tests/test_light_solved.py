@@ -19,6 +19,7 @@ from seasynth.worker.frame.srgb import encode_srgb8
 from seasynth.worker.light import Medium
 from seasynth.worker.light.build import for_spec
 from seasynth.worker.light.column import path_radiance, to_sun_frame
+from seasynth.worker.light.sky import MU_SKY
 from seasynth.worker.light.solved import (
     NODES_PHI,
     NODES_THETA,
@@ -30,7 +31,6 @@ from seasynth.worker.light.solved import (
     unit_column,
     with_column,
 )
-from seasynth.worker.light.volume import MU_SKY
 
 SOLVED = {
     "solved-sun-sky-scattering": with_column(CASES["sun-sky-scattering"]),
@@ -120,7 +120,7 @@ def test_the_tables_path_radiance_is_the_columns_own_to_60_percent_and_13_percen
 
 
 def test_the_table_is_the_unit_solve_scaled_by_the_light_and_a_pure_function_of_the_water():
-    a, b = np.array([0.3, 0.1, 0.05]), np.array([0.2, 0.3, 0.4])
+    a, b = np.array([0.3, 0.1, 0.05]), np.array([0.05, 0.08, 0.1])
     lt = with_column(light(a, b, surface_z=9.0))
     twice = with_column(dataclasses.replace(lt, sun_irradiance=2 * lt.sun_irradiance, sky_irradiance=2 * lt.sky_irradiance))
     one, two = lt.column.view_table(6.0), twice.column.view_table(6.0)
@@ -199,7 +199,8 @@ def test_a_floor_is_lit_by_the_solved_downwelling_irradiance(renderer, floor_z, 
 
 
 def test_the_solved_downwelling_is_todays_where_nothing_scatters_and_positive_where_it_does():
-    lt = with_column(light(np.array([0.2, 0.06, 0.05]), np.array([0.0, 0.25, 0.3]), surface_z=8.0))
+    lt = with_column(light(np.array([0.2, 0.06, 0.05]), np.array([0.0, 0.25, 0.3]), surface_z=8.0, e0=np.full(3, 0.9),
+                           sun_dir=[0.0, 0.0, 1.0]))  # green and blue: the floor test's columns
     table = lt.column.depth_table()
     depth = np.linspace(0.0, 40.0, 81)
     sun_diffuse, sky = irradiance(table, depth)

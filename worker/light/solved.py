@@ -16,6 +16,7 @@ function of its spec whichever frames a process rendered before), and scaled by 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ import numpy as np
 
 from seasynth.worker.light import GORDON_PATH_FACTOR, Medium
 from seasynth.worker.light.column import GRID_PHI, GRID_THETA, Column, solve
+from seasynth.worker.light.sky import MU_SKY, window_radiance
 
 ED_NODES = 64  # the downwelling irradiance's depth table: ED_NODES nodes from the surface to ED_REACH_M below the
 ED_REACH_M = 12.0  # seabed's reference depth (further down: extrapolated from the last two nodes)
@@ -204,8 +206,6 @@ def _log_profile(col: Column, tau: np.ndarray, kappa: float, minus_beam: bool) -
 
 
 def _depth_table(w: SolvedWater) -> DepthTable:
-    from seasynth.worker.light.volume import MU_SKY
-
     m = w.medium
     step = (float(m.surface_z) + ED_REACH_M) / (ED_NODES - 1)
     depth = np.arange(ED_NODES) * step
@@ -278,16 +278,12 @@ def lookup(table: ViewTable, dirs_world: np.ndarray, sun_dir_world: np.ndarray) 
 def solved_water(medium: Medium, sun_dir_world: np.ndarray, sun_irradiance: np.ndarray,
                  sky_irradiance: np.ndarray) -> SolvedWater:
     """A frame's SolvedWater from its water and its light just below the surface (as PhysicalLight holds them)."""
-    from seasynth.worker.light.sky import window_radiance
-
     return SolvedWater(medium=medium, sun_dir_world=np.asarray(sun_dir_world, np.float64),
                        sun=math.pi * np.asarray(sun_irradiance, np.float64), sky=window_radiance(sky_irradiance))
 
 
 def with_column(light, on: bool = True):
     """The PhysicalLight `light` with its water column solved (terms.solved) or, on False, without."""
-    import dataclasses
-
     if not on:
         return dataclasses.replace(light, column=None, terms=dataclasses.replace(light.terms, solved=False))
     column = solved_water(light.medium, light.sun_dir_world, light.sun_irradiance, light.sky_irradiance)

@@ -32,10 +32,9 @@ from seasynth.worker.light.lamps import (
     light_factor,
     reach,
 )
-from seasynth.worker.light.sky import sky_phase, sky_phase_table, window_radiance
+from seasynth.worker.light.sky import MU_SKY, sky_phase, sky_phase_table, window_radiance
 from seasynth.worker.light.solved import lookup
 
-MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
 _SMALL = 1e-2  # |alpha z| below this: the series of (1 - exp(-x)) / x to x^3 (truncation < 1e-10)
 
 
