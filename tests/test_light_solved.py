@@ -31,6 +31,7 @@ from seasynth.worker.light.solved import (
     unit_column,
     with_column,
 )
+from seasynth.worker.light.volume import volume
 
 SOLVED = {
     "solved-sun-sky-scattering": with_column(CASES["sun-sky-scattering"]),
@@ -215,3 +216,20 @@ def test_meta_records_the_solved_columns_only_where_a_frame_takes_them():
     record = for_spec(lt, True).coefficients()["solved_column"]
     assert record["columns"] == [list(q) for q in quantised(lt.medium, float(lt.sun_dir_world[2]))]
     assert set(record) == {"columns", "photons", "seed"}
+
+
+@settings(max_examples=60, deadline=None)
+@given(water=waters(), data=st.data(), z=st.floats(0.0, 500.0), seed=st.integers(0, 2**32 - 1))
+def test_solved_a_surface_is_seen_through_c_plus_the_water_in_front_of_it(water, data, z, seed):
+    """With the solved column a surface's radiance J reaches the camera as J exp(-c z) (its forward-scattered light
+    is not kept through K): the frame minus the same ray ending at a black surface is exactly that."""
+    a, b = water
+    lt = light(a, b, surface_z=30.0)
+    column = SolvedWater(medium=lt.medium, sun_dir_world=lt.sun_dir_world, sun=np.full(3, 1.0), sky=np.full(3, 0.3),
+                         tables={(29.0, True, True): random_table(seed, lt.medium.c)})
+    lt = dataclasses.replace(lt, column=column, terms=dataclasses.replace(lt.terms, solved=True))
+    d = down_or_level(data.draw)[None]
+    J = np.array([[0.3, 0.5, 0.7]])
+    black = volume(np.zeros((1, 3)), np.array([z]), d, d, 29.0, lt)
+    seen = volume(J, np.array([z]), d, d, 29.0, lt) - black
+    np.testing.assert_allclose(seen, J * np.exp(-lt.medium.c * z), rtol=1e-9, atol=1e-13 * black.max() + 1e-300)

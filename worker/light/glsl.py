@@ -341,7 +341,7 @@ vec2 cone_interval(vec3 w, vec3 apex, vec3 axis, float half_angle, float t_end) 
 }}
 #endif
 vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
-    vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(u_K * z);
+    vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(VIEW_C * z);
     float zs = min(z, g_to_surface);
 #if defined(WITH_SCATTER) && defined(WITH_SUN)
     I += inscattered(g_sun, zs);

@@ -13,7 +13,8 @@ nodes in the equiangular variable).
 With the solved column (`Terms.solved`, `solved`), the sun's and the sky's terms are their single scattering (c in
 place of K on both legs: the unscattered beam, the unscattered view ray) and the multiply scattered rest is
 J_ms(w) integral_0^z' exp(-(c - K_J w_z) t) dt from the column's table at the camera's depth; the window's sky is
-seen through c too.
+seen through c too, and so is a surface (the scattered light is the open column's J_ms; a surface's own forward-
+scattered light is not kept through K).
 """
 
 from __future__ import annotations
@@ -68,12 +69,12 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
     m = light.medium
     K, b = m.k, m.b
     t = light.terms
-    V = m.c if t.solved else K  # the path radiance's view-leg attenuation: the beam's c once J_ms carries the rest
+    V = m.c if t.solved else K  # the view leg's attenuation: the beam's c once J_ms carries the scattered rest
     z = np.asarray(z, dtype=np.float64)
     wz = dirs_world[..., 2]
     to_surface = distance_to_surface(dirs_world, cam_depth)
     zs = np.minimum(z, to_surface)[..., None]
-    out = np.where(np.isfinite(z)[..., None], np.asarray(J, np.float64) * np.exp(-K * np.where(
+    out = np.where(np.isfinite(z)[..., None], np.asarray(J, np.float64) * np.exp(-V * np.where(
         np.isfinite(z), z, 0.0)[..., None]), 0.0)
     w = wz[..., None]
     if t.scattering and t.solved and (t.sun or t.sky):
