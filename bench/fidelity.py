@@ -111,6 +111,7 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int,
     """(preset, terms, linear float image, ms per frame) for each row of a configuration; forward_scatter: one more
     row, `default` with the forward-scatter blur (seasynth.worker.optics.forward_scatter; terms `+forward_scatter`)."""
     from seasynth.worker.frame.function import PRESETS
+    from seasynth.worker.light.build import for_spec
     from seasynth.worker.optics import Optics
     from seasynth.worker.render import Passes
 
@@ -124,6 +125,9 @@ def seasynth_rows(session, spec: DatasetSpec, repeats: int,
         if getattr(light.terms, term):
             variants.append(("default", f"-{term}", dataclasses.replace(
                 light, terms=dataclasses.replace(light.terms, **{term: False})), None))
+    if light.terms.sun or light.terms.sky:  # the solved water column (water.solved_column) on, or off
+        variants.append(("default", "-solved" if light.terms.solved else "+solved",
+                         for_spec(light, not light.terms.solved), None))
     if light.terms.lamps:
         variants.append(("default", "-lamps", dataclasses.replace(
             light, terms=dataclasses.replace(light.terms, lamps=0)), None))

@@ -14,6 +14,7 @@ from test_render_light import ONE, camera, lamp, light, pixel_rays, quad
 
 from seasynth.worker.frame.srgb import encode_srgb8
 from seasynth.worker.light.lamps import CUTOFF_OPTICAL_DEPTH
+from seasynth.worker.light.solved import with_column
 from seasynth.worker.light.volume import volume
 from seasynth.worker.render import Passes
 
@@ -126,10 +127,11 @@ def black_wall(r: float):
     return draw(f"test/long-view/wall-{r!r}", quad(corners, rgb=(0, 0, 0)), 0)
 
 
+@pytest.mark.parametrize("solved", [False, True])  # today's closed form (draft), the solved column (default)
 @pytest.mark.parametrize("water", WATERS)
-def test_the_shader_tends_to_its_own_open_water_as_its_twin_does(renderer, water):
+def test_the_shader_tends_to_its_own_open_water_as_its_twin_does(renderer, water, solved):
     a, b = WATERS[water]
-    lt = light(a, b, lamps=(lamp((0.3, 0.1, 0.0), (-0.05, 0.1, 1.0)),), surface_z=12.0)
+    lt = with_column(light(a, b, lamps=(lamp((0.3, 0.1, 0.0), (-0.05, 0.1, 1.0)),), surface_z=12.0), solved)
     K = float(lt.medium.k.min())
     ranges = [0.5, 2.0, 8.0, 30.0 / K, 60.0 / K]
     view, world_from_cam = camera(EYE, TARGET, 60.0, far=200.0 / K)

@@ -138,6 +138,9 @@ class Water(SpecModel):
     # Spread the surfaces' forward-scattered light by its point spread function (seasynth.worker.optics
     # .forward_scatter); physical model only.
     forward_scatter: StrictBool = False
+    # The sun's and the sky's light along view rays and on surfaces from the solved water column
+    # (seasynth.worker.light.solved, docs/light.md); physical model only.
+    solved_column: StrictBool = False
     particles: Particles = Particles()
 
     @field_validator("jerlov")
@@ -167,6 +170,9 @@ class Water(SpecModel):
         if self.forward_scatter and not (self.enabled and model == "physical"):
             raise ValueError("forward_scatter spreads light the physical model scatters; it needs water.enabled: "
                              f"true and water.model: physical (got enabled {self.enabled}, model {model})")
+        if self.solved_column and not (self.enabled and model == "physical"):
+            raise ValueError("solved_column solves the physical model's water column; it needs water.enabled: true "
+                             f"and water.model: physical (got enabled {self.enabled}, model {model})")
         self._particles_described(model)
         if not self.enabled or self.jerlov:
             return self

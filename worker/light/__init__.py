@@ -73,12 +73,15 @@ class Terms:
     # lamps' forward-scattered light spread in angle (lamps.light_factor); off, it stays in the sharp profile. Only
     # where the water keeps enough forward-scattered light for it to matter (lamps.spread_worthwhile).
     lamp_spread: bool = False
+    # the sun's and the sky's light along view rays from the solved water column (PhysicalLight.column): single
+    # scattering through c, the multiply scattered rest from the column's table at the camera (the `solved` module)
+    solved: bool = False
 
     def names(self) -> list[str]:
         out = ["sun"] * self.sun + ["sun_shadows"] * self.sun_shadows + ["caustics"] * self.caustics
         out += ["sky"] * self.sky
         out += ["scattering"] * self.scattering + [f"lamp{i}" for i in range(self.lamps)]
-        return out + ["lamp_spread"] * self.lamp_spread
+        return out + ["lamp_spread"] * self.lamp_spread + ["solved_column"] * self.solved
 
 
 @dataclass(frozen=True)
@@ -92,10 +95,12 @@ class PhysicalLight:
     lamps: tuple[Lamp, ...]
     terms: Terms
     caustics: object = None  # seasynth.worker.light.caustics.Caustics when terms.caustics
+    column: object = None  # seasynth.worker.light.solved.SolvedWater when terms.solved
 
     def coefficients(self) -> dict:
         """Every derived coefficient a frame uses, for meta."""
         m = self.medium
+        solved = {"solved_column": self.column.record()} if self.terms.solved else {}
         return {
             "a": m.a.tolist(),
             "b": m.b.tolist(),
@@ -118,7 +123,7 @@ class PhysicalLight:
             ],
             "terms": self.terms.names(),
             "caustics": self.caustics.record() if self.terms.caustics else None,
-        }
+        } | solved
 
 
 def hg(cos_theta: np.ndarray, g: float) -> np.ndarray:

@@ -10,8 +10,15 @@ from seasynth.service.water import jerlov_absorption, jerlov_scattering
 from seasynth.worker.light import Medium, PhysicalLight, Terms
 from seasynth.worker.light.caustics import sample_caustics
 from seasynth.worker.light.lamps import lamp_from_spec, spread_worthwhile
+from seasynth.worker.light.solved import with_column
 from seasynth.worker.light.sun import shadow_worthwhile, sun_in_water
 from seasynth.worker.render import Lighting
+
+
+def for_spec(light: PhysicalLight, solved_column: bool) -> PhysicalLight:
+    """The light a frame renders with: the solved column on where the spec asks for it (water.solved_column) and the
+    sun or the sky lights the frame (lamp-only frames have no column to solve)."""
+    return with_column(light, solved_column and (light.terms.sun or light.terms.sky))
 
 
 def sample_physical(
@@ -61,4 +68,4 @@ def sample_physical(
     light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
                           lamps=lamps, terms=terms, caustics=caustics)
     used = w.absorption is None or w.scattering is None
-    return light, kind if used else None
+    return for_spec(light, w.solved_column), kind if used else None

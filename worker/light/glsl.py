@@ -1,6 +1,7 @@
 """GLSL 330 of the physical model: surface radiance under the water column (`SURFACE`) and the water along view
 rays (`VOLUME`, the twin of `seasynth.worker.light.volume`). Terms are compiled in or out by defines: WITH_SUN,
-WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, LAMPS (a count), so a term a frame does not need costs nothing."""
+WITH_SUN_SHADOW, WITH_SKY, WITH_SCATTER, WITH_SOLVED, LAMPS (a count), so a term a frame does not need costs
+nothing."""
 
 from seasynth.worker.light import caustics
 from seasynth.worker.light.lamps import (
@@ -11,6 +12,7 @@ from seasynth.worker.light.lamps import (
                                 REACH_MARGIN_RAD,
 )
 from seasynth.worker.light.sky import SKY_PHASE_NODES
+from seasynth.worker.light.solved import ED_NODES, VIEW_TABLE_GLSL
 from seasynth.worker.light.volume import MU_SKY
 from seasynth.worker.render import materials
 from seasynth.worker.render.shaders import SURFACE_BEGIN
@@ -27,7 +29,9 @@ NORMAL_OFFSET_PIXELS = 0.5
 UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
     "u_sun_shadow", "u_sun_soft", "u_sun_from_cam", "u_sun_texel_m", "u_sun_soft_texel_m", "u_pixel_angle", "u_cam_depth",
-    "u_world_from_cam", "u_K_inv", "u_sky_phase", "u_world_x", "u_world_y", *caustics.UNIFORMS,
+    "u_world_from_cam", "u_K_inv", "u_sky_phase", "u_world_x", "u_world_y", "u_jms", "u_kj", "u_sun_azimuth", "u_ed_sun",
+    "u_ed_sky", "u_ed_step",
+    *caustics.UNIFORMS,
     *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "energy", "from_cam", "shadow", "texel")
       for i in range(MAX_LAMPS)),
 )
@@ -36,6 +40,7 @@ _COMMON = f"""
 const float PI = 3.14159265358979;
 const float X_MAX = 87.0;
 const float MU_SKY = {MU_SKY!r};
+const int ED_NODES = {ED_NODES};
 const float NORMAL_OFFSET_TEXELS = {NORMAL_OFFSET_TEXELS!r};
 const float NORMAL_OFFSET_PIXELS = {NORMAL_OFFSET_PIXELS!r};
 const float SNELL_COS = 0.66131187;       // cos(48.6 deg)
@@ -113,6 +118,11 @@ layout(location = 0) out vec4 o_J;
     + materials.FRAGMENT
     + _COMMON
     + """
+#ifdef WITH_SOLVED
+uniform vec3 u_ed_sun[ED_NODES];   // solved.DepthTable: log E_d per node, the sun's diffuse part and the sky's
+uniform vec3 u_ed_sky[ED_NODES];
+uniform float u_ed_step;
+#endif
 #ifdef WITH_CAUSTICS
 uniform vec4 u_world_x;        // rows x and y of world_from_cam
 uniform vec4 u_world_y;
@@ -153,11 +163,21 @@ void main() {
     float depth = max(u_surface_z - (dot(u_world_z.xyz, v_pos) + u_world_z.w), 0.0);
     vec3 E = vec3(0.0);
     float pixel_m = NORMAL_OFFSET_PIXELS * u_pixel_angle * length(v_pos);
+#ifdef WITH_SOLVED
+    // solved.irradiance: the solved column's E_d, log-linear between its depth nodes
+    float xe = depth / u_ed_step;
+    int ie = clamp(int(floor(xe)), 0, ED_NODES - 2);
+    float fe = xe - float(ie);
+#endif
 #ifdef WITH_SUN
     float cos_i = max(dot(n, u_sun_cam), 0.0);
-    vec3 total = exp_neg3(u_K * (depth / u_mu_w));
-#if defined(WITH_SUN_SHADOW) || defined(WITH_CAUSTICS)
+#if defined(WITH_SUN_SHADOW) || defined(WITH_CAUSTICS) || defined(WITH_SOLVED)
     vec3 direct = exp_neg3(u_c * (depth / u_mu_w));   // the unscattered beam's share
+#endif
+#ifdef WITH_SOLVED
+    vec3 total = direct + exp(mix(u_ed_sun[ie], u_ed_sun[ie + 1], fe));
+#else
+    vec3 total = exp_neg3(u_K * (depth / u_mu_w));
 #endif
 #ifdef WITH_CAUSTICS
     float focus = caustic_factor(vec3(dot(u_world_x.xyz, v_pos) + u_world_x.w, dot(u_world_y.xyz, v_pos) + u_world_y.w,
@@ -181,7 +201,11 @@ void main() {
 #endif
 #ifdef WITH_SKY
     float up = dot(u_world_z.xyz, n);   // world z of the normal
+#ifdef WITH_SOLVED
+    E += u_Esky * exp(mix(u_ed_sky[ie], u_ed_sky[ie + 1], fe)) * ((0.5 + 0.5 * up) * occlusion);
+#else
     E += u_Esky * exp_neg3(u_K * (depth / MU_SKY)) * ((0.5 + 0.5 * up) * occlusion);
+#endif
 #endif
 #if LAMPS > 0
     for (int l = 0; l < LAMPS; ++l) {
@@ -218,6 +242,15 @@ uniform vec3 u_E0;
 uniform vec3 u_Esky;
 uniform float u_cam_depth;
 uniform float u_sky_phase[{SKY_PHASE_NODES}];   // sky.sky_phase_table
+#ifdef WITH_SOLVED
+#define VIEW_C u_c   // the path radiance's view leg: the beam's c, J_ms carrying the scattered rest
+#else
+#define VIEW_C u_K
+#endif
+#if defined(WITH_SOLVED) && defined(WITH_SCATTER) && (defined(WITH_SUN) || defined(WITH_SKY))
+#define WITH_JMS
+{VIEW_TABLE_GLSL}
+#endif
 #if LAMPS > 0
 uniform vec3 u_lamp_pos[LAMPS];
 uniform vec3 u_lamp_dir[LAMPS];
@@ -239,8 +272,8 @@ float segment(float e1, float x1, float alpha, float z) {{
 // A term scattered into the ray: amp * integral_0^z exp(-x1 - alpha t) dt per channel; all but z are the pixel's.
 struct Inscatter {{ vec3 amp; vec3 x1; vec3 e1; vec3 alpha; }};
 Inscatter inscatter(vec3 amp, float path_cos, float wz) {{
-    vec3 x1 = u_K / path_cos * u_cam_depth;
-    return Inscatter(amp, x1, exp_neg3(x1), u_K - u_K / path_cos * wz);
+    vec3 x1 = VIEW_C / path_cos * u_cam_depth;
+    return Inscatter(amp, x1, exp_neg3(x1), VIEW_C - VIEW_C / path_cos * wz);
 }}
 vec3 inscattered(Inscatter s, float z) {{
     return s.amp * vec3(segment(s.e1.x, s.x1.x, s.alpha.x, z), segment(s.e1.y, s.x1.y, s.alpha.y, z),
@@ -254,8 +287,16 @@ Inscatter g_sun;
 #if defined(WITH_SCATTER) && defined(WITH_SKY)
 Inscatter g_sky;
 #endif
+#ifdef WITH_JMS
+Inscatter g_ms;
+#endif
 void water_pixel(vec3 w) {{
     g_to_surface = w.z > 0.0 ? u_cam_depth / w.z : uintBitsToFloat(0x7F800000u);
+#ifdef WITH_JMS
+    vec3 jms, kj;
+    view_table(w, jms, kj);
+    g_ms = Inscatter(jms, vec3(0.0), vec3(1.0), u_c - kj * w.z);
+#endif
 #if defined(WITH_SCATTER) && defined(WITH_SUN)
     // the beam and its forward-scattered light scatter into the ray alike (one segment, the beam's phase function)
     g_sun = inscatter(u_b * (PI * u_E0) * hg(dot(w, u_sun_world), u_g), u_mu_w, w.z);
@@ -300,7 +341,7 @@ vec2 cone_interval(vec3 w, vec3 apex, vec3 axis, float half_angle, float t_end) 
 }}
 #endif
 vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
-    vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(u_K * z);
+    vec3 I = isinf(z) ? vec3(0.0) : J * exp_neg3(VIEW_C * z);
     float zs = min(z, g_to_surface);
 #if defined(WITH_SCATTER) && defined(WITH_SUN)
     I += inscattered(g_sun, zs);
@@ -308,8 +349,11 @@ vec3 water(vec3 J, float z, vec3 w, vec3 w_cam) {{
 #if defined(WITH_SCATTER) && defined(WITH_SKY)
     I += inscattered(g_sky, zs);
 #endif
+#ifdef WITH_JMS
+    I += inscattered(g_ms, zs);
+#endif
 #ifdef WITH_SKY
-    if (isinf(z) && w.z > SNELL_COS) I += u_Esky / SNELL_SIN2 * exp_neg3(u_K * g_to_surface);
+    if (isinf(z) && w.z > SNELL_COS) I += u_Esky / SNELL_SIN2 * exp_neg3(VIEW_C * g_to_surface);
 #endif
     return I;
 }}

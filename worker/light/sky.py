@@ -18,6 +18,7 @@ import numpy as np
 
 from seasynth.worker.light import SNELL_CONE_DEG, hg
 
+MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
 SKY_PHASE_NODES = 129  # w_z = -1, -1 + 2/128, ..., 1
 _POLAR_NODES, _AZIMUTH_NODES = 48, 96  # quadrature over the window: < 1e-4 relative for g <= 0.95, ~20 ms
 # Linear interpolation between the nodes misses P by < 0.7% at g = 0.92 (< 1.6% at 0.95), only where the window's edge

@@ -9,6 +9,12 @@ Per sample and channel, with K the diffuse attenuation (see `Medium.k`):
 depth(t) = D_c - t w_z (camera depth D_c, ray direction w, z up), z' = z cut at the water surface. Each term's
 integral is closed-form (`segment`); a lamp's single scattering is integrated numerically (`lamps.BACKSCATTER_NODES`
 nodes in the equiangular variable).
+
+With the solved column (`Terms.solved`, `solved`), the sun's and the sky's terms are their single scattering (c in
+place of K on both legs: the unscattered beam, the unscattered view ray) and the multiply scattered rest is
+J_ms(w) integral_0^z' exp(-(c - K_J w_z) t) dt from the column's table at the camera's depth; the window's sky is
+seen through c too, and so is a surface (the scattered light is the open column's J_ms; a surface's own forward-
+scattered light is not kept through K).
 """
 
 from __future__ import annotations
@@ -27,9 +33,9 @@ from seasynth.worker.light.lamps import (
     light_factor,
     reach,
 )
-from seasynth.worker.light.sky import sky_phase, sky_phase_table, window_radiance
+from seasynth.worker.light.sky import MU_SKY, sky_phase, sky_phase_table, window_radiance
+from seasynth.worker.light.solved import lookup
 
-MU_SKY = 0.84  # mean cosine of sky light under the surface: its paths are 1 / 0.84 longer than the depth
 _SMALL = 1e-2  # |alpha z| below this: the series of (1 - exp(-x)) / x to x^3 (truncation < 1e-10)
 
 
@@ -62,14 +68,18 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
     lamps' single scattering out (volume_pixels adds it a pixel at a time, as the resolve shader does)."""
     m = light.medium
     K, b = m.k, m.b
+    t = light.terms
+    V = m.c if t.solved else K  # the view leg's attenuation: the beam's c once J_ms carries the scattered rest
     z = np.asarray(z, dtype=np.float64)
     wz = dirs_world[..., 2]
     to_surface = distance_to_surface(dirs_world, cam_depth)
     zs = np.minimum(z, to_surface)[..., None]
-    out = np.where(np.isfinite(z)[..., None], np.asarray(J, np.float64) * np.exp(-K * np.where(
+    out = np.where(np.isfinite(z)[..., None], np.asarray(J, np.float64) * np.exp(-V * np.where(
         np.isfinite(z), z, 0.0)[..., None]), 0.0)
     w = wz[..., None]
-    t = light.terms
+    if t.scattering and t.solved and (t.sun or t.sky):
+        j_ms, k_j = lookup(light.column.view_table(cam_depth, t.sun, t.sky), dirs_world, light.sun_dir_world)
+        out = out + j_ms * segment(0.0, m.c - k_j * w, zs)
     if t.scattering and t.sun:
         s = light.sun_dir_world
         mu_s = np.dot(dirs_world, s)[..., None]
@@ -77,18 +87,18 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
         e = math.pi * light.sun_irradiance
         # The beam and its forward-scattered light (small-angle: still along the sun's refracted direction) scatter
         # into the ray alike: the whole downwelling sun, attenuated by K, with the phase function's value.
-        total = segment(K / mu_w * cam_depth, K - K / mu_w * w, zs)
+        total = segment(V / mu_w * cam_depth, V - V / mu_w * w, zs)
         out = out + b * e * hg(mu_s, m.g) * total
     if t.scattering and t.sky:
         P = sky_phase(wz, sky_phase_table(m.g))[..., None]
         out = out + b * window_radiance(light.sky_irradiance) * P * segment(
-            K / MU_SKY * cam_depth, K - K / MU_SKY * w, zs)
+            V / MU_SKY * cam_depth, V - V / MU_SKY * w, zs)
     if t.sky:
         # Open water looking up through Snell's window sees the sky itself.
         L = window_radiance(light.sky_irradiance)
         window = (~np.isfinite(z) & (wz > math.cos(math.radians(SNELL_CONE_DEG))))[..., None]
         with np.errstate(divide="ignore", over="ignore"):
-            out = out + np.where(window, L * np.exp(-K * np.where(window, to_surface[..., None], 0.0)), 0.0)
+            out = out + np.where(window, L * np.exp(-V * np.where(window, to_surface[..., None], 0.0)), 0.0)
     if t.scattering and lamp_scattering:
         for lamp in light.lamps[: t.lamps]:
             out = out + lamp_backscatter(lamp, dirs_cam, zs[..., 0], m, t.lamp_spread)

@@ -9,6 +9,7 @@ from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
 from seasynth.worker.light.lamps import cone_energy
 from seasynth.worker.light.sky import sky_phase_table
+from seasynth.worker.light.solved import view_azimuth_frame
 from seasynth.worker.light.volume import camera_depth
 from seasynth.worker.render import DrawItem, View, shadows
 from seasynth.worker.render.shaders import DEPTH_ONLY, VERTEX
@@ -26,6 +27,7 @@ def defines(light: PhysicalLight) -> dict[str, object]:
         "WITH_SCATTER": t.scattering,
         "LAMPS": t.lamps,
         "LAMP_SPREAD": t.lamps > 0 and t.lamp_spread,
+        "WITH_SOLVED": t.solved,
     }
 
 
@@ -136,6 +138,11 @@ def surface_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight, 
     _vec3(GL, locs, "u_sun_cam", view.cam_from_world[:3, :3] @ light.sun_dir_world)
     if light.terms.caustics:
         _caustic_uniforms(GL, locs, light, world_from_cam)
+    if light.terms.solved:
+        table = light.column.depth_table()
+        for name, values in (("u_ed_sun", table.sun), ("u_ed_sky", table.sky)):
+            _set(GL, locs, name, GL.glUniform3fv, len(values), np.ascontiguousarray(values, dtype=np.float32))
+        _set(GL, locs, "u_ed_step", GL.glUniform1f, float(table.step_m))
     _set(GL, locs, "u_pixel_angle", GL.glUniform1f, float(1.0 / min(view.K[0, 0], view.K[1, 1])))
     units = []
     if maps["sun"] is not None:
@@ -181,4 +188,11 @@ def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -
         _set(GL, locs, "u_sky_phase", GL.glUniform1fv, len(table), table)
     _set(GL, locs, "u_world_from_cam", GL.glUniformMatrix3fv, 1, GL.GL_TRUE,
          world_from_cam[:3, :3].astype(np.float32))
+    t = light.terms
+    if t.solved and t.scattering and (t.sun or t.sky):
+        table = light.column.view_table(camera_depth(light, world_from_cam), t.sun, t.sky)
+        for name, values in (("u_jms", table.j), ("u_kj", table.k)):
+            flat = np.ascontiguousarray(values.reshape(-1, 3), dtype=np.float32)
+            _set(GL, locs, name, GL.glUniform3fv, len(flat), flat)
+        _set(GL, locs, "u_sun_azimuth", GL.glUniform2f, *view_azimuth_frame(light.sun_dir_world).tolist())
 
