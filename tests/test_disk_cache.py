@@ -105,3 +105,31 @@ def test_a_second_run_builds_nothing_and_every_run_writes_the_same_bytes(monkeyp
     assert {p.name: p.stat().st_mtime_ns for p in cache_folder().iterdir()} == stored  # read, not built again
     off = _frames(tmp_path / "off")
     assert off and _frames(tmp_path / "first") == off and _frames(tmp_path / "second") == off
+
+
+def test_a_solved_water_column_read_from_the_shared_folder_is_the_solved_one_field_by_field(tmp_path):
+    import dataclasses
+
+    import numpy as np
+
+    from seasynth.worker.light.column import Column
+    from seasynth.worker.light.solved import unit_column
+    from seasynth.worker.scene.disk_cache import share_in
+
+    args = [(0.8, 0.92, 0.7), (0.55, 0.9, None)]  # a sun column and a sky column
+    try:
+        unit_column.cache_clear()
+        solved = [unit_column(*a) for a in args]  # no folder: solved here
+        share_in(tmp_path)
+        unit_column.cache_clear()
+        stored = [unit_column(*a) for a in args]  # solved again and stored
+        assert len(list(tmp_path.glob("column-*.npz"))) == len(args)
+        unit_column.cache_clear()
+        read = [unit_column(*a) for a in args]  # read
+    finally:
+        share_in(None)
+        unit_column.cache_clear()
+    for s, t, r in zip(solved, stored, read):
+        for f in dataclasses.fields(Column):
+            a, b, c = (np.asarray(getattr(x, f.name)) for x in (s, t, r))
+            assert a.dtype == c.dtype and np.array_equal(a, b) and np.array_equal(a, c), f.name

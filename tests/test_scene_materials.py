@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from seasynth.service.spec.dataset import DatasetSpec
 from seasynth.worker.scene.assets.procedural import procedural_asset
 from seasynth.worker.scene.assets.textures import texture_set
+from seasynth.worker.scene.disk_cache import share_in
 from seasynth.worker.scene.materials import (
     WARP_FREQUENCY,
     asset_material,
@@ -16,7 +17,7 @@ from seasynth.worker.scene.materials import (
     terrain_uv,
     uv_warp,
 )
-from seasynth.worker.scene.texture_cache import _load, share_in, shared_texture_set
+from seasynth.worker.scene.texture_cache import _load, shared_texture_set
 
 coords = st.floats(-500.0, 500.0, allow_nan=False)
 

@@ -18,14 +18,19 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import math
+import zipfile
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from seasynth import service
 from seasynth.worker.light import GORDON_PATH_FACTOR, Medium
 from seasynth.worker.light.column import GRID_PHI, GRID_THETA, Column, solve
 from seasynth.worker.light.sky import MU_SKY, window_radiance
+from seasynth.worker.scene.disk_cache import shared_folder, store_npz
 
 ED_NODES = 64  # the downwelling irradiance's depth table: ED_NODES nodes from the surface to ED_REACH_M below the
 ED_REACH_M = 12.0  # seabed's reference depth (further down: extrapolated from the last two nodes)
@@ -46,7 +51,31 @@ def _diffuse_rate(omega: float, g: float) -> float:
 @functools.lru_cache(maxsize=96)
 def unit_column(omega: float, g: float, mu_sun: float | None) -> Column:
     """One channel's column at c = 1: the sun's (unit irradiance normal to the beam at cosine mu_sun) or, mu_sun None,
-    the sky's (unit radiance in Snell's window). Seeded, so a pure function of its arguments; kept per process."""
+    the sky's (unit radiance in Snell's window). Seeded, so a pure function of its arguments; kept per process, and
+    read from the folder the process shares what it builds in (disk_cache.share_in), where one was stored."""
+    folder = shared_folder()
+    if folder is None:
+        return _solved(omega, g, mu_sun)
+    key = repr((service.__version__, "column", omega, g, mu_sun, PHOTONS, SEED, DEPTHS_K))
+    path = folder / f"column-{hashlib.sha256(key.encode()).hexdigest()[:32]}.npz"
+    got = _load_column(path)
+    if got is None:
+        got = _solved(omega, g, mu_sun)
+        store_npz(path, {f.name: np.asarray(getattr(got, f.name)) for f in dataclasses.fields(Column)})
+    return got
+
+
+def _load_column(path: Path) -> Column | None:
+    """The column stored at path; None where there is none or it cannot be read whole (then it is solved again)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            values = {f.name: z[f.name] for f in dataclasses.fields(Column)}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    return Column(**{k: (v.item() if v.ndim == 0 else v) for k, v in values.items()})
+
+
+def _solved(omega: float, g: float, mu_sun: float | None) -> Column:
     z_max = DEPTHS_K / _diffuse_rate(omega, g)
     rng = np.random.default_rng([SEED, round(omega / OMEGA_STEP), round(g / G_STEP), 0 if mu_sun is None
                                  else 1 + round(mu_sun / MU_STEP)])

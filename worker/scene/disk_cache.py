@@ -15,15 +15,44 @@ import functools
 import hashlib
 import os
 import shutil
+import tempfile
 import time
 from collections.abc import Iterable
 from pathlib import Path
+
+import numpy as np
 
 from seasynth import service, worker
 
 ENV = "SEASYNTH_CACHE_DIR"
 OFF = {"", "0", "off", "none", "false"}
 KEEP_DAYS = 7.0
+_shared: list[Path | None] = [None]  # where this process shares what it builds (its RenderSession's folder), if anywhere
+
+
+def share_in(folder: Path | str | None) -> None:
+    """Share what this process builds (texture sets, solved water columns; terrain variants go through their
+    VariantCache) through `folder` (None: build them in this process only)."""
+    _shared[0] = None if folder is None else Path(folder)
+
+
+def shared_folder() -> Path | None:
+    return _shared[0]
+
+
+def store_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write arrays to path whole: into a temporary file beside it, renamed into place (readers never see half a
+    file). A full or read-only disk costs the writer its speed-up, nothing more."""
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".part-", suffix=".npz")
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except OSError:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def cache_folder() -> Path | None:

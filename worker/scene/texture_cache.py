@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -17,19 +15,13 @@ import numpy as np
 
 from seasynth import service
 from seasynth.worker.scene.assets.textures import TextureSet, texture_set
-
-_folder: list[Path | None] = [None]  # where this process shares sets (RenderSession's variant folder), if anywhere
-
-
-def share_in(folder: Path | str | None) -> None:
-    """Share this process's procedural texture sets through `folder` (None: build them in this process only)."""
-    _folder[0] = None if folder is None else Path(folder)
+from seasynth.worker.scene.disk_cache import shared_folder, store_npz
 
 
 @functools.lru_cache(maxsize=64)
 def shared_texture_set(family: str, variant: int, size: int) -> TextureSet:
     """texture_set(family, variant, size), read from the shared folder where another process stored it."""
-    folder = _folder[0]
+    folder = shared_folder()
     if folder is None:
         return texture_set(family, variant, size)
     digest = hashlib.sha256(repr((service.__version__, family, int(variant), int(size))).encode()).hexdigest()[:32]
@@ -44,21 +36,6 @@ def shared_texture_set(family: str, variant: int, size: int) -> TextureSet:
 def _store(path: Path, t: TextureSet) -> None:
     store_npz(path, {"key": np.array(t.key), "source": np.array(t.source), "gain": np.array(t.albedo_gain),
                      "tile_m": np.array(t.tile_m), "albedo": t.albedo, "normal": t.normal, "height_m": t.height_m})
-
-
-def store_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write arrays to path whole: into a temporary file beside it, renamed into place (readers never see half a
-    file). A full or read-only disk costs the writer its speed-up, nothing more."""
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".part-", suffix=".npz")
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except OSError:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
 
 
 def _load(path: Path) -> TextureSet | None:

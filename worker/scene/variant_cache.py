@@ -21,7 +21,7 @@ import trimesh
 from seasynth import service
 from seasynth.worker.scene.assets import freeze
 from seasynth.worker.scene.assets.terrain import Terrain, procedural_terrain
-from seasynth.worker.scene.texture_cache import share_in, store_npz
+from seasynth.worker.scene.disk_cache import share_in, store_npz
 
 KEEP = 32  # variants kept in memory, as procedural_terrain's own cache
 
@@ -31,7 +31,7 @@ class VariantCache:
 
     def __init__(self, folder: Path | str | None) -> None:
         self.folder = None if folder is None else Path(folder)
-        share_in(self.folder)  # procedural texture sets go through the same folder
+        share_in(self.folder)  # procedural texture sets and solved water columns go through the same folder
         self._mem: OrderedDict[tuple, Terrain] = OrderedDict()
         self.built = self.read = 0  # for tests and benchmarks
 
