@@ -41,7 +41,8 @@ def mean_util(path: Path) -> float | None:
     return round(sum(vals) / len(vals), 1) if vals else None
 
 
-def generate(spec: Path, out: Path, frames: int, size: str, tmp: Path) -> dict:
+def generate(spec: Path, out: Path, frames: int, size: str, tmp: Path, cache: Path | None = None) -> dict:
+    """One whole `generate` command; cache: its SEASYNTH_CACHE_DIR (None: the environment's)."""
     cmd = [sys.executable, "-m", "seasynth.cli", "generate", str(spec), "--out", str(out), "--frames", str(frames),
            "--width", size.split("x")[0], "--height", size.split("x")[1], "--workers", "auto"]
     subprocess.run(["rm", "-rf", str(out)], check=True)
@@ -49,7 +50,8 @@ def generate(spec: Path, out: Path, frames: int, size: str, tmp: Path) -> dict:
     util.unlink(missing_ok=True)
     sampler = gpu_util_sampler(util)
     t = time.perf_counter()
-    p = subprocess.run(cmd, capture_output=True, text=True)
+    env = dict(os.environ) | ({} if cache is None else {"SEASYNTH_CACHE_DIR": str(cache)})
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t
     if sampler is not None:
         sampler.terminate()
@@ -83,6 +85,10 @@ def main() -> None:
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--warmup-frames", type=int, default=96, help="One run of each, not counted, first: caches.")
     ap.add_argument("--anisotropy", type=int, default=None, help="materials.anisotropy of 'on' (default: the example's)")
+    ap.add_argument("--cache", choices=["cold", "warm"], default=None,
+                    help="cold: every generate starts from an empty cache folder (SEASYNTH_CACHE_DIR), as a first "
+                    "run of the code; warm: one folder, filled by the warm-up runs, as every later run. Default: "
+                    "the environment's")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
     tmp = Path("/tmp/textures")
@@ -98,6 +104,16 @@ def main() -> None:
         result_name = f"textures-anisotropy-{a.anisotropy}.json"
     else:
         result_name = "textures.json"
+    if a.cache is not None:
+        result_name = result_name.replace(".json", f"-cache-{a.cache}.json")
+
+    def cache_for(n: int) -> Path | None:
+        if a.cache is None:
+            return None
+        folder = tmp / ("cache-warm" if a.cache == "warm" else f"cache-cold-{n}")
+        if a.cache == "cold":
+            shutil.rmtree(folder, ignore_errors=True)
+        return folder
     source = CEILING.read_text()
     assert source.count(CEILING_OVERRIDES) == 1, "bench/gpu_ceiling.py's load_spec overrides moved"
     scripts = {"on": tmp / "gpu_ceiling_on.py", "off": tmp / "gpu_ceiling_off.py"}
@@ -109,18 +125,19 @@ def main() -> None:
     result = {"machine": f"{gpu}; {os.cpu_count()} cores", "resolution": [int(x) for x in a.size.split("x")],
               "frames": a.frames, "off_spec": "examples/urchins.yaml with materials.procedural: false",
               "on_spec": "examples/urchins.yaml" + (f" with materials.anisotropy: {a.anisotropy}" if on_overrides else ""),
-              "generate": [], "ceiling": []}
+              "cache": a.cache, "generate": [], "ceiling": []}
 
     def save():
         (a.out / result_name).write_text(json.dumps(result, indent=1) + "\n")
 
     for mode in ("off", "on") if a.warmup_frames else ():
-        w = generate(specs[mode], Path("/tmp/gw"), a.warmup_frames, a.size, tmp)
+        w = generate(specs[mode], Path("/tmp/gw"), a.warmup_frames, a.size, tmp, cache_for(-1))
         print("warm-up (not counted):", json.dumps(w), flush=True)
     for i in range(a.pairs):
         for mode in ("off", "on"):
-            r = {"mode": mode, "run": i, **generate(specs[mode], Path(f"/tmp/g{len(result['generate'])}"), a.frames,
-                                                       a.size, tmp)}
+            n = len(result["generate"])
+            r = {"mode": mode, "run": i, **generate(specs[mode], Path(f"/tmp/g{n}"), a.frames, a.size, tmp,
+                                                       cache_for(n))}
             result["generate"].append(r)
             print(json.dumps({k: v for k, v in r.items() if k != "stderr_tail"}), r["stderr_tail"], flush=True)
             save()
