@@ -2,9 +2,8 @@
 
 For the first frame of each test group of a transfer recipe (rendered at a small size), two independent halves at
 each samples-per-pixel count with Mitsuba's `volpath` ("tracked") and with pathtracer_integrator's exact shadow-ray
-transmittance ("exact"): the halves' PSNR in 8-bit sRGB (the test set's noise_db), seconds, the spp a 30 dB noise_db
-would take (a line through noise_db against log2 spp), and whether the two estimators' 8x8 block means agree within
-their noise. Then, for the sunlit groups, noise_db with one light alone and without scattering, and how heavy the
+transmittance ("exact"): the halves' PSNR in 8-bit sRGB (the test set's noise_db), seconds, and whether the two
+estimators' 8x8 block means agree within their noise; with --long-spp, noise_db of halves grown to many samples. Then, for the sunlit groups, noise_db with one light alone and without scattering, and how heavy the
 tail of one pixel's samples is.
 
     python -m seasynth.bench.transfer_noise --out bench/results/cpu/transfer-noise [--width 96] [--spp 16,64,256]
@@ -69,14 +68,8 @@ def agreement(halves_a: list[np.ndarray], halves_b: list[np.ndarray]) -> dict:
             "z_rms": [round(float(x), 3) for x in np.sqrt(((ma - mb) ** 2).mean(axis=(0, 1)) / var.mean(axis=(0, 1)))]}
 
 
-def spp_for(spps: list[int], dbs: list[float], target_db: float = 30.0) -> float:
-    """Samples per pixel per half where a least-squares line of noise_db against log2(spp) reaches target_db."""
-    slope, icpt = np.polyfit(np.log2(spps), dbs, 1)
-    return float(2.0 ** ((target_db - icpt) / slope)) if slope > 0 else float("inf")
-
-
 def series(pt, spps: list[int], max_depth: int, housing: float, variant: str) -> dict:
-    """Both estimators at each spp: noise_db, seconds; the spp for 30 dB; their agreement at the largest spp."""
+    """Both estimators at each spp: noise_db, seconds; their agreement at the largest spp."""
     from seasynth.bench import pathtracer
 
     out: dict = {}
@@ -90,8 +83,7 @@ def series(pt, spps: list[int], max_depth: int, housing: float, variant: str) ->
             rows.append({"spp": spp, "noise_db": round(noise_db(*halves), 2),
                          "seconds": round(time.perf_counter() - t0, 2)})
             last[name] = halves
-        need = spp_for(spps, [r["noise_db"] for r in rows])
-        out[name] = {"rows": rows, "spp_for_30db": round(need) if np.isfinite(need) else None}
+        out[name] = {"rows": rows}
     out["agreement"] = agreement(last["tracked"], last["exact"])
     return out
 
@@ -157,14 +149,13 @@ def machine() -> dict:
 def table(result: dict) -> str:
     spps = result["spp"]
     lines = ["| group | estimator | " + " | ".join(f"{s} spp dB (s)" for s in spps) +
-             " | spp for 30 dB | blocks z_rms (R, G, B) | image mean diff (R, G, B) |",
-             "|---|---|" + "---|" * (len(spps) + 3)]
+             " | blocks z_rms (R, G, B) | image mean diff (R, G, B) |",
+             "|---|---|" + "---|" * (len(spps) + 2)]
     for g, r in result["groups"].items():
         for name in ESTIMATORS:
             cells = " | ".join(f"{x['noise_db']} ({x['seconds']})" for x in r[name]["rows"])
             agree = ("-", "-") if name == "tracked" else (r["agreement"]["z_rms"], r["agreement"]["mean_rel_diff"])
-            need = r[name]["spp_for_30db"]
-            lines.append(f"| {g} | {name} | {cells} | {'-' if need is None else f'{need:,}'} | {agree[0]} | {agree[1]} |")
+            lines.append(f"| {g} | {name} | {cells} | {agree[0]} | {agree[1]} |")
     lines += ["", f"noise_db at {result['parts_spp']} spp per half, one light alone or no scattering (tracked / exact):",
               "", "| group | sun | sky | lamps | no-scattering |", "|---|---|---|---|---|"]
     for g, p in result["parts"].items():
@@ -194,7 +185,7 @@ def main(argv: list[str] | None = None) -> None:
     height = round(a.width * recipe.height / recipe.width)
     spps = [int(s) for s in a.spp.split(",")]
     depth, housing = recipe.test.max_depth, recipe.test.lamp_housing_m
-    result: dict = {"machine": machine(), "recipe": str(a.recipe), "width": a.width, "height": height, "spp": spps,
+    result: dict = {"machine": machine(), "recipe": a.recipe.name, "width": a.width, "height": height, "spp": spps,
                     "parts_spp": a.parts_spp, "groups": {}, "parts": {}, "tail": {}}
     a.out.mkdir(parents=True, exist_ok=True)
     if a.long_spp:
