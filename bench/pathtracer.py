@@ -290,16 +290,22 @@ def _lamp(lamp: PTLamp, mi, scene: PTScene, housing_m: float) -> dict[str, dict]
 
 
 def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, variant: str = VARIANT,
-                  lamp_housing_m: float = 0.0):
+                  lamp_housing_m: float = 0.0, exact_nee: bool = False):
     """The mi.Scene for `scene`: water box, meshes (shape ids "mesh_0000", ... in order), spheres, sun, sky, lamps (each in
-    a water-free sphere of radius lamp_housing_m when > 0: `_lamp`), camera."""
+    a water-free sphere of radius lamp_housing_m when > 0: `_lamp`), camera. Integrated by Mitsuba's `volpath`, or
+    with exact_nee by pathtracer_integrator's (the same expectation; shadow rays' transmittance taken exactly)."""
     _check(scene)
     mi = load_mitsuba(variant)
     box, half = _water_box(scene, mi)
+    integrator = "volpath"
+    if exact_nee:
+        from seasynth.bench.pathtracer_integrator import register
+
+        integrator = register(mi)
     d: dict = {
         "type": "scene", "water": _medium(scene), "water_box": box,
         "sensor": _sensor(scene, 10.0 * max(half, BOX_DEPTH_M), mi),
-        "integrator": {"type": "volpath", "max_depth": int(max_depth), "rr_depth": int(rr_depth)},
+        "integrator": {"type": integrator, "max_depth": int(max_depth), "rr_depth": int(rr_depth)},
     }
     for i, mesh in enumerate(scene.meshes):
         d[f"mesh_{i:04d}"] = _mesh(mesh, f"mesh_{i:04d}", mi)
@@ -322,20 +328,21 @@ def mitsuba_scene(scene: PTScene, max_depth: int = 64, rr_depth: int = 5, varian
 
 
 def render(scene: PTScene, spp: int, seed: int = 0, max_depth: int = 64, rr_depth: int = 5,
-           variant: str = VARIANT, lamp_housing_m: float = 0.0) -> np.ndarray:
+           variant: str = VARIANT, lamp_housing_m: float = 0.0, exact_nee: bool = False) -> np.ndarray:
     """(h, w, 3) float32 linear radiance, the mean of `spp` box-filtered samples per pixel.
 
     Runs in calls of at most MAX_SAMPLES_PER_CALL samples in all (bounding memory), each seeded from (seed, call
     index) through np.random.SeedSequence, so different seeds give independent noise."""
-    return render_seeds(scene, spp, (seed,), max_depth, rr_depth, variant, lamp_housing_m)[0]
+    return render_seeds(scene, spp, (seed,), max_depth, rr_depth, variant, lamp_housing_m, exact_nee)[0]
 
 
 def render_seeds(scene: PTScene, spp: int, seeds: tuple[int, ...], max_depth: int = 64, rr_depth: int = 5,
-                 variant: str = VARIANT, lamp_housing_m: float = 0.0) -> list[np.ndarray]:
+                 variant: str = VARIANT, lamp_housing_m: float = 0.0, exact_nee: bool = False) -> list[np.ndarray]:
     """`render` once per seed, the scene loaded into Mitsuba once: each image is render(scene, spp, seed)'s."""
     if spp < 1:
         raise ValueError(f"render: spp must be >= 1, got {spp}")
-    ms = mitsuba_scene(scene, max_depth=max_depth, rr_depth=rr_depth, variant=variant, lamp_housing_m=lamp_housing_m)
+    ms = mitsuba_scene(scene, max_depth=max_depth, rr_depth=rr_depth, variant=variant, lamp_housing_m=lamp_housing_m,
+                       exact_nee=exact_nee)
     mi = load_mitsuba(variant)
     per_call = max(1, MAX_SAMPLES_PER_CALL[variant] // (scene.width * scene.height))
     counts = [min(per_call, spp - start) for start in range(0, spp, per_call)]

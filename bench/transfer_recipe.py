@@ -45,13 +45,15 @@ class HeldOutGroup(_Model):
 class HeldOutSet(_Model):
     """The held-out test set: group k's dataset seed is seed_first + k; spp per half (two halves, their PSNR to
     each other is the residual noise); the path tracer's max_depth and lamp housing (bench/pathtracer.py);
-    min_contrast: a box whose object differs from its surroundings by less (8-bit sRGB codes,
+    exact_nee: shadow rays' transmittance through the water taken exactly (pathtracer_integrator: the same
+    expectation as Mitsuba's volpath, less noise); min_contrast: a box whose object differs from its surroundings by less (8-bit sRGB codes,
     transfer_testset.contrast) is an ignored region."""
 
     seed_first: int = Field(ge=1, lt=2**62)
     spp: int = Field(ge=1)
     max_depth: int = Field(64, ge=2)
     lamp_housing_m: float = Field(0.05, ge=0.0)
+    exact_nee: bool = False
     min_contrast: float = Field(6.0, ge=0.0)
     groups: list[HeldOutGroup] = Field(min_length=1)
 

@@ -119,7 +119,7 @@ def render_frame(session, spec: DatasetSpec, index: int, recipe: Recipe, spp: in
     pt = exported_scene(session, spec, scene)
     t0 = time.perf_counter()
     halves = pathtracer.render_seeds(pt, spp, (0, 1), max_depth=recipe.test.max_depth, variant=variant,
-                                     lamp_housing_m=recipe.test.lamp_housing_m)
+                                     lamp_housing_m=recipe.test.lamp_housing_m, exact_nee=recipe.test.exact_nee)
     ids = pathtracer.render_ids(pt, variant=variant)
     seconds = time.perf_counter() - t0
     targets = {p.instance_id for p in scene.objects if p.role == "target"}
@@ -185,7 +185,8 @@ def testset_digest(recipe: Recipe) -> str:
     section (but min_contrast)."""
     from seasynth.bench.transfer_recipe import REPO
 
-    test = recipe.test.model_dump(exclude={"min_contrast"})  # a threshold on what was rendered: no new render
+    # min_contrast is a threshold on what was rendered: no new render; exact_nee off is what test sets were before it
+    test = recipe.test.model_dump(exclude={"min_contrast"} | (set() if recipe.test.exact_nee else {"exact_nee"}))
     text = json.dumps([(REPO / recipe.base_spec).read_text(), recipe.width, recipe.height, test], sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 

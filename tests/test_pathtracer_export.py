@@ -162,14 +162,16 @@ def test_spot_lamp_follows_mitsubas_linear_falloff():
     np.testing.assert_array_less(np.abs(image - per_ray.mean(axis=2)), tolerance)
 
 
-def test_a_lamp_housing_keeps_the_light_that_leaves_it_in_absorbing_water():
+@pytest.mark.parametrize("exact_nee", [False, True])
+def test_a_lamp_housing_keeps_the_light_that_leaves_it_in_absorbing_water(exact_nee):
     """A water-free sphere round the lamp (which bounds multiply scattered fireflies in the references) with the
     lamp's intensity scaled by exp(-a R): in water that only absorbs, the plane gets what it gets without a housing,
-    I falloff cos / (pi d^2) exp(-a d) on the lamp's leg and exp(-a d) on the view's."""
+    I falloff cos / (pi d^2) exp(-a d) on the lamp's leg and exp(-a d) on the view's; with Mitsuba's volpath and
+    with exact shadow-ray transmittance (bench/pathtracer_integrator.py)."""
     intensity, cutoff, beam, a = np.array([2.0, 1.0, 0.5]), 30.0, 18.0, np.array([0.05, 0.1, 0.2])
     lamp = pt.PTLamp(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, -1.0]), cutoff, beam, intensity)
     scene = flat_scene(lamps=[lamp], sigma_a=a)
-    image = pt.render(scene, spp=256, seed=4, lamp_housing_m=0.3)
+    image = pt.render(scene, spp=256, seed=4, lamp_housing_m=0.3, exact_nee=exact_nee)
     d, cos = view_distance(scene)
     falloff = np.clip((cutoff - np.degrees(np.arccos(cos))) / (cutoff - beam), 0.0, 1.0)
     expected = intensity * (falloff * cos / (np.pi * d**2)) * np.exp(-2.0 * a * d)
