@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.local.generate import generate
-from seasynth.worker.scene.disk_cache import ENV, KEEP_DAYS, cache_folder, code_digest, source_digest
+from seasynth.worker.scene.disk_cache import ENV, KEEP_DAYS, KEEP_OTHERS, cache_folder, code_digest, source_digest
 from seasynth.worker.scene.materials import procedural_material
 from seasynth.worker.scene.texture_cache import shared_texture_set
 
@@ -47,17 +47,24 @@ def test_a_folder_that_cannot_be_made_keeps_it_to_the_run(monkeypatch, tmp_path)
     assert cache_folder() is None
 
 
-def test_other_codes_folders_unused_for_keep_days_are_removed_and_the_rest_kept(monkeypatch, tmp_path):
-    monkeypatch.setenv(ENV, str(tmp_path))
+@settings(max_examples=25, deadline=None)
+@given(halves=st.lists(st.integers(0, int(4 * KEEP_DAYS)), max_size=6, unique=True))
+def test_of_other_codes_folders_the_last_used_are_kept_and_none_unused_for_keep_days(tmp_path_factory, halves):
+    ages = [h / 2 + 0.25 for h in halves]  # days unused: distinct, and 6 hours or more from KEEP_DAYS
+    base = tmp_path_factory.mktemp("cache")
     now = time.time()
-    for name, age_days in (("variants-old", KEEP_DAYS + 0.01), ("variants-recent", KEEP_DAYS - 0.01)):
-        (tmp_path / name).mkdir()
-        (tmp_path / name / "terrain-x.npz").write_bytes(b"x")
-        os.utime(tmp_path / name, (now - age_days * 86400, now - age_days * 86400))
-    (tmp_path / "other").mkdir()
-    os.utime(tmp_path / "other", (now - 1e8, now - 1e8))
-    folder = cache_folder()
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["other", "variants-recent", folder.name])
+    for k, age_days in enumerate(ages):
+        (base / f"variants-other{k}").mkdir()
+        (base / f"variants-other{k}" / "terrain-x.npz").write_bytes(b"x")
+        os.utime(base / f"variants-other{k}", (now - age_days * 86400, now - age_days * 86400))
+    (base / "other").mkdir()  # not a cache subfolder: never touched
+    os.utime(base / "other", (now - 1e8, now - 1e8))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(ENV, str(base))
+        folder = cache_folder()
+    by_recency = sorted(range(len(ages)), key=lambda k: ages[k])
+    kept = [f"variants-other{k}" for k in by_recency[:KEEP_OTHERS] if ages[k] < KEEP_DAYS]
+    assert sorted(p.name for p in base.iterdir()) == sorted(["other", folder.name, *kept])
 
 
 @settings(max_examples=30, deadline=None)

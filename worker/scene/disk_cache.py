@@ -5,8 +5,8 @@ this puts that folder where the next run finds it: `$SEASYNTH_CACHE_DIR` (defaul
 `~/.cache/seasynth`), in a subfolder named by a digest of this code (the package version and the bytes of every
 module of `seasynth.service` and `seasynth.worker`), so no run reads arrays an older code built. The stored
 arrays are the built ones, so frames are byte-identical with or without it. `SEASYNTH_CACHE_DIR` set to `off` (or
-empty) keeps it to the run; a folder that cannot be made does the same. Subfolders of other code not used for
-KEEP_DAYS are removed.
+empty) keeps it to the run; a folder that cannot be made does the same. Of the subfolders of other code (about
+100 MB each for the example), the KEEP_OTHERS used last are kept, and none unused for KEEP_DAYS.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from seasynth import service, worker
 ENV = "SEASYNTH_CACHE_DIR"
 OFF = {"", "0", "off", "none", "false"}
 KEEP_DAYS = 7.0
+KEEP_OTHERS = 2
 _shared: list[Path | None] = [None]  # where this process shares what it builds (its RenderSession's folder), if anywhere
 
 
@@ -89,10 +90,16 @@ def source_digest(version: str, roots: Iterable[Path]) -> str:
 
 
 def _prune(base: Path, keep: Path) -> None:
+    """Remove the subfolders of other code but the KEEP_OTHERS used last, and any unused for KEEP_DAYS."""
     cutoff = time.time() - KEEP_DAYS * 86400.0
+    others = []
     for other in base.glob("variants-*"):
         try:
-            if other != keep and other.is_dir() and other.stat().st_mtime < cutoff:
-                shutil.rmtree(other, ignore_errors=True)
+            if other != keep and other.is_dir():
+                others.append((other.stat().st_mtime, other))
         except OSError:
             continue
+    others.sort(reverse=True)
+    for k, (used, other) in enumerate(others):
+        if k >= KEEP_OTHERS or used < cutoff:
+            shutil.rmtree(other, ignore_errors=True)
