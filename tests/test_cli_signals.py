@@ -27,10 +27,10 @@ def tree(root: Path) -> dict[str, bytes]:
 
 def start(out: Path, workers: int, *extra: str, tmp: Path | None = None) -> subprocess.Popen:
     """`seasynth generate` in a session (process group) of its own, with default signal dispositions; `tmp`: its
-    TMPDIR (where the render processes share terrain variants)."""
+    TMPDIR, where the render processes then share terrain variants (the cache folder that outlives runs off)."""
     cmd = [sys.executable, "-m", "seasynth.cli", "generate", str(EXAMPLE), "--out", str(out), "--frames", str(FRAMES),
            *SIZE, "--workers", str(workers), *extra]
-    env = None if tmp is None else {**os.environ, "TMPDIR": str(tmp)}
+    env = None if tmp is None else {**os.environ, "TMPDIR": str(tmp), "SEASYNTH_CACHE_DIR": "off"}
 
     def defaults() -> None:  # the test runner may run with SIGINT or SIGHUP ignored, which children would inherit
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):

@@ -11,6 +11,7 @@ empty) keeps it to the run; a folder that cannot be made does the same. Of the s
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -43,7 +44,8 @@ def shared_folder() -> Path | None:
 
 def store_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     """Write arrays to path whole: into a temporary file beside it, renamed into place (readers never see half a
-    file). A full or read-only disk costs the writer its speed-up, nothing more."""
+    file; a write stopped by a signal leaves no part behind). A full or read-only disk costs the writer its
+    speed-up, nothing more."""
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -51,9 +53,13 @@ def store_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
         os.replace(tmp, path)
+        tmp = None
     except OSError:
+        pass
+    finally:
         if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                Path(tmp).unlink()
 
 
 def cache_folder() -> Path | None:
