@@ -140,3 +140,22 @@ def test_a_solved_water_column_read_from_the_shared_folder_is_the_solved_one_fie
         for f in dataclasses.fields(Column):
             a, b, c = (np.asarray(getattr(x, f.name)) for x in (s, t, r))
             assert a.dtype == c.dtype and np.array_equal(a, b) and np.array_equal(a, c), f.name
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, OSError])
+def test_a_write_stopped_midway_leaves_no_part_and_only_a_disk_error_is_swallowed(monkeypatch, tmp_path, stop):
+    import numpy as np
+
+    from seasynth.worker.scene import disk_cache
+
+    def half_written(f, **arrays):
+        f.write(b"PK\x03\x04 half")
+        raise stop("stopped")
+
+    monkeypatch.setattr(disk_cache.np, "savez", half_written)
+    if stop is OSError:
+        disk_cache.store_npz(tmp_path / "x.npz", {"a": np.zeros(3)})
+    else:
+        with pytest.raises(stop):
+            disk_cache.store_npz(tmp_path / "x.npz", {"a": np.zeros(3)})
+    assert list(tmp_path.iterdir()) == []
