@@ -3,7 +3,6 @@ stock `pyrender.OffscreenRenderer.render(scene)` call on the same scenes, all me
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import platform as host_platform
@@ -11,6 +10,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -128,20 +128,6 @@ def time_stages(session, spec: DatasetSpec, frames: int, out: Path) -> dict[str,
     return {s: statistics.median(v) for s, v in per_stage.items()}
 
 
-@contextlib.contextmanager
-def _cache_in(folder: Path):
-    """SEASYNTH_CACHE_DIR set to `folder` meanwhile (seasynth.worker.scene.disk_cache)."""
-    before = os.environ.get(ENV)
-    os.environ[ENV] = str(folder)
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop(ENV, None)
-        else:
-            os.environ[ENV] = before
-
-
 def steady_generate(spec: DatasetSpec, out: Path) -> float:
     """Steady-state wall seconds per frame of a one-worker `generate` (frames after the warm-up)."""
     from seasynth.worker.local.generate import generate
@@ -173,7 +159,7 @@ def run(spec_path: Path, *, frames: int, width: int, height: int, out: Path | No
         tmp = Path(tmp)
         # First, as a new process meets it: every terrain and asset variant is built on first use (an empty cache
         # folder: none built by an earlier run).
-        with _cache_in(tmp / "cold-cache"):
+        with mock.patch.dict(os.environ, {ENV: str(tmp / "cold-cache")}):
             cold = steady_generate(spec, tmp / "cold")
         with RenderSession(platform=platform) as session:
             renderer_name = session.renderer_name

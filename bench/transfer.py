@@ -154,7 +154,7 @@ def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", varia
     background = start_testset(recipe_path, work, variant, platform, testset_jobs, device) if jobs > 1 else []
     testset = None if background else build(recipe, testset_dir, variant, platform, log=log)
     if testset is not None:
-        log(json.dumps({k: v for k, v in testset.items() if k != "records"}))
+        log(_summary(testset))
     (work / "runs").mkdir(parents=True, exist_ok=True)
     replicates = range(len(recipe.training.dataset_seeds))
     todo = [(row, r) for row in chosen for r in replicates if not (work / "runs" / f"{row.name}-{r}.json").exists()]
@@ -178,7 +178,7 @@ def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", varia
                 if testset is None:  # the shards' images, assembled
                     _finish(background, work)
                     testset = build(recipe, testset_dir, variant, platform, log=log)
-                    log(json.dumps({k: v for k, v in testset.items() if k != "records"}))
+                    log(_summary(testset))
             finally:  # the detectors go on (or fail on a missing test set) rather than wait forever
                 ready.set()
                 for proc in background:
@@ -199,6 +199,10 @@ def run(recipe_path: Path, out: Path, work: Path, *, device: str = "cuda", varia
     write_results(out, "transfer", result, format_table(result),
                   lambda path: picture(testset_dir, runs[(first, 0)]["detections"], first, path))
     return result
+
+
+def _summary(testset: dict) -> str:
+    return json.dumps({k: v for k, v in testset.items() if k != "records"})
 
 
 def _short(scores: dict) -> dict:

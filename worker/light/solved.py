@@ -20,7 +20,6 @@ import dataclasses
 import functools
 import hashlib
 import math
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from seasynth import service
 from seasynth.worker.light import GORDON_PATH_FACTOR, Medium
 from seasynth.worker.light.column import GRID_PHI, GRID_THETA, Column, solve
 from seasynth.worker.light.sky import MU_SKY, window_radiance
-from seasynth.worker.scene.disk_cache import shared_folder, store_npz
+from seasynth.worker.scene.disk_cache import load_npz, shared_folder, store_npz
 
 ED_NODES = 64  # the downwelling irradiance's depth table: ED_NODES nodes from the surface to ED_REACH_M below the
 ED_REACH_M = 12.0  # seabed's reference depth (further down: extrapolated from the last two nodes)
@@ -67,12 +66,8 @@ def unit_column(omega: float, g: float, mu_sun: float | None) -> Column:
 
 def _load_column(path: Path) -> Column | None:
     """The column stored at path; None where there is none or it cannot be read whole (then it is solved again)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            values = {f.name: z[f.name] for f in dataclasses.fields(Column)}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        return None
-    return Column(**{k: (v.item() if v.ndim == 0 else v) for k, v in values.items()})
+    return load_npz(path, lambda a: Column(**{f.name: (a[f.name].item() if a[f.name].ndim == 0 else a[f.name])
+                                              for f in dataclasses.fields(Column)}))
 
 
 def _solved(omega: float, g: float, mu_sun: float | None) -> Column:

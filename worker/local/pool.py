@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import tempfile
 from multiprocessing import connection
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from seasynth.worker.frame.function import RenderSession
 from seasynth.worker.local.folder import write_frame, wrong_renderer
 from seasynth.worker.local.pool_start import pool_context, sigint_blocked_for_children
 from seasynth.worker.render.devices import platform_for_worker
-from seasynth.worker.scene.disk_cache import cache_folder
+from seasynth.worker.scene.disk_cache import run_folder
 from seasynth.worker.scene.sample import SceneError
 
 CHUNK = 4  # frames a local worker takes at a time: small enough to balance, large enough to amortise IPC
@@ -28,11 +27,8 @@ def run_pool(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, t
     """Render `todo` with `workers` processes sharing terrain variants and texture sets through the cache folder
     across runs (disk_cache), else through a temporary folder (none where no temporary folder can be made: each
     process then keeps its own). timeline: a file each process notes its events to (Timeline), or None."""
-    lasting = cache_folder()
-    if lasting is not None:
-        return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, str(lasting), timeline)
     try:
-        folder = tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True)
+        folder = run_folder()
     except OSError:
         return _run_pool_in(spec, out, todo, workers, on_frames, platform, gpus, pinned, pin, None, timeline)
     with folder as variants:

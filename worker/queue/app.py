@@ -12,9 +12,7 @@ failure escape uncounted (seasynth.worker.queue.shard.run_shard), so no message 
 
 from __future__ import annotations
 
-import contextlib
 import sys
-import tempfile
 import uuid
 
 from celery import Celery
@@ -22,7 +20,7 @@ from celery import Celery
 from seasynth.service import __version__
 from seasynth.service.queues import broker_options, frame_queue, shard_queue
 from seasynth.service.settings import Settings
-from seasynth.worker.scene.disk_cache import cache_folder
+from seasynth.worker.scene.disk_cache import run_folder
 
 QUEUE_KINDS = ("shards", "frames")
 
@@ -111,9 +109,7 @@ def _run(settings: Settings, concurrency: int, queues: list[str], loglevel: str)
         # The pool processes share terrain variants and texture sets through the cache folder that outlives runs
         # (seasynth.worker.scene.disk_cache), else through a temporary one that only this process removes (they
         # leave through os._exit).
-        lasting = cache_folder()
-        with (contextlib.nullcontext(str(lasting)) if lasting is not None else
-              tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True)) as variants:
+        with run_folder() as variants:
             resources.variant_folder = variants
             app.worker_main(worker_argv(concurrency, queues, loglevel))
     finally:

@@ -18,8 +18,10 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterable
+import zipfile
+from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -29,6 +31,7 @@ ENV = "SEASYNTH_CACHE_DIR"
 OFF = {"", "0", "off", "none", "false"}
 KEEP_DAYS = 7.0
 KEEP_OTHERS = 2
+T = TypeVar("T")
 _shared: list[Path | None] = [None]  # where this process shares what it builds (its RenderSession's folder), if anywhere
 
 
@@ -60,6 +63,25 @@ def store_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
         if tmp is not None:
             with contextlib.suppress(OSError):
                 Path(tmp).unlink()
+
+
+def load_npz(path: Path, make: Callable[[dict[str, np.ndarray]], T]) -> T | None:
+    """make(the arrays stored at path); None where there is none or it cannot be read or made whole (files are
+    renamed into place whole, so that is a damaged one: the caller builds it again)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return make({k: z[k] for k in z.files})
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def run_folder() -> contextlib.AbstractContextManager[str | None]:
+    """The folder a run's render processes share what they build through: the cache folder (kept after the run)
+    where it is on, else a new temporary folder (removed after it). Making the temporary folder may raise OSError."""
+    lasting = cache_folder()
+    if lasting is not None:
+        return contextlib.nullcontext(str(lasting))
+    return tempfile.TemporaryDirectory(prefix="seasynth-variants-", ignore_cleanup_errors=True)
 
 
 def cache_folder() -> Path | None:

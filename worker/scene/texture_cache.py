@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from seasynth import service
 from seasynth.worker.scene.assets.textures import TextureSet, texture_set
-from seasynth.worker.scene.disk_cache import shared_folder, store_npz
+from seasynth.worker.scene.disk_cache import load_npz, shared_folder, store_npz
 
 
 @functools.lru_cache(maxsize=64)
@@ -40,13 +39,10 @@ def _store(path: Path, t: TextureSet) -> None:
 
 def _load(path: Path) -> TextureSet | None:
     """The set stored at path; None where there is none or it cannot be read whole (then it is built again)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in z.files}
-        t = TextureSet(key=str(a["key"]), albedo=a["albedo"], albedo_gain=float(a["gain"]), normal=a["normal"],
-                       height_m=a["height_m"], tile_m=float(a["tile_m"]), source=str(a["source"]))
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        return None
-    for array in (t.albedo, t.normal, t.height_m):
-        array.flags.writeable = False
+    t = load_npz(path, lambda a: TextureSet(key=str(a["key"]), albedo=a["albedo"], albedo_gain=float(a["gain"]),
+                                            normal=a["normal"], height_m=a["height_m"], tile_m=float(a["tile_m"]),
+                                            source=str(a["source"])))
+    if t is not None:
+        for array in (t.albedo, t.normal, t.height_m):
+            array.flags.writeable = False
     return t

@@ -11,7 +11,6 @@ a few milliseconds. Files are written whole and renamed into place; one that can
 from __future__ import annotations
 
 import hashlib
-import zipfile
 from collections import OrderedDict
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import trimesh
 from seasynth import service
 from seasynth.worker.scene.assets import freeze
 from seasynth.worker.scene.assets.terrain import Terrain, procedural_terrain
-from seasynth.worker.scene.disk_cache import share_in, store_npz
+from seasynth.worker.scene.disk_cache import load_npz, share_in, store_npz
 
 KEEP = 32  # variants kept in memory, as procedural_terrain's own cache
 
@@ -70,13 +69,12 @@ def _store(path: Path, t: Terrain) -> None:
 def _load(path: Path) -> Terrain | None:
     """The variant stored at path; None where there is none or it cannot be read whole (files are renamed into
     place whole, so that is a damaged one: it is built again)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in z.files}
-        mesh = trimesh.Trimesh(vertices=a["vertices"], faces=a["faces"], vertex_colors=a["colours"],
-                               vertex_normals=a["normals"], process=False)
-        heights, key, extent = a["heights"], str(a["key"]), tuple(a["extent"].tolist())
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+    got = load_npz(path, lambda a: (trimesh.Trimesh(vertices=a["vertices"], faces=a["faces"],
+                                                    vertex_colors=a["colours"], vertex_normals=a["normals"],
+                                                    process=False),
+                                    a["heights"], str(a["key"]), tuple(a["extent"].tolist())))
+    if got is None:
         return None
+    mesh, heights, key, extent = got
     heights.flags.writeable = False
     return Terrain(key=key, mesh=freeze(mesh), heights=heights, extent=extent, lookup=heights)
