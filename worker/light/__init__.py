@@ -96,6 +96,8 @@ class PhysicalLight:
     terms: Terms
     caustics: object = None  # seasynth.worker.light.caustics.Caustics when terms.caustics
     column: object = None  # seasynth.worker.light.solved.SolvedWater when terms.solved
+    seabed_albedo: object = None  # (3,) float64 the seabed's mean albedo (linear), for the solved column's seabed
+    seabed_z: float = 0.0  # world z of the seabed's mean plane
 
     def coefficients(self) -> dict:
         """Every derived coefficient a frame uses, for meta."""

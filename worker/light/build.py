@@ -22,11 +22,13 @@ def for_spec(light: PhysicalLight, solved_column: bool) -> PhysicalLight:
 
 
 def sample_physical(
-    spec: DatasetSpec, rng: np.random.Generator, lighting: Lighting, top_z: float
+    spec: DatasetSpec, rng: np.random.Generator, lighting: Lighting, top_z: float,
+    seabed: tuple[np.ndarray, float] | None = None,
 ) -> tuple[PhysicalLight, str | None]:
     """Draw the water (type, jitter, explicit a/b, g, depth) and lamp intensities, in that order, and derive the
     frame's light. top_z: world z of the highest point that receives light (shadow maps are skipped when the
-    sun's unscattered beam is invisible there). Returns the light and the Jerlov type used (None if explicit)."""
+    sun's unscattered beam is invisible there); seabed: its mean albedo (3,) and the world z of its mean plane (the
+    solved column's seabed). Returns the light and the Jerlov type used (None if explicit)."""
     w = spec.water
     kind = w.jerlov[rng.integers(len(w.jerlov))] if w.jerlov else None
     jitter = rng.uniform(*w.beta_jitter)
@@ -66,6 +68,8 @@ def sample_physical(
         lamp_spread=bool(lamps) and spread_worthwhile(medium.c, medium.k),
     )
     light = PhysicalLight(medium=medium, sun_dir_world=sun_dir, sun_irradiance=e0, sky_irradiance=sky,
-                          lamps=lamps, terms=terms, caustics=caustics)
+                          lamps=lamps, terms=terms, caustics=caustics,
+                          **({} if seabed is None else {"seabed_albedo": np.asarray(seabed[0], np.float64),
+                                                         "seabed_z": float(seabed[1])}))
     used = w.absorption is None or w.scattering is None
     return for_spec(light, w.solved_column), kind if used else None

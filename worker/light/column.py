@@ -126,11 +126,16 @@ def _kernel(g: float) -> np.ndarray:
 
 def solve(a: float, b: float, g: float, mu_sun: float, e_sun: float, sky: float, z_max: float,
           rng: np.random.Generator, photons: int = 40000, cone_deg: float = SNELL_CONE_DEG,
-          max_order: int | None = None) -> Column:
+          max_order: int | None = None, sky_single: bool = False,
+          sky_shape: tuple[np.ndarray, np.ndarray] | None = None) -> Column:
     """One channel's column down to z_max metres (light going deeper is dropped there: choose z_max a few 1/K past
     the deepest depth of interest). a, b: 1/m; mu_sun: the refracted sun's cos to the zenith; e_sun: its irradiance
     normal to the beam just below the surface; sky: radiance within Snell's window (cone_deg). max_order: light
-    scattered more than this many times is dropped (a path tracer's path-length cap), None: none is."""
+    scattered more than this many times is dropped (a path tracer's path-length cap), None: none is. sky_single: the
+    sky's single scattering is tallied in j too (for a source whose single scattering nothing else adds: `solved`'s
+    seabed, a Lambertian plane solved as a sky of cone 90 degrees). sky_shape: (mu (n,) ascending, radiance (n,)) the
+    sky's radiance by the cosine of its light's angle to the vertical, linear between nodes, in place of a uniform
+    one (its flux stays pi sky (1 - cos^2 cone))."""
     c = a + b
     omega = b / c if c > 0 else 0.0
     dz = min(0.3 / c, 0.5, z_max / 64) if c > 0 else z_max / 64
@@ -152,12 +157,17 @@ def solve(a: float, b: float, g: float, mu_sun: float, e_sun: float, sky: float,
     depth_sun = -mu_sun * np.log(rng.random(n_sun)) / c if n_sun else np.zeros(0)
     u_sun = _turn(np.tile(-s_sun, (n_sun, 1)), _hg_sample(g, rng.random(n_sun)), rng.uniform(0, 2 * math.pi, n_sun))
     mu_sky = np.sqrt(rng.uniform(cos_c * cos_c, 1.0, n_sky))  # flux-weighted over the window
+    if sky_shape is not None:  # flux-weighted by the radiance's shape: inverse CDF of L(mu) mu on a fine grid
+        fine = np.linspace(cos_c, 1.0, 1025)
+        density = np.interp(fine, *sky_shape) * fine
+        cdf = np.concatenate([[0.0], np.cumsum(0.5 * (density[1:] + density[:-1]) * np.diff(fine))])
+        mu_sky = np.interp(rng.random(n_sky) * cdf[-1], cdf, fine)
     u_sky = -directions(np.arccos(mu_sky), rng.uniform(0.0, 2.0 * math.pi, n_sky))
     pos = np.concatenate([depth_sun, np.zeros(n_sky)])
     u = np.concatenate([u_sun, u_sky]).reshape(-1, 3)
     w = np.concatenate([np.full(n_sun, sun_flux * omega / max(n_sun, 1)), np.full(n_sky, sky_flux / max(n_sky, 1))])
     w0 = max(sun_flux, sky_flux) / max(photons, 1)
-    order = np.concatenate([np.ones(n_sun, np.int64), np.zeros(n_sky, np.int64)])  # scatterings so far
+    order = np.concatenate([np.ones(n_sun, np.int64), np.full(n_sky, int(sky_single), np.int64)])  # scatterings so far
     alive = pos < z_max
     pos, u, w, order = pos[alive], u[alive], w[alive], order[alive]
     last = max_order if max_order is not None else np.iinfo(np.int64).max

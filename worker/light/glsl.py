@@ -12,7 +12,7 @@ from seasynth.worker.light.lamps import (
                                 REACH_MARGIN_RAD,
 )
 from seasynth.worker.light.sky import SKY_PHASE_NODES
-from seasynth.worker.light.solved import ED_NODES, VIEW_TABLE_GLSL
+from seasynth.worker.light.solved import ED_NODES, LAMP_SEEN_CAP, VIEW_TABLE_GLSL
 from seasynth.worker.light.volume import MU_SKY
 from seasynth.worker.render import materials
 from seasynth.worker.render.shaders import SURFACE_BEGIN
@@ -30,8 +30,7 @@ UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
     "u_sun_shadow", "u_sun_soft", "u_sun_from_cam", "u_sun_texel_m", "u_sun_soft_texel_m", "u_pixel_angle", "u_cam_depth",
     "u_world_from_cam", "u_K_inv", "u_sky_phase", "u_world_x", "u_world_y", "u_jms", "u_kj", "u_sun_azimuth", "u_ed_sun",
-    "u_ed_sky", "u_ed_step",
-    *caustics.UNIFORMS,
+    "u_ed_sky", "u_ed_step", *caustics.UNIFORMS,
     *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "energy", "from_cam", "shadow", "texel")
       for i in range(MAX_LAMPS)),
 )
@@ -41,6 +40,7 @@ const float PI = 3.14159265358979;
 const float X_MAX = 87.0;
 const float MU_SKY = {MU_SKY!r};
 const int ED_NODES = {ED_NODES};
+const float LAMP_SEEN_CAP = {LAMP_SEEN_CAP!r};
 const float NORMAL_OFFSET_TEXELS = {NORMAL_OFFSET_TEXELS!r};
 const float NORMAL_OFFSET_PIXELS = {NORMAL_OFFSET_PIXELS!r};
 const float SNELL_COS = 0.66131187;       // cos(48.6 deg)
@@ -122,6 +122,10 @@ layout(location = 0) out vec4 o_J;
 uniform vec3 u_ed_sun[ED_NODES];   // solved.DepthTable: log E_d per node, the sun's diffuse part and the sky's
 uniform vec3 u_ed_sky[ED_NODES];
 uniform float u_ed_step;
+// seen through c, the lamps' light on a surface keeps its forward-scattered part through K (solved.LAMP_SEEN_CAP)
+#define LAMP_SEEN(r) exp(min((u_c - u_K) * (r), vec3(LAMP_SEEN_CAP)))
+#else
+#define LAMP_SEEN(r) vec3(1.0)
 #endif
 #ifdef WITH_CAUSTICS
 uniform vec4 u_world_x;        // rows x and y of world_from_cam
@@ -208,6 +212,7 @@ void main() {
 #endif
 #endif
 #if LAMPS > 0
+    vec3 seen = LAMP_SEEN(length(v_pos));
     for (int l = 0; l < LAMPS; ++l) {
         vec3 to_p = v_pos - u_lamp_pos[l];
         float d = max(length(to_p), 1e-3);
@@ -218,7 +223,7 @@ void main() {
                               u_g);
         vec4 q = u_lamp_from_cam[l] * vec4(v_pos + n * (NORMAL_OFFSET_TEXELS * u_lamp_texel[l] * d + pixel_m), 1.0);
         float vis = q.w > 0.0 ? lamp_visibility(l, q.xyz / q.w) : 0.0;
-        E += u_lamp_I[l] * (cos_n * vis / (d * d)) * lit;
+        E += u_lamp_I[l] * (cos_n * vis / (d * d)) * lit * seen;
     }
 #endif
     o_J = vec4(albedo * E, 1.0);

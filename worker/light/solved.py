@@ -9,85 +9,43 @@ radiance to a range r is
 
 exact for an exponential column and an infinite ray (r = inf looking level or down; cut at the surface looking up).
 
-The columns are solved once per process at unit sun and unit sky in optical units (c = 1), for the water's single
-scattering albedo b / c, g and the sun's cosine rounded to `OMEGA_STEP`, `G_STEP`, `MU_STEP` (so a frame is the same
-function of its spec whichever frames a process rendered before), and scaled by each channel's c and light.
+The columns are solved once per process at unit sun and unit sky in optical units (c = 1) (`unit_columns`), and
+scaled by each channel's c and light.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
-import hashlib
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from seasynth import service
-from seasynth.worker.light import GORDON_PATH_FACTOR, Medium
-from seasynth.worker.light.column import GRID_PHI, GRID_THETA, Column, solve
+from seasynth.worker.light import Medium
+from seasynth.worker.light.column import Column
+from seasynth.worker.light.seabed import exitances, growth_floor, seabed_j
 from seasynth.worker.light.sky import MU_SKY, window_radiance
-from seasynth.worker.scene.disk_cache import load_npz, shared_folder, store_npz
+from seasynth.worker.light.unit_columns import (
+    DEPTHS_K,
+    NODES_PHI,
+    NODES_THETA,
+    PHOTONS,
+    SEED,
+    coarse,
+    coarse_grid,
+    diffuse_rate,
+    quantised,
+    unit_column,
+)
 
 ED_NODES = 64  # the downwelling irradiance's depth table: ED_NODES nodes from the surface to ED_REACH_M below the
 ED_REACH_M = 12.0  # seabed's reference depth (further down: extrapolated from the last two nodes)
-NODES_THETA, NODES_PHI = 19, 10  # the view table: polar angle 0..180 by 10 degrees, azimuth to the sun 0..180 by 20
-OMEGA_STEP, G_STEP, MU_STEP = 0.005, 0.01, 0.05
-PHOTONS = 20000  # per unit column (one channel, sun or sky)
-SEED = 20261129
-DEPTHS_K = 12.0  # each unit column reaches this many diffuse lengths 1 / K; the last 4 only feed the ones above
+# A lamp-lit surface's light is weighted by exp((c - K) r) in the surface pass, so that seen through c it reaches the
+# camera as exp(-K r) (its forward-scattered part kept, as the lamps' own model keeps it); the exponent is capped here
+# so the weighted radiance stays in the surface target's half floats (past it, where the beam keeps < e^-8 of the
+# surface's light, the lamp-lit light is taken as J exp(8 - c r)).
+LAMP_SEEN_CAP = 8.0
 WINDOW_K = 0.5  # J_ms at the camera is fitted over layers within this many diffuse lengths either side
-
-
-def _diffuse_rate(omega: float, g: float) -> float:
-    """K / c of `Medium.k` for a water of single scattering albedo omega (at least 0.02: the column's depth scale)."""
-    m = Medium(a=np.array([1.0 - omega]), b=np.array([omega]), g=g, surface_z=0.0)
-    return max(float(GORDON_PATH_FACTOR * (1.0 - omega + m.backscatter_fraction * omega)), 0.02)
-
-
-@functools.lru_cache(maxsize=96)
-def unit_column(omega: float, g: float, mu_sun: float | None) -> Column:
-    """One channel's column at c = 1: the sun's (unit irradiance normal to the beam at cosine mu_sun) or, mu_sun None,
-    the sky's (unit radiance in Snell's window). Seeded, so a pure function of its arguments; kept per process, and
-    read from the folder the process shares what it builds in (disk_cache.share_in), where one was stored."""
-    folder = shared_folder()
-    if folder is None:
-        return _solved(omega, g, mu_sun)
-    key = repr((service.__version__, "column", omega, g, mu_sun, PHOTONS, SEED, DEPTHS_K))
-    path = folder / f"column-{hashlib.sha256(key.encode()).hexdigest()[:32]}.npz"
-    got = _load_column(path)
-    if got is None:
-        got = _solved(omega, g, mu_sun)
-        store_npz(path, {f.name: np.asarray(getattr(got, f.name)) for f in dataclasses.fields(Column)})
-    return got
-
-
-def _load_column(path: Path) -> Column | None:
-    """The column stored at path; None where there is none or it cannot be read whole (then it is solved again)."""
-    return load_npz(path, lambda a: Column(**{f.name: (a[f.name].item() if a[f.name].ndim == 0 else a[f.name])
-                                              for f in dataclasses.fields(Column)}))
-
-
-def _solved(omega: float, g: float, mu_sun: float | None) -> Column:
-    z_max = DEPTHS_K / _diffuse_rate(omega, g)
-    rng = np.random.default_rng([SEED, round(omega / OMEGA_STEP), round(g / G_STEP), 0 if mu_sun is None
-                                 else 1 + round(mu_sun / MU_STEP)])
-    if mu_sun is None:
-        return solve(1.0 - omega, omega, g, 1.0, 0.0, 1.0, z_max, rng, PHOTONS)
-    return solve(1.0 - omega, omega, g, mu_sun, 1.0, 0.0, z_max, rng, PHOTONS)
-
-
-def _coarse(j: np.ndarray) -> np.ndarray:
-    """(..., NODES_THETA, NODES_PHI) box means of (..., GRID_THETA, GRID_PHI) grids about every 4th node (2 either
-    side, clipped at the grid's ends)."""
-    out = np.empty((*j.shape[:-2], NODES_THETA, NODES_PHI))
-    for i in range(NODES_THETA):
-        rows = j[..., max(4 * i - 2, 0):min(4 * i + 3, GRID_THETA), :].mean(axis=-2)
-        for k in range(NODES_PHI):
-            out[..., i, k] = rows[..., max(4 * k - 2, 0):min(4 * k + 3, GRID_PHI)].mean(axis=-1)
-    return out
 
 
 def _rates(z: np.ndarray, j: np.ndarray, centre: float, half: float) -> np.ndarray:
@@ -102,26 +60,26 @@ def _rates(z: np.ndarray, j: np.ndarray, centre: float, half: float) -> np.ndarr
     return np.where(den > 1e-12 * half * half, -(w * zc * yc).sum(axis=0) / np.maximum(den, 1e-300), 0.0)
 
 
-def at_depth(col: Column, tau: float, kappa: float) -> tuple[np.ndarray, np.ndarray]:
+def at_depth(col: Column, tau: float, kappa: float, grid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(J_ms, its rate of decrease with depth), each (NODES_THETA, NODES_PHI), at optical depth tau in the unit
     column's optical units. The rates are fitted over the WINDOW_K diffuse lengths below tau for directions looking
     down or level (clipped to [0, 1]) and above it (not above the surface's first WINDOW_K) for those looking up (to
     [-1, 1]); J_ms is the tent-weighted mean of the layers within WINDOW_K, each brought to tau at its direction's
     rate. Every weight is continuous in tau, so the table is too. Past the column's reliable depth, continued at the
-    rates looking down."""
+    rates looking down. grid: coarse(col.j), where the caller keeps it."""
     reliable = col.z[-1] - (DEPTHS_K - 8.0) / kappa
     t = min(tau, reliable)
     h = max(WINDOW_K / kappa, 4.0 * col.dz)
     near = (col.z > t - h) & (col.z < max(t + h, h))  # every layer any weight below reaches
     z = col.z[near]
-    coarse = _coarse(col.j[near])  # (n, NODES_THETA, NODES_PHI)
-    k_down = np.clip(_rates(z, coarse, t + 0.5 * h, 0.5 * h), 0.0, 1.0)
-    k_up = np.clip(_rates(z, coarse, max(t - 0.5 * h, 0.5 * h), 0.5 * h), -1.0, 1.0)
+    grid = coarse(col.j[near]) if grid is None else grid[near]  # (n, NODES_THETA, NODES_PHI)
+    k_down = np.clip(_rates(z, grid, t + 0.5 * h, 0.5 * h), 0.0, 1.0)
+    k_up = np.clip(_rates(z, grid, max(t - 0.5 * h, 0.5 * h), 0.5 * h), -1.0, 1.0)
     up = (np.arange(NODES_THETA) < (NODES_THETA - 1) // 2)[:, None]  # polar angle below 90 degrees
     dz = (z - t)[:, None, None]
     w = np.maximum(1.0 - np.abs(dz) / h, 0.0)
     back = np.exp(np.where(dz > 0, k_down, k_up) * dz)  # each layer's J brought to depth t
-    j = (w * coarse * back).sum(axis=0) / max(float(w.sum()) / w.shape[1] / w.shape[2], 1e-300)
+    j = (w * grid * back).sum(axis=0) / max(float(w.sum()) / w.shape[1] / w.shape[2], 1e-300)
     return j * np.exp(-k_down * max(tau - reliable, 0.0)), np.where(up, k_up, k_down)
 
 
@@ -155,13 +113,17 @@ class SolvedWater:
     sun_dir_world: np.ndarray  # (3,) towards the refracted sun
     sun: np.ndarray  # (3,) pi x the beam's irradiance normal to it just below the surface (the renderer's units)
     sky: np.ndarray  # (3,) the window's radiance in the renderer's units (`sky.window_radiance`)
+    seabed_albedo: np.ndarray | None = None  # (3,) the seabed's mean albedo (`seabed`); None: the open column's J_ms
+    seabed_depth_m: float = 0.0  # the seabed's mean plane below the surface
     tables: dict = field(default_factory=dict, compare=False, repr=False)  # camera depth -> ViewTable
 
     def record(self) -> dict:
         """What meta records: each channel's unit columns (b / c, g, the sun's cosine as solved) and the solve's
         photons and seed."""
+        seabed = None if self.seabed_albedo is None else {"albedo": [round(float(v), 6) for v in self.seabed_albedo],
+                                                          "depth_m": round(self.seabed_depth_m, 6)}
         return {"columns": [list(q) for q in quantised(self.medium, float(self.sun_dir_world[2]))],
-                "photons": PHOTONS, "seed": SEED}
+                "photons": PHOTONS, "seed": SEED, "seabed": seabed}
 
     def depth_table(self) -> DepthTable:
         """The frame's E_d table (one per frame: it spans the seabed's reference depth and ED_REACH_M below)."""
@@ -177,14 +139,6 @@ class SolvedWater:
         return self.tables[key]
 
 
-def quantised(medium: Medium, mu_sun: float) -> list[tuple[float, float, float]]:
-    """Per channel the (omega, g, mu_sun) its unit columns are solved for."""
-    c = medium.c
-    omega = np.where(c > 0, medium.b / np.where(c > 0, c, 1.0), 0.0)
-    q = lambda v, s: round(round(float(v) / s) * s, 6)
-    return [(q(w, OMEGA_STEP), q(medium.g, G_STEP), min(max(q(mu_sun, MU_STEP), MU_STEP), 1.0)) for w in omega]
-
-
 def _view_table(w: SolvedWater, cam_depth: float, sun: bool, sky: bool) -> ViewTable:
     m = w.medium
     j = np.zeros((NODES_THETA, NODES_PHI, 3))
@@ -193,19 +147,23 @@ def _view_table(w: SolvedWater, cam_depth: float, sun: bool, sky: bool) -> ViewT
         c = float(m.c[ch])
         if omega <= 0.0 or c <= 0.0:
             continue
-        kappa = _diffuse_rate(omega, g)
-        parts = []
-        if sun and w.sun[ch] > 0:
-            parts.append(at_depth(unit_column(omega, g, mu), c * cam_depth, kappa) + (float(w.sun[ch]),))
-        if sky and w.sky[ch] > 0:
-            parts.append(at_depth(unit_column(omega, g, None), c * cam_depth, kappa) + (float(w.sky[ch]),))
+        kappa = diffuse_rate(omega, g)
+        sun_col = unit_column(omega, g, mu) if sun and w.sun[ch] > 0 else None
+        sky_col = unit_column(omega, g, None) if sky and w.sky[ch] > 0 else None
+        parts = [at_depth(col, c * cam_depth, kappa, coarse_grid(omega, g, which)) + (float(scale[ch]),)
+                 for col, scale, which in ((sun_col, w.sun, mu), (sky_col, w.sky, None)) if col is not None]
         if not parts:
             continue
+        if w.seabed_albedo is not None:  # the seabed's light in place of the deep water's below it
+            e_d, e_u = exitances(float(w.sun[ch]), float(w.sky[ch]), c * w.seabed_depth_m, kappa, sun_col, sky_col)
+            for upwelling, exitance in ((False, float(w.seabed_albedo[ch]) * e_d), (True, -e_u)):
+                jb, kb = seabed_j(omega, g, c * (w.seabed_depth_m - cam_depth), kappa, upwelling)
+                parts.append((np.repeat(jb[:, None], NODES_PHI, 1), np.repeat(kb[:, None], NODES_PHI, 1), exitance))
         total = sum(s * jp for jp, _, s in parts)
-        j[..., ch] = c * total
+        j[..., ch] = c * np.maximum(total, 0.0)
         # one rate for the sum at each node: the parts' rates weighted by their share of J_ms there
-        k[..., ch] = c * np.where(total > 0, sum(s * jp * kp for jp, kp, s in parts) / np.where(total > 0, total, 1.0),
-                                  sum(kp for _, kp, _ in parts) / len(parts))
+        k[..., ch] = c * np.clip(np.where(total > 0, sum(s * jp * kp for jp, kp, s in parts) / np.where(
+            total > 0, total, 1.0), sum(kp for _, kp, _ in parts) / len(parts)), growth_floor()[:, None], 1.0)
     return ViewTable(j=j, k=k)
 
 
@@ -240,7 +198,7 @@ def _depth_table(w: SolvedWater) -> DepthTable:
         if omega <= 0.0 or c <= 0.0:
             sky[:, ch] = -c * depth / MU_SKY  # nothing scattered: today's form
             continue
-        kappa = _diffuse_rate(omega, g)
+        kappa = diffuse_rate(omega, g)
         sun[:, ch] = _log_profile(unit_column(omega, g, mu), c * depth, kappa, True)
         sky[:, ch] = _log_profile(unit_column(omega, g, None), c * depth, kappa, False)
     return DepthTable(step_m=step, sun=sun, sky=sky)
@@ -300,15 +258,20 @@ def lookup(table: ViewTable, dirs_world: np.ndarray, sun_dir_world: np.ndarray) 
 
 
 def solved_water(medium: Medium, sun_dir_world: np.ndarray, sun_irradiance: np.ndarray,
-                 sky_irradiance: np.ndarray) -> SolvedWater:
-    """A frame's SolvedWater from its water and its light just below the surface (as PhysicalLight holds them)."""
+                 sky_irradiance: np.ndarray, seabed_albedo: np.ndarray | None = None,
+                 seabed_z: float = 0.0) -> SolvedWater:
+    """A frame's SolvedWater from its water and its light just below the surface (as PhysicalLight holds them), and
+    the seabed's mean albedo and height (world z) where there is one."""
     return SolvedWater(medium=medium, sun_dir_world=np.asarray(sun_dir_world, np.float64),
-                       sun=math.pi * np.asarray(sun_irradiance, np.float64), sky=window_radiance(sky_irradiance))
+                       sun=math.pi * np.asarray(sun_irradiance, np.float64), sky=window_radiance(sky_irradiance),
+                       seabed_albedo=None if seabed_albedo is None else np.asarray(seabed_albedo, np.float64),
+                       seabed_depth_m=max(float(medium.surface_z) - float(seabed_z), 0.0))
 
 
 def with_column(light, on: bool = True):
     """The PhysicalLight `light` with its water column solved (terms.solved) or, on False, without."""
     if not on:
         return dataclasses.replace(light, column=None, terms=dataclasses.replace(light.terms, solved=False))
-    column = solved_water(light.medium, light.sun_dir_world, light.sun_irradiance, light.sky_irradiance)
+    column = solved_water(light.medium, light.sun_dir_world, light.sun_irradiance, light.sky_irradiance,
+                          light.seabed_albedo, light.seabed_z)
     return dataclasses.replace(light, column=column, terms=dataclasses.replace(light.terms, solved=True))

@@ -13,8 +13,9 @@ nodes in the equiangular variable).
 With the solved column (`Terms.solved`, `solved`), the sun's and the sky's terms are their single scattering (c in
 place of K on both legs: the unscattered beam, the unscattered view ray) and the multiply scattered rest is
 J_ms(w) integral_0^z' exp(-(c - K_J w_z) t) dt from the column's table at the camera's depth; the window's sky is
-seen through c too, and so is a surface (the scattered light is the open column's J_ms; a surface's own forward-
-scattered light is not kept through K).
+seen through c too, and so is a surface: the sun's and sky's light a seabed reflects is scattered towards the camera
+through J_ms (`seabed`), and the lamps' light on a surface comes weighted by exp((c - K) r) from the surface pass
+(`solved.LAMP_SEEN_CAP`), so it reaches the camera through K as the lamps' own model has it.
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ import functools
 import numpy as np
 
 from seasynth.service.spec.dataset import DatasetSpec
+from seasynth.worker.frame.srgb import decode_srgb8
 from seasynth.worker.render import Image, Material
 from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.procedural import stable_seed
@@ -148,3 +149,27 @@ def terrain_uv(vertices: np.ndarray, tile_m: float, warp: bool = True) -> np.nda
     if warp:
         uv = uv + uv_warp(uv)
     return uv.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=32)
+def albedo_factor(material: Material | None) -> np.ndarray:
+    """(3,) float64 what a material's maps multiply a surface's vertex albedo by on average (linear light), as the
+    surface shader forms it (`render.materials.textured_albedo`): the base map (decoded) x base_gain x (1 -
+    metallic_factor x the orm map's blue) x the occlusion (1 + occlusion_strength (orm red - 1)), each averaged over
+    its texels on its own, x the mean of the normal map's normals along the surface's own normal (what a Lambertian
+    surface's mean shading keeps of the light, irradiance being linear in the normal; the shader's `spread` is this
+    over a footprint). Ones without a material."""
+    if material is None:
+        return np.ones(3)
+    out = np.full(3, float(material.base_gain))
+    if material.base is not None:
+        out = out * decode_srgb8(material.base.pixels.reshape(-1, 3), np.float64).mean(axis=0)
+    if material.orm is not None:
+        orm = material.orm.pixels.reshape(-1, 3).astype(np.float64) / 255.0
+        out = out * (1.0 - material.metallic_factor * orm[:, 2].mean())
+        out = out * (1.0 + material.occlusion_strength * (orm[:, 0].mean() - 1.0))
+    if material.normal is not None:
+        m = material.normal.pixels.reshape(-1, 3).astype(np.float64) / 255.0 * 2.0 - 1.0
+        m[:, :2] *= material.normal_scale
+        out = out * float(np.mean(np.maximum(m[:, 2], 0.0) / np.maximum(np.linalg.norm(m, axis=1), 1e-12)))
+    return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,8 +20,8 @@ from seasynth.worker.light.build import sample_physical
 from seasynth.worker.render import Lighting, Material, WaterParams
 from seasynth.worker.scene.assets import Asset, UserSurface
 from seasynth.worker.scene.assets.terrain import Terrain
-from seasynth.worker.scene.far_field import FarField, far_field
-from seasynth.worker.scene.materials import asset_material, user_surface
+from seasynth.worker.scene.far_field import FarField, far_field, seabed_of
+from seasynth.worker.scene.materials import albedo_factor, asset_material, user_surface
 from seasynth.worker.scene.placement import Pose, in_box, neighbours, place, place_school
 from seasynth.worker.scene.poses import look_at_pose, rigid_inverse
 from seasynth.worker.scene.trajectory import vehicle_state
@@ -148,7 +149,7 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
     water, water_type, light = None, None, None
     if spec.water.enabled and spec.water.resolved_model == "physical":
         top_z = max([float(terrain.mesh.bounds[1][2])] + [c[2] + r for c, r in spheres])
-        light, water_type = sample_physical(spec, rng, lighting, top_z)
+        light, water_type = sample_physical(spec, rng, lighting, top_z, _seabed(terrain, t_scale, t_bias))
     else:
         water, water_type = _sample_water(spec, rng)
     return Scene(
@@ -168,6 +169,18 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
         class_counts=tuple(counts),
         far_field=far_field(terrain, float(spec.camera.clip[1])) if spec.terrain.far_field else None,
     )
+
+
+@functools.lru_cache(maxsize=8)
+def _seabed_of(terrain: Terrain):  # a frame's terrain is one of the few its process keeps
+    return seabed_of(terrain)
+
+
+def _seabed(terrain: Terrain, scale: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, float]:
+    """The seabed's mean albedo (3,) (its colours' mean in linear light times its maps' mean factor, the frame's
+    randomisation applied) and the world z of its mean plane, for the solved water column."""
+    seabed = _seabed_of(terrain)
+    return np.clip(seabed.mean_rgb * albedo_factor(terrain.material) * scale + bias, 0.0, 1.0), seabed.mean_z
 
 
 def _place_group(spec: DatasetSpec, rng: np.random.Generator, terrain: Terrain, asset_for: AssetSource,
