@@ -59,7 +59,7 @@ def test_a_uniform_seabed_seen_straight_down_keeps_its_forward_scattered_light_a
     """A Lambertian seabed of radiance L seen straight down from h: L exp(-c h) unscattered plus the seabed
     column's path integral. Gordon's diffuse attenuation (Medium.k, an independent model of the same light) has
     the whole as L exp(-K h): the two agree within 8% of L at g 0.92 from 0.25 to 2 optical depths (measured:
-    2-6%)."""
+    0.2-5%)."""
     g = 0.92
     kappa = diffuse_rate(omega, g)
     k = float(Medium(a=np.array([1 - omega]), b=np.array([omega]), g=g, surface_z=0.0).k[0])

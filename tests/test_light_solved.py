@@ -32,6 +32,7 @@ from seasynth.worker.light.solved import (
     unit_column,
     with_column,
 )
+from seasynth.worker.light.unit_columns import full_column
 from seasynth.worker.light.volume import volume
 
 SOLVED = {
@@ -114,7 +115,7 @@ def test_the_tables_path_radiance_is_the_columns_own_to_60_percent_and_13_percen
     assert (k[dirs[:, 2] <= 0] >= 0).all() and (k <= medium.c).all() and (k >= -medium.c).all()
     for ch, (omega, g, mu) in enumerate(quantised(medium, float(sun[2]))):
         c = float(medium.c[ch])
-        col = dataclasses.replace(unit_column(omega, g, mu), e_sun=0.0)  # J_ms alone
+        col = dataclasses.replace(full_column(omega, g, mu), e_sun=0.0)  # J_ms alone, on the whole view grid
         exact = math.pi * lt.sun_irradiance[ch] * path_radiance(col, to_sun_frame(dirs, sun), c * depth)
         wz = dirs[:, 2]
         to_surface = np.where(wz > 0, depth / np.where(wz > 0, wz, 1.0), np.inf)
@@ -154,9 +155,13 @@ def test_without_scattering_the_table_is_empty_and_only_c_changes_the_view():
 @pytest.mark.parametrize("solved", [False, True])
 @pytest.mark.parametrize("lit", ["sun", "lamps"])
 def test_a_frame_takes_the_solved_column_where_its_spec_asks_and_the_sun_or_sky_lights_it(solved, lit):
-    """water.solved_column on: frames lit by the sun or the sky take the column, lamp-only frames (nothing to solve)
-    do not; off (the default), no frame does, and every other draw of the frame is the same."""
+    """water.solved_column on (the default): frames lit by the sun or the sky take the column, lamp-only frames
+    (nothing to solve) do not; off, no frame does, and every other draw of the frame is the same. The paper's model
+    leaves the default alone (only setting it there is refused)."""
     from seasynth.service.spec.dataset import DatasetSpec
+
+    assert DatasetSpec.model_validate({}).water.solved_column is True
+    assert DatasetSpec.model_validate({"water": {"model": "paper"}}).water.resolved_model == "paper"
     from seasynth.worker.light.build import sample_physical
     from seasynth.worker.render import Lighting
 

@@ -139,8 +139,9 @@ class Water(SpecModel):
     # .forward_scatter); physical model only.
     forward_scatter: StrictBool = False
     # The sun's and the sky's light along view rays and on surfaces from the solved water column
-    # (seasynth.worker.light.solved, docs/light.md); physical model only.
-    solved_column: StrictBool = False
+    # (seasynth.worker.light.solved, docs/light.md); off: today's closed form through K (0.10 and before). Physical
+    # model only (the paper's model ignores it unless it is set).
+    solved_column: StrictBool = True
     particles: Particles = Particles()
 
     @field_validator("jerlov")
@@ -170,7 +171,8 @@ class Water(SpecModel):
         if self.forward_scatter and not (self.enabled and model == "physical"):
             raise ValueError("forward_scatter spreads light the physical model scatters; it needs water.enabled: "
                              f"true and water.model: physical (got enabled {self.enabled}, model {model})")
-        if self.solved_column and not (self.enabled and model == "physical"):
+        if self.solved_column and "solved_column" in self.model_fields_set and not (self.enabled
+                                                                                 and model == "physical"):
             raise ValueError("solved_column solves the physical model's water column; it needs water.enabled: true "
                              f"and water.model: physical (got enabled {self.enabled}, model {model})")
         self._particles_described(model)

@@ -71,13 +71,18 @@ def _hg_sample(g: float, xi: np.ndarray) -> np.ndarray:
 
 
 def _turn(u: np.ndarray, cos_t: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """(n, 3) unit vectors at angle acos(cos_t) from the unit vectors u (n, 3), at azimuth phi about them."""
+    """(n, 3) unit vectors at angle acos(cos_t) from the unit vectors u (n, 3), at azimuth phi about them (measured
+    from u's plane with z; about z itself where u is within 1e-5 of it)."""
     sin_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0))
-    helper = np.where(np.abs(u[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    e1 = np.cross(helper, u)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
-    out = (u * cos_t[:, None] + e1 * (sin_t * np.cos(phi))[:, None] + e2 * (sin_t * np.sin(phi))[:, None])
+    ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
+    rho = np.sqrt(np.maximum(1.0 - uz * uz, 0.0))
+    cp, sp = np.cos(phi), np.sin(phi)
+    steep = rho < 1e-5
+    r = np.where(steep, 1.0, rho)
+    out = np.empty_like(u)
+    out[:, 0] = np.where(steep, sin_t * cp, sin_t * (ux * uz * cp - uy * sp) / r + ux * cos_t)
+    out[:, 1] = np.where(steep, sin_t * sp, sin_t * (uy * uz * cp + ux * sp) / r + uy * cos_t)
+    out[:, 2] = np.where(steep, np.sign(uz) * cos_t, -sin_t * cp * rho + uz * cos_t)
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
@@ -102,7 +107,7 @@ def grid_directions() -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _kernel(g: float) -> np.ndarray:
+def phase_kernel(g: float) -> np.ndarray:
     """(BINS_THETA * BINS_PHI, GRID_THETA * GRID_PHI) HG(s . w) averaged over each histogram bin's solid angle
     (cos-stratified sub-directions) and its mirror in azimuth. The bins' and the grid's azimuth steps are equal, so
     the phase function depends on bin and grid azimuth only through k - l and k + l: it is evaluated once for each."""
@@ -127,7 +132,7 @@ def _kernel(g: float) -> np.ndarray:
 def solve(a: float, b: float, g: float, mu_sun: float, e_sun: float, sky: float, z_max: float,
           rng: np.random.Generator, photons: int = 40000, cone_deg: float = SNELL_CONE_DEG,
           max_order: int | None = None, sky_single: bool = False,
-          sky_shape: tuple[np.ndarray, np.ndarray] | None = None) -> Column:
+          sky_shape: tuple[np.ndarray, np.ndarray] | None = None, kernel: np.ndarray | None = None) -> Column:
     """One channel's column down to z_max metres (light going deeper is dropped there: choose z_max a few 1/K past
     the deepest depth of interest). a, b: 1/m; mu_sun: the refracted sun's cos to the zenith; e_sun: its irradiance
     normal to the beam just below the surface; sky: radiance within Snell's window (cone_deg). max_order: light
@@ -135,7 +140,8 @@ def solve(a: float, b: float, g: float, mu_sun: float, e_sun: float, sky: float,
     sky's single scattering is tallied in j too (for a source whose single scattering nothing else adds: `solved`'s
     seabed, a Lambertian plane solved as a sky of cone 90 degrees). sky_shape: (mu (n,) ascending, radiance (n,)) the
     sky's radiance by the cosine of its light's angle to the vertical, linear between nodes, in place of a uniform
-    one (its flux stays pi sky (1 - cos^2 cone))."""
+    one (its flux stays pi sky (1 - cos^2 cone)). kernel: (BINS_THETA * BINS_PHI, n) the map from the arrival
+    histogram to the J kept (default `phase_kernel(g)`: J on the view grid); then `j` is (nz, n)."""
     c = a + b
     omega = b / c if c > 0 else 0.0
     dz = min(0.3 / c, 0.5, z_max / 64) if c > 0 else z_max / 64
@@ -143,6 +149,7 @@ def solve(a: float, b: float, g: float, mu_sun: float, e_sun: float, sky: float,
     z = (np.arange(nz) + 0.5) * dz
     nb = BINS_THETA * BINS_PHI
     hist = np.zeros(nz * nb)
+    events: list[tuple[np.ndarray, np.ndarray]] = []  # (histogram bin, weight) of each collision tallied
     tally = np.zeros((3, nz))  # collisions' weight, down-going weight x |u_z|, up-going weight x u_z
     sun_flux = e_sun * mu_sun
     cos_c = math.cos(math.radians(cone_deg))
@@ -180,7 +187,8 @@ def solve(a: float, b: float, g: float, mu_sun: float, e_sun: float, sky: float,
         keep = ~up & (pos < z_max) & (order < last)
         pos, u, w, order = pos[keep], u[keep], w[keep], order[keep] + 1
         layer = np.minimum((pos / dz).astype(np.int64), nz - 1)
-        hist += np.bincount(layer * nb + _bin(-u), weights=w * (order > 1), minlength=nz * nb)  # not sky's 1st
+        counted = order > 1  # not the sky's first scattering
+        events.append((layer[counted] * nb + _bin(-u[counted]), w[counted]))
         tally[0] += np.bincount(layer, weights=w, minlength=nz)
         tally[1] += np.bincount(layer, weights=w * np.maximum(-u[:, 2], 0.0), minlength=nz)
         tally[2] += np.bincount(layer, weights=w * np.maximum(u[:, 2], 0.0), minlength=nz)
@@ -193,14 +201,17 @@ def solve(a: float, b: float, g: float, mu_sun: float, e_sun: float, sky: float,
         pos, u, w, target, order = pos[survive], u[survive], w[survive], target[survive], order[survive]
         n = np.clip(np.floor(w / target), 1, MAX_SPLIT).astype(np.int64) if pos.size < cap else np.ones(pos.size, int)
         pos, u, w, order = np.repeat(pos, n), np.repeat(u, n, axis=0), np.repeat(w / n, n), np.repeat(order, n)
+    if events:
+        hist = np.bincount(np.concatenate([e[0] for e in events]), weights=np.concatenate([e[1] for e in events]),
+                           minlength=nz * nb).astype(np.float64)
     scale = 1.0 / (c * dz) if c > 0 else 0.0
     # The direct sun's layer means (the tallies are layer means too).
     edges = np.exp(-c * np.arange(nz + 1) * dz / mu_sun) if mu_sun > 0 and c > 0 else np.zeros(nz + 1)
     direct = e_sun * mu_sun / max(c * dz, 1e-300) * (edges[:-1] - edges[1:])
-    j = (hist.reshape(nz, nb) @ _kernel(float(g))) * (b * scale)
+    j = (hist.reshape(nz, nb) @ (phase_kernel(float(g)) if kernel is None else kernel)) * (b * scale)
     return Column(a=a, b=b, g=g, mu_sun=mu_sun, e_sun=e_sun, sky=sky, z=z, dz=dz,
                   e_d=tally[1] * scale + direct * mu_sun, e_u=tally[2] * scale, e_0=tally[0] * scale + direct,
-                  j=j.reshape(nz, GRID_THETA, GRID_PHI), escaped=escaped, cone_deg=cone_deg)
+                  j=j.reshape(nz, GRID_THETA, GRID_PHI) if kernel is None else j, escaped=escaped, cone_deg=cone_deg)
 
 
 def _grid_lookup(col: Column, view_sun: np.ndarray, depth: np.ndarray) -> np.ndarray:

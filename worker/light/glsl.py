@@ -29,7 +29,7 @@ NORMAL_OFFSET_PIXELS = 0.5
 UNIFORMS = (
     "u_world_z", "u_surface_z", "u_c", "u_K", "u_b", "u_g", "u_sun_cam", "u_sun_world", "u_mu_w", "u_E0", "u_Esky",
     "u_sun_shadow", "u_sun_soft", "u_sun_from_cam", "u_sun_texel_m", "u_sun_soft_texel_m", "u_pixel_angle", "u_cam_depth",
-    "u_world_from_cam", "u_K_inv", "u_sky_phase", "u_world_x", "u_world_y", "u_jms", "u_kj", "u_sun_azimuth", "u_ed_sun",
+    "u_world_from_cam", "u_K_inv", "u_sky_phase", "u_world_x", "u_world_y", "u_sun_azimuth", "u_ed_sun",
     "u_ed_sky", "u_ed_step", *caustics.UNIFORMS,
     *(f"u_lamp_{what}[{i}]" for what in ("pos", "dir", "I", "cone", "energy", "from_cam", "shadow", "texel")
       for i in range(MAX_LAMPS)),

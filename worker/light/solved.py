@@ -31,8 +31,6 @@ from seasynth.worker.light.unit_columns import (
     NODES_THETA,
     PHOTONS,
     SEED,
-    coarse,
-    coarse_grid,
     diffuse_rate,
     quantised,
     unit_column,
@@ -60,19 +58,19 @@ def _rates(z: np.ndarray, j: np.ndarray, centre: float, half: float) -> np.ndarr
     return np.where(den > 1e-12 * half * half, -(w * zc * yc).sum(axis=0) / np.maximum(den, 1e-300), 0.0)
 
 
-def at_depth(col: Column, tau: float, kappa: float, grid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def at_depth(col: Column, tau: float, kappa: float) -> tuple[np.ndarray, np.ndarray]:
     """(J_ms, its rate of decrease with depth), each (NODES_THETA, NODES_PHI), at optical depth tau in the unit
     column's optical units. The rates are fitted over the WINDOW_K diffuse lengths below tau for directions looking
     down or level (clipped to [0, 1]) and above it (not above the surface's first WINDOW_K) for those looking up (to
     [-1, 1]); J_ms is the tent-weighted mean of the layers within WINDOW_K, each brought to tau at its direction's
     rate. Every weight is continuous in tau, so the table is too. Past the column's reliable depth, continued at the
-    rates looking down. grid: coarse(col.j), where the caller keeps it."""
+    rates looking down. col: a unit column, its j on the table's nodes (`unit_columns.unit_column`)."""
     reliable = col.z[-1] - (DEPTHS_K - 8.0) / kappa
     t = min(tau, reliable)
     h = max(WINDOW_K / kappa, 4.0 * col.dz)
     near = (col.z > t - h) & (col.z < max(t + h, h))  # every layer any weight below reaches
     z = col.z[near]
-    grid = coarse(col.j[near]) if grid is None else grid[near]  # (n, NODES_THETA, NODES_PHI)
+    grid = col.j[near].astype(np.float64)  # (n, NODES_THETA, NODES_PHI)
     k_down = np.clip(_rates(z, grid, t + 0.5 * h, 0.5 * h), 0.0, 1.0)
     k_up = np.clip(_rates(z, grid, max(t - 0.5 * h, 0.5 * h), 0.5 * h), -1.0, 1.0)
     up = (np.arange(NODES_THETA) < (NODES_THETA - 1) // 2)[:, None]  # polar angle below 90 degrees
@@ -150,8 +148,8 @@ def _view_table(w: SolvedWater, cam_depth: float, sun: bool, sky: bool) -> ViewT
         kappa = diffuse_rate(omega, g)
         sun_col = unit_column(omega, g, mu) if sun and w.sun[ch] > 0 else None
         sky_col = unit_column(omega, g, None) if sky and w.sky[ch] > 0 else None
-        parts = [at_depth(col, c * cam_depth, kappa, coarse_grid(omega, g, which)) + (float(scale[ch]),)
-                 for col, scale, which in ((sun_col, w.sun, mu), (sky_col, w.sky, None)) if col is not None]
+        parts = [at_depth(col, c * cam_depth, kappa) + (float(scale[ch]),)
+                 for col, scale in ((sun_col, w.sun), (sky_col, w.sky)) if col is not None]
         if not parts:
             continue
         if w.seabed_albedo is not None:  # the seabed's light in place of the deep water's below it
@@ -213,12 +211,14 @@ def irradiance(table: DepthTable, depth: np.ndarray) -> tuple[np.ndarray, np.nda
     return tuple(np.exp(t[i] * (1.0 - f) + t[i + 1] * f) for t in (table.sun, table.sky))
 
 
-# The resolve shader's `lookup` (glsl.VOLUME includes it): J_ms and K_J along the unit world direction w.
+# The resolve shader's `lookup` (glsl.VOLUME includes it): J_ms and K_J along the unit world direction w. The table is
+# a uniform block (`table_block`): as 380 plain vec3 uniforms it passes the compute stage's parameter limit on NVIDIA's
+# driver, and a sampler beside the resolve's multisample ones fails validation on Mesa.
 VIEW_TABLE_GLSL = f"""
 const int NODES_THETA = {NODES_THETA}, NODES_PHI = {NODES_PHI};
-uniform vec3 u_jms[{NODES_THETA * NODES_PHI}];   // ViewTable.j, row-major (polar angle, azimuth)
-uniform vec3 u_kj[{NODES_THETA * NODES_PHI}];    // ViewTable.k
+layout(std140) uniform ViewTableBlock {{ vec4 u_view_nodes[{2 * NODES_THETA * NODES_PHI}]; }};  // table_block
 uniform vec2 u_sun_azimuth;                     // view_azimuth_frame
+vec3 node(int i, int k) {{ return u_view_nodes[i * NODES_PHI + k].xyz; }}
 void view_table(vec3 w, out vec3 jms, out vec3 kj) {{
     float hn = length(w.xy);
     float cp = hn > 1e-9 ? dot(w.xy, u_sun_azimuth) / hn : 1.0;
@@ -226,11 +226,19 @@ void view_table(vec3 w, out vec3 jms, out vec3 kj) {{
     float yp = acos(clamp(cp, -1.0, 1.0)) * {(NODES_PHI - 1) / math.pi!r};
     int it = clamp(int(floor(xt)), 0, NODES_THETA - 2), kp = clamp(int(floor(yp)), 0, NODES_PHI - 2);
     float fi = xt - float(it), fk = yp - float(kp);
-    int n0 = it * NODES_PHI + kp, n1 = n0 + NODES_PHI;
-    jms = mix(mix(u_jms[n0], u_jms[n0 + 1], fk), mix(u_jms[n1], u_jms[n1 + 1], fk), fi);
-    kj = mix(mix(u_kj[n0], u_kj[n0 + 1], fk), mix(u_kj[n1], u_kj[n1 + 1], fk), fi);
+    jms = mix(mix(node(it, kp), node(it, kp + 1), fk), mix(node(it + 1, kp), node(it + 1, kp + 1), fk), fi);
+    int ik = it + NODES_THETA;
+    kj = mix(mix(node(ik, kp), node(ik, kp + 1), fk), mix(node(ik + 1, kp), node(ik + 1, kp + 1), fk), fi);
 }}
 """
+
+
+def table_block(table: ViewTable) -> np.ndarray:
+    """(2 NODES_THETA NODES_PHI, 4) float32: the view table as the resolve shader's uniform block holds it (std140
+    vec4s: the J_ms nodes row by row, then the K_J nodes; w unused)."""
+    out = np.zeros((2 * NODES_THETA * NODES_PHI, 4), np.float32)
+    out[:, :3] = np.concatenate([table.j, table.k], axis=0).reshape(-1, 3)
+    return out
 
 
 def view_azimuth_frame(sun_dir_world: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 
 from seasynth import service
 from seasynth.worker.light import GORDON_PATH_FACTOR, Medium
-from seasynth.worker.light.column import GRID_PHI, GRID_THETA, Column, solve
+from seasynth.worker.light.column import GRID_PHI, GRID_THETA, Column, phase_kernel, solve
 from seasynth.worker.scene.disk_cache import load_npz, shared_folder, store_npz
 
 OMEGA_STEP, G_STEP, MU_STEP = 0.005, 0.01, 0.05
@@ -36,9 +36,26 @@ def diffuse_rate(omega: float, g: float) -> float:
 @functools.lru_cache(maxsize=96)
 def unit_column(omega: float, g: float, mu_sun: float | None) -> Column:
     """One channel's column at c = 1: the sun's (unit irradiance normal to the beam at cosine mu_sun) or, mu_sun None,
-    the sky's (unit radiance in Snell's window). Seeded, so a pure function of its arguments; kept per process, and
-    read from the folder the process shares what it builds in (disk_cache.share_in), where one was stored."""
-    return _stored(("column", omega, g, mu_sun), lambda: _solved(omega, g, mu_sun))
+    the sky's (unit radiance in Snell's window), its `j` on the view table's nodes ((nz, NODES_THETA, NODES_PHI)
+    float32 box means of the view grid's, `coarse`). Seeded, so a pure function of its arguments; kept per process,
+    and read from the folder the process shares what it builds in (disk_cache.share_in), where one was stored."""
+    return _stored(("column", omega, g, mu_sun), lambda: _solved(omega, g, mu_sun, node_kernel(g)))
+
+
+def full_column(omega: float, g: float, mu_sun: float | None) -> Column:
+    """unit_column's solve (the same photons) with `j` on the whole view grid (`column.GRID_THETA`, `GRID_PHI`), for
+    the column's own path radiance (`column.path_radiance`); neither kept nor stored."""
+    return _solved(omega, g, mu_sun, None)
+
+
+@functools.lru_cache(maxsize=8)
+def node_kernel(g: float) -> np.ndarray:
+    """(BINS_THETA * BINS_PHI, NODES_THETA * NODES_PHI) the phase kernel to the view grid, box-averaged to the view
+    table's nodes (`coarse` of every column of `column.phase_kernel`)."""
+    full = phase_kernel(float(g))
+    out = coarse(full.reshape(-1, GRID_THETA, GRID_PHI)).reshape(full.shape[0], -1)
+    out.flags.writeable = False
+    return out
 
 
 @functools.lru_cache(maxsize=32)
@@ -51,9 +68,9 @@ def seabed_column(omega: float, g: float, upwelling: bool = False) -> Column:
     z_max = DEPTHS_K / diffuse_rate(omega, g)
     rng = np.random.default_rng([SEED, round(omega / OMEGA_STEP), round(g / G_STEP), 998 + upwelling])
     shape = upwelling_shape(omega, g) if upwelling else None
-    return _stored(("seabed", omega, g, upwelling), lambda: solve(
+    return _stored(("seabed", omega, g, upwelling), lambda: _on_nodes(solve(
         1.0 - omega, omega, g, 1.0, 0.0, 1.0 / math.pi, z_max, rng, PHOTONS, cone_deg=90.0, sky_single=True,
-        sky_shape=shape))
+        sky_shape=shape, kernel=node_kernel(g))))
 
 
 def upwelling_shape(omega: float, g: float) -> tuple[np.ndarray, np.ndarray]:
@@ -64,7 +81,7 @@ def upwelling_shape(omega: float, g: float) -> tuple[np.ndarray, np.ndarray]:
     kappa = diffuse_rate(omega, g)
     reliable = col.z[-1] - (DEPTHS_K - 8.0) / kappa
     deep = (col.z > reliable - 1.0 / kappa) & (col.z <= reliable)
-    j = coarse(col.j[deep]).mean(axis=(0, -1))[(NODES_THETA - 1) // 2:]  # polar 90..180 degrees looking down
+    j = col.j[deep].mean(axis=(0, -1), dtype=np.float64)[(NODES_THETA - 1) // 2:]  # polar 90..180: looking down
     mu = np.cos(np.radians(np.linspace(90.0, 180.0, len(j)))) * -1.0  # 0..1: the light's angle to the vertical
     return mu, np.maximum(j, 0.0) / (1.0 + kappa * mu)
 
@@ -88,13 +105,20 @@ def _load_column(path: Path) -> Column | None:
                                               for f in dataclasses.fields(Column)}))
 
 
-def _solved(omega: float, g: float, mu_sun: float | None) -> Column:
+def _solved(omega: float, g: float, mu_sun: float | None, kernel: np.ndarray | None) -> Column:
     z_max = DEPTHS_K / diffuse_rate(omega, g)
     rng = np.random.default_rng([SEED, round(omega / OMEGA_STEP), round(g / G_STEP), 0 if mu_sun is None
                                  else 1 + round(mu_sun / MU_STEP)])
     if mu_sun is None:
-        return solve(1.0 - omega, omega, g, 1.0, 0.0, 1.0, z_max, rng, PHOTONS)
-    return solve(1.0 - omega, omega, g, mu_sun, 1.0, 0.0, z_max, rng, PHOTONS)
+        col = solve(1.0 - omega, omega, g, 1.0, 0.0, 1.0, z_max, rng, PHOTONS, kernel=kernel)
+    else:
+        col = solve(1.0 - omega, omega, g, mu_sun, 1.0, 0.0, z_max, rng, PHOTONS, kernel=kernel)
+    return col if kernel is None else _on_nodes(col)
+
+
+def _on_nodes(col: Column) -> Column:
+    """A column solved with node_kernel, its j shaped (nz, NODES_THETA, NODES_PHI) and kept in float32."""
+    return dataclasses.replace(col, j=col.j.reshape(len(col.z), NODES_THETA, NODES_PHI).astype(np.float32))
 
 
 def quantised(medium: Medium, mu_sun: float) -> list[tuple[float, float, float]]:
@@ -116,18 +140,10 @@ def coarse(j: np.ndarray) -> np.ndarray:
     return out
 
 
-@functools.lru_cache(maxsize=96)
-def coarse_grid(omega: float, g: float, mu_sun: float | None) -> np.ndarray:
-    """(nz, NODES_THETA, NODES_PHI) `coarse` of unit_column(omega, g, mu_sun)'s J, kept per process (read-only)."""
-    out = coarse(unit_column(omega, g, mu_sun).j)
-    out.flags.writeable = False
-    return out
-
-
 @functools.lru_cache(maxsize=32)
 def seabed_profile(omega: float, g: float, upwelling: bool) -> np.ndarray:
     """(nz, NODES_THETA) the seabed column's J by height and polar angle from the zenith (the column turned the
     right way up, its azimuths averaged: a seabed sends the same light every way round), kept per process."""
-    out = np.ascontiguousarray(coarse(seabed_column(omega, g, upwelling).j).mean(axis=-1)[:, ::-1])
+    out = np.ascontiguousarray(seabed_column(omega, g, upwelling).j.mean(axis=-1, dtype=np.float64)[:, ::-1])
     out.flags.writeable = False
     return out

@@ -124,6 +124,7 @@ class GLRenderer:
         self.targets = Targets(GL, self.name, targets_per_kind)
         self.readback = Readback(GL)
         self.empty_vao = GL.glGenVertexArrays(1)  # no attributes: what full-screen triangles (the resolve) draw with
+        self.view_table_buffer: int | None = None  # the solved water's view table (gl_light), made on first use
         self.clip_control = ClipControl(GL, self.name)
         self.sample_positions: dict[int, np.ndarray] = {}  # msaa -> (msaa, 2), read once (seasynth.worker.render.depth)
         GL.glEnable(GL.GL_DEPTH_TEST)

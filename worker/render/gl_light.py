@@ -9,12 +9,13 @@ from seasynth.worker.light import PhysicalLight
 from seasynth.worker.light.glsl import MAX_LAMPS, SOFT_SHADOW_RADIUS_M
 from seasynth.worker.light.lamps import cone_energy
 from seasynth.worker.light.sky import sky_phase_table
-from seasynth.worker.light.solved import view_azimuth_frame
+from seasynth.worker.light.solved import table_block, view_azimuth_frame
 from seasynth.worker.light.volume import camera_depth
 from seasynth.worker.render import DrawItem, View, shadows
 from seasynth.worker.render.shaders import DEPTH_ONLY, VERTEX
 
 SHADOW_UNIT = 3  # texture units from here on hold shadow maps (the resolve's colour and depth use 0 and 1)
+TABLE_BINDING = 0  # the uniform block binding of the resolve's solved view table
 
 
 def defines(light: PhysicalLight) -> dict[str, object]:
@@ -190,9 +191,14 @@ def volume_uniforms(r, locs: dict[str, int], view: View, light: PhysicalLight) -
          world_from_cam[:3, :3].astype(np.float32))
     t = light.terms
     if t.solved and t.scattering and (t.sun or t.sky):
-        table = light.column.view_table(camera_depth(light, world_from_cam), t.sun, t.sky)
-        for name, values in (("u_jms", table.j), ("u_kj", table.k)):
-            flat = np.ascontiguousarray(values.reshape(-1, 3), dtype=np.float32)
-            _set(GL, locs, name, GL.glUniform3fv, len(flat), flat)
+        block = table_block(light.column.view_table(camera_depth(light, world_from_cam), t.sun, t.sky))
+        prog = int(GL.glGetIntegerv(GL.GL_CURRENT_PROGRAM))
+        index = GL.glGetUniformBlockIndex(prog, "ViewTableBlock")
+        if index != GL.GL_INVALID_INDEX:
+            if r.view_table_buffer is None:
+                r.view_table_buffer = GL.glGenBuffers(1)
+            GL.glUniformBlockBinding(prog, index, TABLE_BINDING)
+            GL.glBindBuffer(GL.GL_UNIFORM_BUFFER, r.view_table_buffer)
+            GL.glBufferData(GL.GL_UNIFORM_BUFFER, block.nbytes, block, GL.GL_STREAM_DRAW)
+            GL.glBindBufferBase(GL.GL_UNIFORM_BUFFER, TABLE_BINDING, r.view_table_buffer)
         _set(GL, locs, "u_sun_azimuth", GL.glUniform2f, *view_azimuth_frame(light.sun_dir_world).tolist())
-
