@@ -159,3 +159,35 @@ def test_a_write_stopped_midway_leaves_no_part_and_only_a_disk_error_is_swallowe
         with pytest.raises(stop):
             disk_cache.store_npz(tmp_path / "x.npz", {"a": np.zeros(3)})
     assert list(tmp_path.iterdir()) == []
+
+
+def _build_slowly(log: str, tag: int) -> str:
+    with open(log, "a") as f:
+        f.write(f"{tag}\n")
+    time.sleep(0.4)
+    return f"built by {tag}"
+
+
+def _load_text(path: Path) -> str | None:
+    return path.read_text() if path.exists() else None
+
+
+def _one_of_many(path: str, log: str, tag: int, start: float) -> str:
+    from seasynth.worker.scene.disk_cache import stored_once
+
+    time.sleep(max(start - time.time(), 0.0))  # all processes ask at once
+    return stored_once(Path(path), _load_text, lambda: _build_slowly(log, tag), lambda p, v: p.write_text(v))
+
+
+def test_processes_sharing_a_folder_build_a_thing_once_and_all_read_it(tmp_path):
+    """Four processes ask for the same missing file at the same moment: one builds it (under the lock), the others
+    wait and read what it stored; a later ask builds nothing."""
+    import multiprocessing
+
+    path, log = tmp_path / "thing.txt", tmp_path / "builds.log"
+    start = time.time() + 1.0
+    with multiprocessing.get_context("spawn").Pool(4) as pool:
+        got = pool.starmap(_one_of_many, [(str(path), str(log), i, start) for i in range(4)])
+    builders = log.read_text().split()
+    assert len(builders) == 1 and set(got) == {f"built by {builders[0]}"}
+    assert _one_of_many(str(path), str(log), 9, 0.0) == got[0] and len(log.read_text().split()) == 1

@@ -5,8 +5,9 @@ The open column (`unit_columns.unit_column`) is infinitely deep: its upwelling l
 seabed. Over a seabed of mean albedo A at depth D, the light leaving the seabed's plane upwards is A E_d(D) instead
 of the open column's E_u(D): the seabed scatters into the water above as a Lambertian plane of exitance A E_d(D)
 (`unit_columns.seabed_column`, unit exitance, scaled), and what deep water would have sent up is taken off as a
-plane of exitance E_u(D) with the angular shape of deep water's upwelling light (`unit_columns.upwelling_shape`). A surface seen by the camera is then attenuated by the beam's c alone, its forward-scattered light
-being in J_ms through the seabed's mean exitance (counted once; the per-pixel detail is not blurred).
+plane of exitance E_u(D) with the angular shape of deep water's upwelling light (`unit_columns.upwelling_shape`).
+A surface seen by the camera is then attenuated by the beam's c alone, its forward-scattered light being in J_ms
+through the seabed's mean exitance (counted once; the per-pixel detail is not blurred).
 
 Not modelled: the seabed's relief and shadows in its mean exitance, light reflected by the seabed more than once,
 and the water surface over the seabed column (its upward light leaves through the surface unreflected anyway).

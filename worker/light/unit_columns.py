@@ -18,7 +18,7 @@ import numpy as np
 from seasynth import service
 from seasynth.worker.light import GORDON_PATH_FACTOR, Medium
 from seasynth.worker.light.column import GRID_PHI, GRID_THETA, Column, phase_kernel, solve
-from seasynth.worker.scene.disk_cache import load_npz, shared_folder, store_npz
+from seasynth.worker.scene.disk_cache import load_npz, shared_folder, store_npz, stored_once
 
 OMEGA_STEP, G_STEP, MU_STEP = 0.005, 0.01, 0.05
 PHOTONS = 20000  # per unit column (one channel, sun or sky)
@@ -67,10 +67,9 @@ def seabed_column(omega: float, g: float, upwelling: bool = False) -> Column:
     stored as unit_column."""
     z_max = DEPTHS_K / diffuse_rate(omega, g)
     rng = np.random.default_rng([SEED, round(omega / OMEGA_STEP), round(g / G_STEP), 998 + upwelling])
-    shape = upwelling_shape(omega, g) if upwelling else None
     return _stored(("seabed", omega, g, upwelling), lambda: _on_nodes(solve(
         1.0 - omega, omega, g, 1.0, 0.0, 1.0 / math.pi, z_max, rng, PHOTONS, cone_deg=90.0, sky_single=True,
-        sky_shape=shape, kernel=node_kernel(g))))
+        sky_shape=upwelling_shape(omega, g) if upwelling else None, kernel=node_kernel(g))))
 
 
 def upwelling_shape(omega: float, g: float) -> tuple[np.ndarray, np.ndarray]:
@@ -92,11 +91,8 @@ def _stored(what: tuple, build) -> Column:
         return build()
     key = repr((service.__version__, *what, PHOTONS, SEED, DEPTHS_K))
     path = folder / f"column-{hashlib.sha256(key.encode()).hexdigest()[:32]}.npz"
-    got = _load_column(path)
-    if got is None:
-        got = build()
-        store_npz(path, {f.name: np.asarray(getattr(got, f.name)) for f in dataclasses.fields(Column)})
-    return got
+    return stored_once(path, _load_column, build, lambda p, col: store_npz(
+        p, {f.name: np.asarray(getattr(col, f.name)) for f in dataclasses.fields(Column)}))
 
 
 def _load_column(path: Path) -> Column | None:

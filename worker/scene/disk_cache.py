@@ -12,6 +12,7 @@ empty) keeps it to the run; a folder that cannot be made does the same. Of the s
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import functools
 import hashlib
 import os
@@ -73,6 +74,37 @@ def load_npz(path: Path, make: Callable[[dict[str, np.ndarray]], T]) -> T | None
             return make({k: z[k] for k in z.files})
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
+
+
+def stored_once(path: Path, load: Callable[[Path], T | None], build: Callable[[], T],
+                store: Callable[[Path, T], None]) -> T:
+    """load(path), else build() and store it at path, with processes sharing the folder building it once: the
+    builder holds an exclusive lock on `path`.lock (released by the system if it dies) while the others wait for
+    it and then load what it stored. Where no lock can be made, each builds its own."""
+    got = load(path)
+    if got is not None:
+        return got
+    with _exclusive(path.with_name(path.name + ".lock")):
+        got = load(path)  # another process may have stored it while this one waited
+        if got is None:
+            got = build()
+            store(path, got)
+    return got
+
+
+@contextlib.contextmanager
+def _exclusive(lock: Path):
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o600)
+    except OSError:
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
 
 
 def run_folder() -> contextlib.AbstractContextManager[str | None]:
