@@ -54,7 +54,7 @@ class Report:
             f"Engine: {self.facts.get('engine', '?')} (Debian's docker.io, vfs storage, no iptables, no default "
             f"bridge), docker-compose {self.facts.get('compose', '?')}; images from docker/standins/build.sh "
             "(no Docker Hub here: deploy/README.md).",
-            "Stack: docker-compose.yml + docker/compose.standins.yml + tests/compose.recovery.yml (one-minute task "
+            "Stack: docker-compose.yml + docker/compose.standins.yml + tests/compose.recovery.yml (three-minute task "
             f"limit), profile monitor, {workers} shard worker(s); datasets of examples/urchins.yaml at "
             f"{size[0]}x{size[1]}.",
             "",

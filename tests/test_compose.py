@@ -1,6 +1,6 @@
 """The compose stack built and run for real: stand-ins for the Docker Hub images (docker/standins/build.sh), the api
 and worker images from their Dockerfiles, docker-compose.yml with docker/compose.standins.yml (and
-tests/compose.recovery.yml's one-minute task limit) on a private Docker engine (tests/compose_engine.py). Datasets
+tests/compose.recovery.yml's three-minute task limit) on a private Docker engine (tests/compose_engine.py). Datasets
 posted to it come back byte-identical to a local `seasynth generate`, also across a worker crash, a Redis restart
 and `down`/`up`; every container runs as non-root and turns healthy; Flower lists the workers; both /metrics answer.
 
