@@ -45,13 +45,17 @@ def _pixels(data: bytes) -> np.ndarray:
 
 def test_only_the_image_changes_and_it_is_a_jpeg_near_the_png(datasets):
     png, jpeg = tree(datasets["png"]), tree(datasets["jpeg"])
+    sizes = []
     for i in range(4):
         n = f"{i:06d}"
         a, b = png.pop(f"image_2/{n}.png"), jpeg.pop(f"image_2/{n}.jpg")
         assert b[:3] == b"\xff\xd8\xff" and b"JFIF" in b[:16]
         diff = np.abs(_pixels(a) - _pixels(b))
         assert 0 < diff.mean() < 4 and diff.max() < 96, (diff.mean(), diff.max())
-        assert len(b) < len(a)
+        sizes.append((len(a), len(b)))
+    # Smaller together; not each: at 64x48 a dark, nearly flat frame (frame 1, deep green water) makes a 598-byte
+    # PNG, below the JPEG's own headers and tables (775 bytes).
+    assert sum(b for _, b in sizes) < sum(a for a, _ in sizes), sizes
     for ds in (png, jpeg):  # what differs besides: the dataset's record (its spec) and the exports (their images)
         for rel in [r for r in ds if r == "seasynth.json" or r.startswith("export/")]:
             ds.pop(rel)
