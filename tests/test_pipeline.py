@@ -336,7 +336,7 @@ PHYSICAL_SUN = {"water.model": "physical", "water.jerlov": ["II", "1C"], "water.
 
 @pytest.mark.parametrize("example, changes, terms", [
     (NIGHT_DIVE, {}, {"lamp0", "lamp1", "lamp_spread", "scattering"}),
-    (EXAMPLE, PHYSICAL_SUN, {"sun", "sun_shadows", "sky", "scattering"}),
+    (EXAMPLE, PHYSICAL_SUN, {"sun", "sun_shadows", "sky", "scattering", "solved_column"}),
 ], ids=["night-dive-lamps", "physical-sun"])
 def test_physical_light_frames_are_the_same_across_workers_and_reproduce(tmp_path, example, changes, terms):
     """A scene lit by lamps (no sun or sky) and one lit by the sun through the water column: each frame's bytes

@@ -64,8 +64,9 @@ class GLRenderer:
     (`targets`, seasynth.worker.render.targets); the surface pass and its resolve are worker.render.surface.
 
     The passes in sibling modules (surface, gl_light, coverage) draw through the public members only: `gl`,
-    `programs`, `targets`, `textures`, `readback`, `mesh`, `draw`, `set_view`, `bind_and_clear`, `empty_vao` and the context's
-    facts (`name`, `max_samples`, `compute_resolve`, `compute_header`, `clip_control`, `sample_positions`).
+    `programs`, `targets`, `textures`, `readback`, `mesh`, `draw`, `set_view`, `bind_and_clear`, `empty_vao`,
+    `view_table_buffer` (the solved water's uniform block, gl_light's) and the context's facts (`name`,
+    `max_samples`, `compute_resolve`, `compute_header`, `clip_control`, `sample_positions`).
 
     The caches are bounded (mesh_budget_bytes of vertex and index buffers, texture_budget_bytes of texture images
     with their mipmaps, targets_per_kind framebuffers of each kind), so a long-lived worker that meets many assets
