@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from seasynth.worker.light.column import Column
-from seasynth.worker.light.unit_columns import DEPTHS_K, NODES_THETA, seabed_column, seabed_profile
+from seasynth.worker.light.unit_columns import NODES_THETA, reliable_depth, seabed_column, seabed_profile
 
 MIN_RISE = 1.0  # optical depths: looking up, the seabed's J is followed at least this far (more: the camera's height)
 # Looking down, J grows towards the seabed; the view ray's rate c - K_J w_z is kept at least (1 - MAX_GROWTH) c at
@@ -40,15 +40,11 @@ def growth_floor() -> np.ndarray:
     return np.where(polar > math.pi / 2 + 1e-9, -MAX_GROWTH / np.maximum(steepest, 1e-9), -1.0)
 
 
-def _reliable(col: Column, kappa: float) -> float:
-    return float(col.z[-1] - (DEPTHS_K - 8.0) / kappa)
-
-
 def _log_at(col: Column, values: np.ndarray, tau, kappa: float) -> np.ndarray:
     """log of `values` (nz, ...) (positive) at optical depths tau (scalar or (n,)): linear in log between layer
     centres, the first layer's value above it, past the column's reliable depth continued at the diffuse rate
     kappa. Returns (...) or (n, ...)."""
-    reliable = _reliable(col, kappa)
+    reliable = reliable_depth(col, kappa)
     tau = np.asarray(tau, np.float64)
     t = np.clip(tau, float(col.z[0]), reliable)
     logs = np.log(np.maximum(values, 1e-300))
@@ -89,7 +85,7 @@ def seabed_j(omega: float, g: float, tau_h: float, kappa: float,
 @functools.lru_cache(maxsize=64)
 def _height_table(omega: float, g: float, kappa: float, upwelling: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     col = seabed_column(omega, g, upwelling)
-    heights = np.linspace(0.0, math.sqrt(_reliable(col, kappa)), HEIGHT_NODES) ** 2
+    heights = np.linspace(0.0, math.sqrt(reliable_depth(col, kappa)), HEIGHT_NODES) ** 2
     rows = [_at_height(col, seabed_profile(omega, g, upwelling), float(h), kappa) for h in heights]
     log_j = np.log(np.maximum(np.array([r[0] for r in rows]), 1e-300))
     return heights, log_j, np.array([r[1] for r in rows])
@@ -101,7 +97,7 @@ def _at_height(col: Column, prof: np.ndarray, h: float, kappa: float) -> tuple[n
     `growth_floor`; looking up, the secant of log J from the camera's height to MIN_RISE or the camera's height above
     it, whichever is more."""
     j = np.exp(_log_at(col, prof, h, kappa))
-    hi = min(h + max(h, MIN_RISE), _reliable(col, kappa))
+    hi = min(h + max(h, MIN_RISE), reliable_depth(col, kappa))
     up = (_log_at(col, prof, hi, kappa) - np.log(np.maximum(j, 1e-300))) / (hi - h) if hi > h + 1e-9 \
         else np.zeros_like(j)
     polar = np.radians(np.linspace(0.0, 180.0, NODES_THETA))

@@ -26,13 +26,13 @@ from seasynth.worker.light.column import Column
 from seasynth.worker.light.seabed import exitances, growth_floor, seabed_j
 from seasynth.worker.light.sky import MU_SKY, window_radiance
 from seasynth.worker.light.unit_columns import (
-    DEPTHS_K,
     NODES_PHI,
     NODES_THETA,
     PHOTONS,
     SEED,
     diffuse_rate,
     quantised,
+    reliable_depth,
     unit_column,
 )
 
@@ -65,7 +65,7 @@ def at_depth(col: Column, tau: float, kappa: float) -> tuple[np.ndarray, np.ndar
     [-1, 1]); J_ms is the tent-weighted mean of the layers within WINDOW_K, each brought to tau at its direction's
     rate. Every weight is continuous in tau, so the table is too. Past the column's reliable depth, continued at the
     rates looking down. col: a unit column, its j on the table's nodes (`unit_columns.unit_column`)."""
-    reliable = col.z[-1] - (DEPTHS_K - 8.0) / kappa
+    reliable = reliable_depth(col, kappa)
     t = min(tau, reliable)
     h = max(WINDOW_K / kappa, 4.0 * col.dz)
     near = (col.z > t - h) & (col.z < max(t + h, h))  # every layer any weight below reaches
@@ -176,7 +176,7 @@ def _log_profile(col: Column, tau: np.ndarray, kappa: float, minus_beam: bool) -
         edges = np.exp(-np.arange(len(col.z) + 1) * col.dz / col.mu_sun)
         e = e - col.e_sun * col.mu_sun * col.mu_sun / col.dz * (edges[:-1] - edges[1:])  # the layer means `solve` adds
         first = 1e-30
-    reliable = col.z[-1] - (DEPTHS_K - 8.0) / kappa
+    reliable = reliable_depth(col, kappa)
     keep = (col.z <= reliable) & (e > 0)
     z, y = np.concatenate([[0.0], col.z[keep]]), np.log(np.concatenate([[max(first * top, 1e-30)], e[keep]]) / top)
     tail = z >= z[-1] - 1.0 / kappa

@@ -72,13 +72,19 @@ def seabed_column(omega: float, g: float, upwelling: bool = False) -> Column:
         sky_shape=upwelling_shape(omega, g) if upwelling else None, kernel=node_kernel(g))))
 
 
+def reliable_depth(col: Column, kappa: float) -> float:
+    """The deepest optical depth of a unit column (or height of a seabed column) whose layers are reliable: the
+    last DEPTHS_K - 8 diffuse lengths only feed the ones above. kappa: diffuse_rate of its water."""
+    return float(col.z[-1] - (DEPTHS_K - 8.0) / kappa)
+
+
 def upwelling_shape(omega: float, g: float) -> tuple[np.ndarray, np.ndarray]:
     """(mu (10,) ascending, radiance (10,)) of the light going up in deep open water by the cosine of its angle to
     the vertical, relative: the sky's column's J looking down over its last reliable diffuse length (azimuth mean),
     as the path radiance J / (1 + kappa mu) of a ray looking down into water whose J falls at the diffuse rate."""
     col = unit_column(omega, g, None)
     kappa = diffuse_rate(omega, g)
-    reliable = col.z[-1] - (DEPTHS_K - 8.0) / kappa
+    reliable = reliable_depth(col, kappa)
     deep = (col.z > reliable - 1.0 / kappa) & (col.z <= reliable)
     j = col.j[deep].mean(axis=(0, -1), dtype=np.float64)[(NODES_THETA - 1) // 2:]  # polar 90..180: looking down
     mu = np.cos(np.radians(np.linspace(90.0, 180.0, len(j)))) * -1.0  # 0..1: the light's angle to the vertical
