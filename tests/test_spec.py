@@ -7,10 +7,11 @@ import math
 
 import pytest
 import yaml
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 from spec_helpers import EXAMPLE, MAPPING, refusal
 
+from seasynth.service.errors import SpecError
 from seasynth.service.spec.dataset import DatasetSpec, apply_overrides, load_spec, parse_spec, spec_digest
 from seasynth.service.spec.scene import MAX_SIDE
 
@@ -61,6 +62,41 @@ def test_contract_keys_and_defaults():
 def test_default_spec_round_trips_through_its_json_dump():
     spec = DatasetSpec()
     assert parse_spec(json.loads(spec.model_dump_json())) == spec
+
+
+EXAMPLES = sorted(EXAMPLE.parent.glob("*.yaml"))
+INTERVAL = st.floats(0.02, 0.5).map(lambda v: {"min": [v, v / 2, v / 4], "max": [2 * v, v, v / 2]})
+WATER = st.fixed_dictionaries({}, optional={
+    "enabled": st.booleans(), "model": st.sampled_from(["paper", "physical", None]),
+    "jerlov": st.lists(st.sampled_from(["I", "II", "III", "1C", "3C", "5C", "9C"]), max_size=3),
+    "solved_column": st.booleans(), "forward_scatter": st.booleans(), "beta_D": INTERVAL, "B_inf": INTERVAL,
+    "absorption": INTERVAL, "scattering": INTERVAL, "depth_m": st.sampled_from([[2.0, 4.0], [30.0, 200.0]]),
+    "particles": st.fixed_dictionaries({"enabled": st.booleans()})})
+SECTIONS = st.fixed_dictionaries({}, optional={
+    "water": WATER, "terrain": st.fixed_dictionaries({}, optional={"far_field": st.booleans(),
+                                                                    "styles": st.sampled_from([["sand"], ["rock"]])}),
+    "lighting": st.fixed_dictionaries({}, optional={"shadows": st.booleans(), "lamps": st.sampled_from(
+        [[], [{"intensity": [20.0, 40.0]}]])}),
+    "outputs": st.fixed_dictionaries({}, optional={k: st.booleans() for k in ("depth", "range", "coco", "clean")}),
+    "quality": st.sampled_from(["draft", "default"])})
+
+
+@given(base=st.sampled_from([{}, MAPPING, *EXAMPLES]), sections=SECTIONS)
+def test_every_valid_spec_reads_back_from_its_dumps_as_itself(base, sections):
+    """A spec's full, default-free and None-free dumps (what the service stores, digests and the benches write) each
+    parse back to the spec they came from, with its digest and its resolved water model: a field whose default only
+    applies to some specs (water.solved_column) must not refuse the dump of the others."""
+    data = yaml.safe_load(base.read_text()) if hasattr(base, "read_text") else dict(base)
+    data = {**data, **{k: {**data.get(k, {}), **v} if isinstance(v, dict) else v for k, v in sections.items()}}
+    try:
+        spec = parse_spec(data)
+    except SpecError:
+        assume(False)
+    for dump in ({}, {"exclude_defaults": True}, {"exclude_none": True}):
+        back = parse_spec(json.loads(spec.model_dump_json(**dump)))
+        assert back == spec, dump
+        assert spec_digest(back) == spec_digest(spec), dump
+        assert back.water.resolved_model == spec.water.resolved_model, dump
 
 
 # --- the example ---------------------------------------------------------------------------------------------

@@ -120,9 +120,6 @@ REFUSED = [
      "physical (got enabled True, model paper)"),
     ({"water": {"enabled": False, "forward_scatter": True}}, "water", "(got enabled False, model physical)"),
     ({"water": {"forward_scatter": "yes"}}, "water.forward_scatter", "valid boolean"),
-    ({"water": {"model": "paper", "solved_column": True}}, "water",
-     "solved_column solves the physical model's water column; it needs water.enabled: true and water.model: "
-     "physical (got enabled True, model paper)"),
     ({"water": {"solved_column": 1}}, "water.solved_column", "valid boolean"),
 ]
 

@@ -140,7 +140,8 @@ class Water(SpecModel):
     forward_scatter: StrictBool = False
     # The sun's and the sky's light along view rays and on surfaces from the solved water column
     # (seasynth.worker.light.solved, docs/light.md); off: today's closed form through K (0.10 and before). Physical
-    # model only (the paper's model ignores it unless it is set).
+    # model only: the paper's model and water that is off ignore it, so that every spec's dump (where it is true by
+    # default) reads back as the spec it came from.
     solved_column: StrictBool = True
     particles: Particles = Particles()
 
@@ -171,10 +172,6 @@ class Water(SpecModel):
         if self.forward_scatter and not (self.enabled and model == "physical"):
             raise ValueError("forward_scatter spreads light the physical model scatters; it needs water.enabled: "
                              f"true and water.model: physical (got enabled {self.enabled}, model {model})")
-        if self.solved_column and "solved_column" in self.model_fields_set and not (self.enabled
-                                                                                 and model == "physical"):
-            raise ValueError("solved_column solves the physical model's water column; it needs water.enabled: true "
-                             f"and water.model: physical (got enabled {self.enabled}, model {model})")
         self._particles_described(model)
         if not self.enabled or self.jerlov:
             return self
