@@ -33,7 +33,8 @@ RUN apt-get update \
       > /usr/share/glvnd/egl_vendor.d/10_nvidia.json \
  && groupadd --system --gid 10001 seasynth \
  && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth \
- && mkdir -p /var/cache/seasynth/gl && chown 10001:10001 /var/cache/seasynth/gl
+ && mkdir -p /var/cache/seasynth/gl /var/cache/seasynth/build \
+ && chown 10001:10001 /var/cache/seasynth/gl /var/cache/seasynth/build
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
@@ -45,12 +46,14 @@ ENV PATH=/opt/venv/bin:$PATH \
     NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics \
     SEASYNTH_GPUS=auto \
     __GL_SHADER_DISK_CACHE_PATH=/var/cache/seasynth/gl \
-    __GL_SHADER_DISK_CACHE_SIZE=134217728
+    __GL_SHADER_DISK_CACHE_SIZE=134217728 \
+    SEASYNTH_CACHE_DIR=/var/cache/seasynth/build
 # The driver's compiled shaders live in __GL_SHADER_DISK_CACHE_PATH: mount a volume there (compose and the
 # Kubernetes manifests do) so a restarted worker finds them. On an H100 host a fresh cache made each render
 # process's first frame about 0.4 s slower (median 817-930 ms against 473-524; bench/results/gpu/shader-cache.md).
 # The driver keeps the cache under __GL_SHADER_DISK_CACHE_SIZE (128 MiB; the example's shaders took 3.6 MB),
-# below the Kubernetes volume's 256 MiB limit.
+# below the Kubernetes volume's 256 MiB limit. SEASYNTH_CACHE_DIR: what the render processes build once, as in
+# worker.Dockerfile (compose shares one volume there among the worker containers).
 COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
 # The venv is the last layer with files: under Docker's vfs driver each layer holds a whole copy of the ones
 # before it, and a layer after the venv would copy it again.

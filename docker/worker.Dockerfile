@@ -23,14 +23,19 @@ RUN apt-get update \
       libegl1 libgl1 libegl-mesa0 libgles2 libgl1-mesa-dri \
  && rm -rf /var/lib/apt/lists/* \
  && groupadd --system --gid 10001 seasynth \
- && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth
+ && useradd --system --uid 10001 --gid 10001 --create-home --home-dir /home/seasynth seasynth \
+ && mkdir -p /var/cache/seasynth/build && chown 10001:10001 /var/cache/seasynth/build
 # PYGLET_HEADLESS: pyrender imports pyglet, which needs X libraries unless headless.
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
     PYOPENGL_PLATFORM=egl \
     PYGLET_HEADLESS=1 \
-    REMAP_SIGTERM=SIGQUIT
+    REMAP_SIGTERM=SIGQUIT \
+    SEASYNTH_CACHE_DIR=/var/cache/seasynth/build
+# What the render processes build once (terrain variants, texture sets, solved water columns; docs/cli.md) lives in
+# SEASYNTH_CACHE_DIR: compose mounts one named volume there for every worker container, so a water's columns are
+# solved once for all of them (a lock file makes the others wait and read them) and outlive the containers.
 COPY docker/healthcheck.py /usr/local/lib/seasynth/healthcheck.py
 # The venv is the last layer with files: under Docker's vfs driver each layer holds a whole copy of the ones
 # before it, and a layer after the venv would copy it again.

@@ -173,6 +173,21 @@ def test_compose_gpu_workers_keep_the_drivers_shader_cache(compose, name):
     assert source in compose["volumes"], "a named volume, not a folder of the host"
 
 
+@pytest.mark.parametrize("name", sorted(WORKERS))
+def test_compose_worker_containers_share_one_build_cache(compose, name):
+    """Every worker image points SEASYNTH_CACHE_DIR (terrain variants, texture sets, solved water columns) at a
+    folder its user owns, and compose mounts the same named volume there in every worker service: scaled containers
+    solve a water's columns once between them."""
+    stage = parse_dockerfile(ROOT / IMAGES[WORKERS[name]["image"]]["dockerfile"])[-1]
+    path = _env(stage)["SEASYNTH_CACHE_DIR"]
+    commands = [c.split() for instr, args in stage if instr == "RUN" for c in args.replace("\\\n", " ").split("&&")]
+    assert any(c[:2] == ["mkdir", "-p"] and path in c for c in commands), "the image makes the cache folder"
+    assert any(c[:2] == ["chown", "10001:10001"] and path in c for c in commands), \
+        "the image's user must own the cache folder (a new volume copies it)"
+    (source,) = [v.split(":")[0] for v in compose["services"][name]["volumes"] if v.split(":")[1] == path]
+    assert source == "build-cache" and source in compose["volumes"], "one named volume for every worker"
+
+
 def test_compose_gpu_profile_replaces_every_cpu_worker():
     """A dataset keeps the renderer of the first worker that takes it: the documented GPU command line must leave
     no CPU worker on the queues, and must start a GPU worker for each queue kind the CPU ones served."""
