@@ -247,3 +247,18 @@ def test_neighbouring_rings_share_their_loop_and_the_seabed_runs_on_across_it(te
     linear = decode_srgb8(np.asarray(far.mesh.visual.vertex_colors)[:, :3], np.float64)
     bound = seabed.mean_rgb * seabed.tone * LIPSCHITZ * step[:, None] + 0.01  # 0.01: 8-bit rounding at both ends
     assert (np.abs(linear[a] - linear[b]) <= bound).all()
+
+
+def test_a_process_builds_each_terrains_far_field_once():
+    """A render process keeps the far field of every terrain the example draws (30 with its styles, variants and
+    materials): sampling its scenes twice over builds each one once, where a smaller cache rebuilt it for 40% of the
+    frames (bench/results/cpu/far-field-cache)."""
+    from seasynth.worker.frame.function import RenderSession
+
+    spec = load_spec(EXAMPLE, {"frames": 120})
+    session = RenderSession()
+    far_field.cache_clear()
+    keys = {session.scene(spec, i % spec.frames).terrain.key for i in range(2 * spec.frames)}
+    info = far_field.cache_info()
+    assert info.misses == len(keys) and info.hits == 2 * spec.frames - len(keys)
+    assert len(keys) <= info.maxsize

@@ -171,8 +171,8 @@ def sample_scene(spec: DatasetSpec, rng: np.random.Generator, asset_for: AssetSo
     )
 
 
-@functools.lru_cache(maxsize=8)
-def _seabed_of(terrain: Terrain):  # a frame's terrain is one of the few its process keeps
+@functools.lru_cache(maxsize=64)
+def _seabed_of(terrain: Terrain):  # as many terrains as far_field keeps: every one a spec draws
     return seabed_of(terrain)
 
 
