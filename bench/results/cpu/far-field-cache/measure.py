@@ -11,10 +11,10 @@ import statistics
 import sys
 import time
 
-import seasynth.worker.scene.far_field as far
-import seasynth.worker.scene.sample as sample
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.frame.function import RenderSession
+from seasynth.worker.scene import far_field as far
+from seasynth.worker.scene import sample
 
 frames = int(sys.argv[1]) if len(sys.argv) > 1 else 200
 spec = load_spec("examples/urchins.yaml", {"frames": frames})
