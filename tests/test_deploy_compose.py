@@ -157,6 +157,13 @@ def test_compose_gpu_workers_are_an_opt_in_profile_with_an_nvidia_device(compose
     assert "profiles" not in compose["services"]["worker"]
 
 
+def _image_user_owns(stage: list[tuple[str, str]], path: str) -> bool:
+    """Whether a RUN of the image's stage makes `path` (mkdir -p) and gives it to the image's user (uid 10001)."""
+    commands = [c.split() for instr, args in stage if instr == "RUN" for c in args.replace("\\\n", " ").split("&&")]
+    return (any(c[:2] == ["mkdir", "-p"] and path in c for c in commands)
+            and any(c[:2] == ["chown", "10001:10001"] and path in c for c in commands))
+
+
 @pytest.mark.parametrize("name", ["worker-gpu", "worker-frames-gpu"])
 def test_compose_gpu_workers_keep_the_drivers_shader_cache(compose, name):
     """The image points the NVIDIA driver's shader cache at a folder its user owns; compose mounts a named volume
@@ -166,8 +173,7 @@ def test_compose_gpu_workers_keep_the_drivers_shader_cache(compose, name):
     # the driver keeps the cache within its size (no SKIP_CLEANUP), below the Kubernetes volume's limit
     assert "__GL_SHADER_DISK_CACHE_SKIP_CLEANUP" not in _env(stage)
     assert int(_env(stage)["__GL_SHADER_DISK_CACHE_SIZE"]) <= 128 * 2**20
-    assert any(instr == "RUN" and f"mkdir -p {path}" in args and f"chown 10001:10001 {path}" in args
-               for instr, args in stage), "the image's user must own the cache folder (a new volume copies it)"
+    assert _image_user_owns(stage, path), "the image's user must own the cache folder (a new volume copies it)"
     # docker-compose 1.x's `config` keeps the short form SOURCE:TARGET[:MODE]
     (source,) = [v.split(":")[0] for v in compose["services"][name]["volumes"] if v.split(":")[1] == path]
     assert source in compose["volumes"], "a named volume, not a folder of the host"
@@ -180,10 +186,7 @@ def test_compose_worker_containers_share_one_build_cache(compose, name):
     solve a water's columns once between them."""
     stage = parse_dockerfile(ROOT / IMAGES[WORKERS[name]["image"]]["dockerfile"])[-1]
     path = _env(stage)["SEASYNTH_CACHE_DIR"]
-    commands = [c.split() for instr, args in stage if instr == "RUN" for c in args.replace("\\\n", " ").split("&&")]
-    assert any(c[:2] == ["mkdir", "-p"] and path in c for c in commands), "the image makes the cache folder"
-    assert any(c[:2] == ["chown", "10001:10001"] and path in c for c in commands), \
-        "the image's user must own the cache folder (a new volume copies it)"
+    assert _image_user_owns(stage, path), "the image's user must own the cache folder (a new volume copies it)"
     (source,) = [v.split(":")[0] for v in compose["services"][name]["volumes"] if v.split(":")[1] == path]
     assert source == "build-cache" and source in compose["volumes"], "one named volume for every worker"
 
