@@ -32,6 +32,10 @@ def spec(frames: int, shard_size: int) -> dict[str, Any]:
     s = yaml.safe_load(EXAMPLE.read_text())
     s.update(frames=frames, shard_size=shard_size)
     s["camera"].update(width=WIDTH, height=HEIGHT)
+    # The stack is under test, not the light: the water's closed form. The example's four Jerlov types under random
+    # suns meet hundreds of unit columns to solve, and its first shards passed the three-minute task limit
+    # (tests/compose.recovery.yml) on the 2-core machine while the other tests ran beside.
+    s["water"]["solved_column"] = False
     return s
 
 
@@ -120,8 +124,9 @@ class Stack:
     def reference(self, frames: int) -> dict[str, bytes]:
         """`seasynth generate` of the example at this size on this machine, the plain CLI a user runs."""
         if frames not in self.local:
-            out = self.tmp / f"local-{frames}"
-            cli("generate", EXAMPLE, "--out", out, "--frames", frames, "--width", WIDTH, "--height", HEIGHT)
+            out, spec_file = self.tmp / f"local-{frames}", self.tmp / f"spec-{frames}.json"
+            spec_file.write_text(json.dumps(spec(frames, shard_size=1)))  # a dataset's frames follow no shard size
+            cli("generate", spec_file, "--out", out)
             self.local[frames] = tree(out)
         return self.local[frames]
 
