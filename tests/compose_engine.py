@@ -87,7 +87,10 @@ def docker_engine(folder: Path) -> Iterator[Engine]:
         shutil.rmtree(folder, ignore_errors=True)
         raise
     sock = folder / "docker.sock"
-    env = {**os.environ, "DOCKER_HOST": f"unix://{sock}", "DOCKER_BUILDKIT": "0", "COMPOSE_DOCKER_CLI_BUILD": "0"}
+    # COMPOSE_HTTP_TIMEOUT: docker-compose's wait on the engine, 60 s by default, under the workers' 90 s stop grace
+    # period (docker-compose.yml): `down` timed out on the worker containers while other tests loaded the machine.
+    env = {**os.environ, "DOCKER_HOST": f"unix://{sock}", "DOCKER_BUILDKIT": "0", "COMPOSE_DOCKER_CLI_BUILD": "0",
+           "COMPOSE_HTTP_TIMEOUT": "300"}
     log = folder / "dockerd.log"
     with open(log, "wb") as out:
         daemon = subprocess.Popen(
