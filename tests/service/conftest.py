@@ -24,8 +24,9 @@ def infra(tmp_path_factory) -> Iterator[Stack]:
         "SEASYNTH_S3_BUCKET": BUCKET,
         "SEASYNTH_S3_CREATE_BUCKET": "true",
         # A frame or preview of a water no process met yet waits on its column solves first: the playground's
-        # default spec took over 30 s on the 2-core CPU beside the compose test's builds (CI), so 120.
-        "SEASYNTH_FRAME_TIMEOUT_S": "120",
+        # default spec's first preview took 118 s on the 2-core CPU from an empty cache folder, more beside the
+        # compose test's builds (CI), so 300.
+        "SEASYNTH_FRAME_TIMEOUT_S": "300",
         "SEASYNTH_WORKER_SOFT_SHUTDOWN_S": "2",
         "SEASYNTH_TASK_TIME_LIMIT_S": "300",  # shard_size 1000 of tiny frames fits its budget
         "SEASYNTH_MAX_FRAMES": "500000",  # below the spec's own cap (1,000,000), so both refusals can be seen

@@ -81,7 +81,7 @@ def test_in_the_browser_the_page_asks_for_the_key_then_previews(keyed, tmp_path)
         spec = wait(lambda: (s := driver.execute_script("return spec;"))["camera"] == {"width": 64, "height": 48}
                     and s, 10, "the page's spec")
         r = httpx.post(f"{keyed}/playground/preview", json={"spec": spec, "frame": 0, "views": []},
-                       headers={"X-API-Key": KEY}, timeout=150)  # the default water's columns are solved first
+                       headers={"X-API-Key": KEY}, timeout=330)  # the default water's columns are solved first
         assert r.status_code == 200, r.text
         want = r.json()["images"]["image"]
         wait(lambda: driver.find_element("id", "preview-image").get_attribute("src") == want, 90,
