@@ -138,11 +138,13 @@ def test_every_example_has_recorded_hashes():
 
 
 def test_the_summaries_see_what_a_change_of_code_would_change():
-    """A meta float moved in its tenth digit or one pixel in 300 moved by 8 changes the summary; a move in the
-    sixteenth digit does not."""
+    """A meta float moved in its ninth digit, or one pixel in ten moved by 8, changes the summary past what is
+    allowed; a move in the fourteenth digit, or four pixels moved by 1, does not."""
     meta = json.dumps({"pose": [0.12345678901234, 2.0], "n": 3}).encode()
-    assert summary("meta/0.json", meta) == summary("meta/0.json", meta.replace(b"234]", b"237]"))
-    assert summary("meta/0.json", meta) != summary("meta/0.json", meta.replace(b"8901234", b"9001234"))
+    last, ninth = meta.replace(b"01234,", b"01237,"), meta.replace(b"8901234,", b"9001234,")
+    assert last != meta and ninth != meta
+    assert summary("meta/0.json", meta) == summary("meta/0.json", last)
+    assert summary("meta/0.json", meta) != summary("meta/0.json", ninth)
     import imageio.v3 as iio
 
     image = np.random.default_rng(0).integers(0, 240, (48, 64, 3), dtype=np.uint8)
