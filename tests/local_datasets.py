@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import yaml
+
 from seasynth.service.spec.dataset import load_spec
 from seasynth.worker.local.generate import generate, reproduce
 
@@ -14,6 +16,15 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "urchins.yaml"
 # (four Jerlov types under random suns) made a 7-frame 48x36 dataset take 126 s on the 2-core CPU, nearly all of it
 # first solves.
 CLOSED_FORM = {"water.solved_column": False}
+
+
+def closed_form_example(folder: Path) -> Path:
+    """examples/urchins.yaml with CLOSED_FORM, written into `folder` as a spec file for the CLI and the benches."""
+    spec = yaml.safe_load(EXAMPLE.read_text())
+    spec["water"]["solved_column"] = False
+    path = folder / "urchins.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
 
 
 def generate_variants(root: Path, base: dict, variants: dict[str, tuple[dict, int]]) -> dict[str, Path]:

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-import yaml
+from local_datasets import closed_form_example
 
 from seasynth.bench import meters, scale
 from seasynth.bench.scale_service import service_shard_size
@@ -18,11 +18,7 @@ FIELDS = ("mode", "width", "height", "preset", "workers", "gpus", "frames", "fir
 def test_scale_rows_and_files(tmp_path):
     # The bench's rows are under test, not the light: the example with the water's closed form, whose frames need no
     # column solves (the example's Jerlov types under random suns meet hundreds; CI's 2-core machine timed out on them).
-    spec = yaml.safe_load(Path("examples/urchins.yaml").read_text())
-    spec["water"]["solved_column"] = False
-    spec_file = tmp_path / "urchins.yaml"
-    spec_file.write_text(yaml.safe_dump(spec))
-    rows = scale.run(spec_file, resolutions=[(32, 24)], workers=[1, 2], frames_per_worker=4,
+    rows = scale.run(closed_form_example(tmp_path), resolutions=[(32, 24)], workers=[1, 2], frames_per_worker=4,
                      preset="draft", out=tmp_path, platform="egl", machine="test machine", modes=("cli", "service"))
     assert [(r["mode"], r["workers"], r["frames"]) for r in rows] == [
         ("cli", 1, 4), ("service", 1, 4), ("cli", 2, 8), ("service", 2, 8)]

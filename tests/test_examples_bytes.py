@@ -35,6 +35,7 @@ ROUND_DIGITS = 9  # the CPU's differences are at 1e-16 relative; the code's own 
 MEAN_TOLERANCE = 0.02  # in the image's own steps: a thousand pixels 1 apart move a 640x480 mean by 0.003
 # The files whose bytes follow the CPU (module docstring): camera and sonar images, meta and navigation records.
 CPU_BOUND = ("image_2/", "meta/", "fls/", "fls_fan/", "sss/", "nav/")
+SIMD_LEVELS = ("X86_V2", "X86_V3", "X86_V4", "AVX512_ICL", "AVX512_SPR")  # numpy's x86-64 levels, lowest first
 
 
 def generate(name: str, out: Path) -> dict[str, bytes]:
@@ -91,8 +92,7 @@ def platform(renderer: str) -> str:
     """What a CPU-bound file's bytes depend on besides the code: the GL renderer, the CPU, numpy and its SIMD level."""
     from numpy._core._multiarray_umath import __cpu_features__ as features
 
-    simd = max((f for f in ("X86_V2", "X86_V3", "X86_V4", "AVX512_ICL", "AVX512_SPR") if features.get(f)),
-               default="baseline", key=["baseline", "X86_V2", "X86_V3", "X86_V4", "AVX512_ICL", "AVX512_SPR"].index)
+    simd = ([level for level in SIMD_LEVELS if features.get(level)] or ["baseline"])[-1]
     return f"{renderer} | {cpu_name()} | numpy {np.__version__} {simd}"
 
 
@@ -152,12 +152,10 @@ def test_the_summaries_see_what_a_change_of_code_would_change():
     moved[::5, ::2] += 8
     near = image.copy()
     near[0, :4] += 1
-    mean = summary("image_2/0.png", iio.imwrite("<bytes>", image, extension=".png"))
-    assert summary("image_2/0.png", iio.imwrite("<bytes>", near, extension=".png")) != mean
-    assert all(abs(a - b) <= MEAN_TOLERANCE for a, b in zip(
-        mean, summary("image_2/0.png", iio.imwrite("<bytes>", near, extension=".png")), strict=True))
-    assert any(abs(a - b) > MEAN_TOLERANCE for a, b in zip(
-        mean, summary("image_2/0.png", iio.imwrite("<bytes>", moved, extension=".png")), strict=True))
+    mean, near_mean, moved_mean = (summary("image_2/0.png", iio.imwrite("<bytes>", a, extension=".png"))
+                                   for a in (image, near, moved))
+    assert near_mean != mean and all(abs(a - b) <= MEAN_TOLERANCE for a, b in zip(mean, near_mean, strict=True))
+    assert any(abs(a - b) > MEAN_TOLERANCE for a, b in zip(mean, moved_mean, strict=True))
 
 
 @pytest.mark.parametrize("name", EXAMPLES)

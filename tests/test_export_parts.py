@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from local_datasets import CLOSED_FORM, EXAMPLE, seasynth, tree
+from local_datasets import CLOSED_FORM, EXAMPLE, closed_form_example, seasynth, tree
 
 from seasynth.service.errors import ExportError
 from seasynth.service.shards import shard_at, shard_count
@@ -165,14 +165,12 @@ def test_a_coco_merge_refuses_an_image_file_name_that_is_not_plain(dataset, tmp_
 
 
 def test_generate_writes_the_spec_exports(tmp_path):
-    spec = tmp_path / "spec.yaml"
-    data = yaml.safe_load(EXAMPLE.read_text())
-    data["water"]["solved_column"] = False  # CLOSED_FORM
-    spec.write_text(yaml.safe_dump(data))
+    spec = closed_form_example(tmp_path)
     out = tmp_path / "ds"
     r = seasynth("generate", spec, "--out", out, "--width", "32", "--height", "24", "--frames", "3")
     assert r.returncode == 0, r.stderr
     assert not (out / GENERATED_EXPORTS).exists()  # no export format in the spec: no export folder
+    data = yaml.safe_load(spec.read_text())
     data.setdefault("outputs", {}).update(coco=True, yolo=True, split=[0.5, 0.5, 0.0])
     spec.write_text(yaml.safe_dump(data))
     r = seasynth("generate", spec, "--out", out, "--width", "32", "--height", "24", "--frames", "3", "--overwrite")
