@@ -238,13 +238,13 @@ def export_scenes(out: Path, *, configs: dict[str, str], platform: str,
 
 def stored_reference(references: Path | None, name: str, pts):
     """The stored reference of this configuration if one exists for exactly this scene, else None."""
-    from seasynth.bench.reference import REF_SUFFIX, load_reference, scene_digest
+    from seasynth.bench.reference import REF_SUFFIX, load_reference, same_scene, scene_digest
 
     path = references / f"{reference_name(name, (pts.width, pts.height))}{REF_SUFFIX}" if references else None
     if path is None or not path.exists():
         return None
     ref = load_reference(path)
-    if ref.scene_sha256 != scene_digest(pts):
+    if not same_scene(ref, pts):
         raise SystemExit(f"{path}: rendered for another scene (sha256 {ref.scene_sha256[:12]}, this configuration's "
                          f"is {scene_digest(pts)[:12]}); re-export the scenes and render it again")
     return ref

@@ -4,7 +4,9 @@ A multiply-scattering sun through metres of forward-scattering water (HG g ~ 0.9
 path-traced frame needs about 10^5 samples per pixel before its noise floor clears 40 dB, hours on two cores. So a
 reference is rendered once, anywhere Mitsuba runs (its `cuda_ad_rgb` variant on a GPU host, or `llvm_ad_rgb` on
 many cores), stored beside the fidelity table, and scored on any machine. A reference is tied to its exported scene
-by the scene's digest (`scene_digest`): change the scene and the stored reference no longer matches.
+by the scene's digest (`scene_digest`) and, for machines whose float kernels round the export's last bits otherwise
+(BLAS and SIMD paths follow the CPU), by its fingerprint (`scene_fingerprint`): change the scene and the stored
+reference no longer matches (`same_scene`).
 
 This module needs only numpy and Mitsuba (not the rest of seasynth), so a render host needs nothing else:
 
@@ -73,6 +75,67 @@ def scene_digest(scene: PTScene) -> str:
         h.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
         h.update(a.tobytes())
     return h.hexdigest()
+
+
+FINGERPRINT_RUNS = 16  # a float array's sums are taken over this many equal runs of its flattened elements
+FINGERPRINT_RTOL = 1e-6  # of a run's magnitude: 8 float32 steps on every element move a run's sum by <= 4.8e-7
+FINGERPRINT_ATOL = 1e-12  # where a value sits at zero (metres, radiance, 1/m: far below anything rendered)
+
+
+def scene_fingerprint(scene: PTScene) -> dict[str, list]:
+    """The scene's arrays (as `scene_digest` takes them) up to their floats' last bits: per float array its dtype,
+    shape and, over FINGERPRINT_RUNS equal runs of its elements, each run's sum and sum of magnitudes (float64);
+    per other array (faces, ids, image digests, names) its dtype, shape and sha256."""
+    out = {}
+    for name, a in sorted(_scene_arrays(scene).items()):
+        head = [a.dtype.str, list(a.shape)]
+        if a.dtype.kind == "f":
+            runs = np.array_split(a.astype(np.float64).ravel(), min(FINGERPRINT_RUNS, max(a.size, 1)))
+            out[name] = head + [[float(r.sum()) for r in runs], [float(np.abs(r).sum()) for r in runs]]
+        else:
+            out[name] = head + [hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()]
+    return out
+
+
+def fingerprints_agree(a: dict[str, list], b: dict[str, list], rtol: float = FINGERPRINT_RTOL,
+                       atol: float = FINGERPRINT_ATOL) -> bool:
+    """Same arrays, dtypes, shapes and exact parts; each float run's sum and magnitude within rtol of the larger of
+    its magnitude and the array's mean run magnitude, plus atol."""
+    if a.keys() != b.keys():
+        return False
+    for name, x in a.items():
+        y = b[name]
+        if x[:2] != y[:2] or len(x) != len(y) or (len(x) == 3 and x[2] != y[2]):
+            return False
+        if len(x) == 4:
+            (sa, ma), (sb, mb) = (np.array(x[2:]), np.array(y[2:]))
+            scale = np.maximum(np.maximum(ma, mb), max(ma.mean(), mb.mean()))
+            if np.any(np.abs(sa - sb) > rtol * scale + atol) or np.any(np.abs(ma - mb) > rtol * scale + atol):
+                return False
+    return True
+
+
+def same_scene(ref: Reference, scene: PTScene) -> bool:
+    """Whether `ref` was rendered for `scene`: the same digest, or the same fingerprint (the export made again on a
+    machine whose float kernels round otherwise)."""
+    if ref.scene_sha256 == scene_digest(scene):
+        return True
+    return ref.scene_fingerprint is not None and fingerprints_agree(ref.scene_fingerprint, scene_fingerprint(scene))
+
+
+def stamp_fingerprint(path: Path, scene: PTScene, *, check_digest: bool = True) -> None:
+    """Adds `scene`'s fingerprint to the stored reference at `path`, which must have been rendered for this scene:
+    the same digest, or (check_digest=False) the scene exported again on a machine whose float kernels round
+    otherwise, shown to be the same by other means."""
+    ref = load_reference(path)
+    if check_digest and ref.scene_sha256 != scene_digest(scene):
+        raise ValueError(f"{path}: rendered for another scene (sha256 {ref.scene_sha256[:12]}, not "
+                         f"{scene_digest(scene)[:12]})")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    arrays["meta"] = np.array(json.dumps({**meta, "scene_fingerprint": scene_fingerprint(scene)}))
+    np.savez_compressed(path, **arrays)
 
 
 def save_scene(scene: PTScene, path: Path) -> None:
@@ -144,6 +207,7 @@ class Reference:
     scene_sha256: str
     seed_bases: tuple[int, ...] = (0,)  # half k of base s was seeded with 2 s + k
     lamp_housing_m: float = 0.0  # radius of the water-free sphere round each lamp (pathtracer._lamp); 0: none
+    scene_fingerprint: dict[str, list] | None = None  # scene_fingerprint; None in references from before it
 
     @property
     def mean(self) -> np.ndarray:
@@ -159,7 +223,7 @@ def render_reference(scene: PTScene, spp: int, variant: str = pathtracer.VARIANT
                                         lamp_housing_m=lamp_housing_m))
         seconds += time.perf_counter() - t0
     return Reference(tuple(halves), spp, variant, seconds, host, scene_digest(scene), (seed_base,),
-                     lamp_housing_m if scene.lamps else 0.0)
+                     lamp_housing_m if scene.lamps else 0.0, scene_fingerprint(scene))
 
 
 def merge(a: Reference, b: Reference) -> Reference:
@@ -177,7 +241,7 @@ def merge(a: Reference, b: Reference) -> Reference:
     variant = a.variant if a.variant == b.variant else f"{a.variant}+{b.variant}"
     host = a.host if a.host == b.host else f"{a.host}; {b.host}"
     return Reference(halves, n, variant, a.seconds + b.seconds, host, a.scene_sha256, a.seed_bases + b.seed_bases,
-                     a.lamp_housing_m)
+                     a.lamp_housing_m, a.scene_fingerprint or b.scene_fingerprint)
 
 
 def budget_spp(scene: PTScene, seconds: float, variant: str, lamp_housing_m: float = 0.0) -> int:
@@ -193,6 +257,8 @@ def budget_spp(scene: PTScene, seconds: float, variant: str, lamp_housing_m: flo
 def save_reference(ref: Reference, path: Path | BinaryIO) -> None:
     meta = {"spp": ref.spp, "variant": ref.variant, "seconds": ref.seconds, "host": ref.host,
             "scene_sha256": ref.scene_sha256, "seed_bases": list(ref.seed_bases), "lamp_housing_m": ref.lamp_housing_m}
+    if ref.scene_fingerprint is not None:
+        meta["scene_fingerprint"] = ref.scene_fingerprint
     np.savez_compressed(path, half0=ref.halves[0], half1=ref.halves[1], meta=np.array(json.dumps(meta)))
 
 

@@ -41,6 +41,7 @@ THREE_CLASSES = {
          "scale": [1.5, 2.5], "placement": {"kind": "water", "height_m": [0.1, 0.6], "school": {"size": [1, 3]}}},
     ],
     "distractors": {"count": [1, 3]},
+    "water": {"solved_column": False},  # the classes' outputs, not the light: the closed form spares column solves
     "outputs": {"instance": True, "semantic": True, "coco": True, "yolo": True, "mcap": True,
                 "split": [1.0, 0.0, 0.0]},
 }

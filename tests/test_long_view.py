@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 from test_render import draw
 from test_render_light import ONE, camera, lamp, light, pixel_rays, quad
@@ -97,7 +97,8 @@ def test_lamps_a_black_surface_is_open_water_past_the_cutoff_optical_depth(water
                    "black surface near a lamp can show more scattered light than open water, whose 24 nodes spread "
                    "over tens of metres miss the lit part near the camera (seen: up to all of it, at radiances of "
                    "1e-6 and below as at 1e-1)")
-@settings(max_examples=120, deadline=None)
+@settings(max_examples=120, deadline=None, phases=(Phase.explicit, Phase.reuse, Phase.generate))  # the first
+# counterexample is enough for a known failure: shrinking it took 105 s of CI's 2-core machine
 @given(water=waters(), data=st.data(), depth=st.floats(0.5, 200.0), n_lamps=st.integers(1, 3))
 def test_lamps_a_black_surface_never_outshines_the_open_water_behind_it(water, data, depth, n_lamps):
     lt, direction = lamp_ray(data, water, depth, n_lamps)

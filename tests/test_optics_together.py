@@ -33,7 +33,7 @@ BASE = {
     "frames": 2, "quality": "draft",
     "camera": {"width": 48, "height": 36, "hfov_deg": 70.0},
     "targets": {"class_name": "Urchin", "count": [2, 4], "assets": [{"procedural": "urchin", "variants": 2}]},
-    "water": {"jerlov": ["1C", "3C"], "depth_m": [4.0, 8.0]},
+    "water": {"jerlov": ["1C", "3C"], "depth_m": [4.0, 8.0], "solved_column": False},  # optics, not the column's light
     "outputs": {"instance": True, "depth": True, "range": True, "meta": True},
 }
 
