@@ -100,6 +100,40 @@ def _draw_chunk(tri, ids, i0, j0, nx, area, den, width, face, zbuf) -> None:
     zbuf[pixel[nearer]], face[pixel[nearer]] = z[nearer], t[nearer]
 
 
+def trace_thin(tri: np.ndarray, face: np.ndarray, zbuf: np.ndarray) -> None:
+    """Draws, along their edges, the triangles thinner than a pixel (a needle, a sheet seen edge-on), which
+    rasterise's centres can miss over most of their length: a point every pixel step along each edge marks the
+    pixel it falls in if rasterise left it empty, nearest first (face, zbuf (height, width), updated in place).
+    Pixels rasterise drew keep their triangle: a dense mesh's inside is as rasterise shades it."""
+    height, width = face.shape
+    a, b, c = tri[:, 0, :2], tri[:, 1, :2], tri[:, 2, :2]
+    twice_area = np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+    longest = np.max([np.hypot(*(q - p).T) for p, q in ((a, b), (b, c), (c, a))], axis=0)
+    surface = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 1e-9 * longest**2
+    # thin: its least altitude on screen (2 area / longest side) at most a pixel; a surface: not degenerate in 3D (a
+    # sheet seen edge-on is one, three points on a line or at one place are not)
+    thin = np.nonzero(surface & (twice_area <= longest))[0]
+    flat_face, flat_z = face.reshape(-1), zbuf.reshape(-1)
+    empty = flat_face < 0
+    for e0, e1 in ((0, 1), (1, 2), (2, 0)):
+        p, q = tri[thin, e0], tri[thin, e1]
+        steps = np.ceil(np.hypot(*(q[:, :2] - p[:, :2]).T)).astype(np.int64) + 1  # points per edge, ends included
+        for chunk in np.array_split(np.arange(len(thin)), max(1, int(steps.sum()) // CHUNK_SAMPLES + 1)):
+            n = steps[chunk]
+            t = np.repeat(chunk, n)
+            k = np.arange(len(t)) - np.repeat(np.cumsum(n) - n, n)
+            f = (k / np.maximum(steps[t] - 1, 1))[:, None]
+            point = p[t] + f * (q[t] - p[t])
+            col, row = np.floor(point[:, 0]).astype(np.int64), np.floor(point[:, 1]).astype(np.int64)
+            keep = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+            pixel, z, owner = (row * width + col)[keep], point[keep, 2], thin[t[keep]]
+            order = np.lexsort((owner, -z, pixel))  # by pixel, nearest first, then by triangle
+            first = np.unique(pixel[order], return_index=True)[1]
+            pixel, z, owner = pixel[order][first], z[order][first], owner[order][first]
+            nearer = empty[pixel] & (z > flat_z[pixel])
+            flat_z[pixel[nearer]], flat_face[pixel[nearer]] = z[nearer], owner[nearer]
+
+
 def draw(vertices: np.ndarray, faces: np.ndarray, width: int = WIDTH, height: int = HEIGHT) -> np.ndarray:
     """(height, width, 4) uint8 RGBA: the mesh (vertices (n, 3), any unit, +z up; faces (m, 3) int) flat-shaded
     on a transparent background, from AZIMUTH_DEG, ELEVATION_DEG, filling the picture within its margins."""
@@ -107,7 +141,8 @@ def draw(vertices: np.ndarray, faces: np.ndarray, width: int = WIDTH, height: in
     s = SUPERSAMPLE
     faces = np.asarray(faces, dtype=np.int64)
     screen = project(vertices, axes, width * s, height * s)
-    face, _ = rasterise(screen[faces], width * s, height * s)
+    face, zbuf = rasterise(screen[faces], width * s, height * s)
+    trace_thin(screen[faces], face, zbuf)
     shade = face_shades(vertices, faces, axes)
     covered = face >= 0
     rgba = np.zeros((height * s, width * s, 4), dtype=np.float64)

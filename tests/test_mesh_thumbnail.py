@@ -98,6 +98,7 @@ def test_the_picture_is_the_flat_shaded_mesh_within_its_projection(extents):
     assert rgba.shape == (96, 128, 4) and rgba.dtype == np.uint8
     screen = project(box.vertices, view_axes(mesh_thumbnail.AZIMUTH_DEG, mesh_thumbnail.ELEVATION_DEG), 128, 96)
     rows, cols = np.nonzero(rgba[..., 3])
+    assert len(rows) > 0  # however thin (a needle of 0.01 by 20 fits in 0.04 of a pixel's width), a box shows
     # nothing drawn outside the pixels the projection's bounding box touches
     lo, hi = screen[:, :2].min(axis=0), screen[:, :2].max(axis=0)
     assert cols.min() >= np.floor(lo[0]) and cols.max() <= np.ceil(hi[0]) - 1
@@ -105,6 +106,31 @@ def test_the_picture_is_the_flat_shaded_mesh_within_its_projection(extents):
     # a fully covered pixel is the clay colour at a shade between the ambient light and full light
     shade = rgba[rgba[..., 3] == 255, :3] / mesh_thumbnail.COLOUR
     assert (shade >= mesh_thumbnail.AMBIENT - 0.01).all() and (shade <= 1 + 0.01).all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(thin=st.floats(1e-4, 0.05), long=st.floats(5.0, 50.0), axis=st.integers(0, 2), turn=st.floats(0.0, 360.0))
+def test_a_needle_or_a_sheet_seen_edge_on_shows_along_its_whole_length(thin, long, axis, turn):
+    """Thinner than the samples' spacing, such a mesh would fall between pixel centres: its triangles are drawn
+    along their edges, a point every sample step: every point of the needle's axis is within a pixel of a drawn one
+    (a step can pass a pixel's corner by), and nothing is drawn beyond its projection's pixels."""
+    extents = [thin, thin, thin]
+    extents[axis] = long
+    needle = trimesh.creation.box(extents=extents)
+    first = needle.vertices[:, axis] < 0  # the corners at one end (turning keeps the vertices' order)
+    needle.apply_transform(trimesh.transformations.rotation_matrix(np.radians(turn), [0, 0, 1]))
+    rgba = draw(needle.vertices, needle.faces)
+    screen = project(needle.vertices, view_axes(mesh_thumbnail.AZIMUTH_DEG, mesh_thumbnail.ELEVATION_DEG), 128, 96)
+    ends = [screen[first, :2].mean(axis=0), screen[~first, :2].mean(axis=0)]
+    for f in np.linspace(0.02, 0.98, 200):  # points along the axis, off its ends' pixels
+        col, row = np.floor(ends[0] + f * (ends[1] - ends[0])).astype(int)
+        assert rgba[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2, 3].any(), (f, col, row)
+    lo, hi = screen[:, :2].min(axis=0), screen[:, :2].max(axis=0)
+    rows, cols = np.nonzero(rgba[..., 3])
+    assert cols.min() >= np.floor(lo[0]) - 1 and cols.max() <= np.ceil(hi[0]) and rows.min() >= np.floor(lo[1]) - 1
+    assert rows.max() <= np.ceil(hi[1])
+    sheet = trimesh.creation.box(extents=[long, long, thin])  # seen from 30 degrees above: not edge-on, drawn whole
+    assert (draw(sheet.vertices, sheet.faces)[..., 3] > 0).sum() > 100
 
 
 def check_with_picture(tmp_path: Path, name: str, data: bytes) -> tuple[dict, bytes | None]:

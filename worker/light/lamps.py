@@ -111,6 +111,17 @@ def reach(lamp: Lamp, c: np.ndarray, K: np.ndarray, b: np.ndarray, g: float, d_m
     return np.maximum(hi, lamp.cutoff_rad) + REACH_MARGIN_RAD
 
 
+def dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x . y over the last axis (3), written out: each element rounds alike whatever the array's shape and the CPU
+    (matmul, einsum and norm pick their kernels by both, so a ray's value moved with the rays beside it)."""
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
+
+
+def norm3(x: np.ndarray) -> np.ndarray:
+    """|x| over the last axis (3), as dot3 rounds."""
+    return np.sqrt(dot3(x, x))
+
+
 def cone_interval(dirs: np.ndarray, apex: np.ndarray, axis: np.ndarray, half_angle: np.ndarray,
                   t_end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(t0, t1): the part of each ray t * dirs, 0 <= t <= t_end, inside the cone (apex, unit axis, half_angle); t0 = t1
@@ -122,7 +133,7 @@ def cone_interval(dirs: np.ndarray, apex: np.ndarray, axis: np.ndarray, half_ang
     much, where `reach`'s margin keeps the light at 0."""
     q = -np.asarray(apex, dtype=np.float64)
     k = np.cos(np.minimum(half_angle, math.pi / 2))
-    A, B, C, D = dirs @ axis, float(q @ axis), dirs @ q, float(q @ q)
+    A, B, C, D = dot3(dirs, axis), float(dot3(q, axis)), dot3(dirs, q), float(dot3(q, q))
     a2, b2, c2 = A * A - k * k, A * B - k * k * C, B * B - k * k * D
     sq = np.sqrt(np.maximum(b2 * b2 - a2 * c2, 0.0))
     qq = -(b2 + np.where(b2 < 0, -sq, sq))
@@ -134,7 +145,7 @@ def cone_interval(dirs: np.ndarray, apex: np.ndarray, axis: np.ndarray, half_ang
     for lo, hi in zip(cuts[:-1], cuts[1:]):
         mid = 0.5 * (lo + hi)
         v = dirs * mid[..., None] + q
-        inside = (mid * A + B) >= k * np.linalg.norm(v, axis=-1)
+        inside = (mid * A + B) >= k * norm3(v)
         t0, t1 = np.where(inside, np.minimum(t0, lo), t0), np.where(inside, np.maximum(t1, hi), t1)
     whole = half_angle >= math.pi / 2
     empty = t0 > t1

@@ -31,7 +31,9 @@ from seasynth.worker.light.lamps import (
     LAMP_Z_SPREAD,
     MIN_LAMP_DISTANCE_M,
     cone_interval,
+    dot3,
     light_factor,
+    norm3,
     reach,
 )
 from seasynth.worker.light.sky import MU_SKY, sky_phase, sky_phase_table, window_radiance
@@ -83,7 +85,7 @@ def volume(J: np.ndarray, z: np.ndarray, dirs_world: np.ndarray, dirs_cam: np.nd
         out = out + j_ms * segment(0.0, m.c - k_j * w, zs)
     if t.scattering and t.sun:
         s = light.sun_dir_world
-        mu_s = np.dot(dirs_world, s)[..., None]
+        mu_s = dot3(dirs_world, s)[..., None]
         mu_w = s[2]
         e = math.pi * light.sun_irradiance
         # The beam and its forward-scattered light (small-angle: still along the sun's refracted direction) scatter
@@ -143,10 +145,10 @@ def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m, spread: bool 
         return np.zeros((*z.shape, 3))
     t_end = np.minimum(z, CUTOFF_OPTICAL_DEPTH / max(float(k_pos.min()), 1e-30))
     p = lamp.position_cam
-    d_max = np.maximum(np.linalg.norm(p), np.linalg.norm(dirs_cam * t_end[..., None] - p, axis=-1))
+    d_max = np.maximum(norm3(p), norm3(dirs_cam * t_end[..., None] - p))
     t0, t1 = cone_interval(dirs_cam, p, lamp.direction_cam, reach(lamp, m.c, K, b, g, d_max, spread), t_end)
-    tc = dirs_cam @ p  # along-ray position of the point nearest the lamp
-    h = np.maximum(np.linalg.norm(dirs_cam * tc[..., None] - p, axis=-1), MIN_LAMP_DISTANCE_M)
+    tc = dot3(dirs_cam, p)  # along-ray position of the point nearest the lamp
+    h = np.maximum(norm3(dirs_cam * tc[..., None] - p), MIN_LAMP_DISTANCE_M)
     u0 = np.arctan2(t0 - tc, h)
     u1 = np.arctan2(t1 - tc, h)
     du = (u1 - u0) / BACKSCATTER_NODES
@@ -156,9 +158,9 @@ def lamp_backscatter(lamp, dirs_cam: np.ndarray, z: np.ndarray, m, spread: bool 
         t = tc + h * np.tan(u)
         x = dirs_cam * t[..., None]
         to_x = x - p
-        r = np.maximum(np.linalg.norm(to_x, axis=-1), MIN_LAMP_DISTANCE_M)
-        cos_axis = (to_x @ lamp.direction_cam) / r
-        cos_scatter = -np.einsum("...i,...i->...", to_x, dirs_cam) / r
+        r = np.maximum(norm3(to_x), MIN_LAMP_DISTANCE_M)
+        cos_axis = dot3(to_x, lamp.direction_cam) / r
+        cos_scatter = -dot3(to_x, dirs_cam) / r
         f = hg(cos_scatter, g) / h  # inverse square * dt = du / h
         acc += f[..., None] * light_factor(lamp, cos_axis, r, m.c, K, b, g, spread) * np.exp(-K * t[..., None])
     return acc * (du[..., None] * b * math.pi * lamp.intensity)
