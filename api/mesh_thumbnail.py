@@ -108,16 +108,18 @@ def trace_thin(tri: np.ndarray, face: np.ndarray, zbuf: np.ndarray) -> None:
     height, width = face.shape
     a, b, c = tri[:, 0, :2], tri[:, 1, :2], tri[:, 2, :2]
     twice_area = np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
-    longest = np.max([np.hypot(*(q - p).T) for p, q in ((a, b), (b, c), (c, a))], axis=0)
+    edges = ((0, 1), (1, 2), (2, 0))
+    lengths = [np.hypot(*(tri[:, e1, :2] - tri[:, e0, :2]).T) for e0, e1 in edges]  # on screen, per edge
+    longest = np.max(lengths, axis=0)
     surface = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 1e-9 * longest**2
     # thin: its least altitude on screen (2 area / longest side) at most a pixel; a surface: not degenerate in 3D (a
     # sheet seen edge-on is one, three points on a line or at one place are not)
     thin = np.nonzero(surface & (twice_area <= longest))[0]
     flat_face, flat_z = face.reshape(-1), zbuf.reshape(-1)
     empty = flat_face < 0
-    for e0, e1 in ((0, 1), (1, 2), (2, 0)):
+    for (e0, e1), length in zip(edges, lengths, strict=True):
         p, q = tri[thin, e0], tri[thin, e1]
-        steps = np.ceil(np.hypot(*(q[:, :2] - p[:, :2]).T)).astype(np.int64) + 1  # points per edge, ends included
+        steps = np.ceil(length[thin]).astype(np.int64) + 1  # points per edge, ends included
         for chunk in np.array_split(np.arange(len(thin)), max(1, int(steps.sum()) // CHUNK_SAMPLES + 1)):
             n = steps[chunk]
             t = np.repeat(chunk, n)
